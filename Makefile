@@ -1,0 +1,26 @@
+# Two commands do all the set-up on a fresh Debian machine:
+#   make demo   renders scenes/demo.xml to out/demo.exr (+ .png)
+#   make test   runs the test suite (fast default; see README for markers)
+SHELL := /bin/sh
+PY    := .venv/bin/python
+RUN   := DRJIT_LIBLLVM_PATH="$$(tools/find-llvm19)" $(PY)
+SPP   ?= 64
+PYTEST_ARGS ?=
+
+.PHONY: setup demo test test-all bench clean
+
+setup:
+	@tools/setup.sh
+
+demo: setup
+	@mkdir -p out
+	$(RUN) -m mi_amr.cli render scenes/demo.xml -o out/demo.exr --spp $(SPP)
+
+test: setup
+	$(RUN) -m pytest -q $(PYTEST_ARGS)
+
+test-all: setup
+	$(RUN) -m pytest -q -m "" $(PYTEST_ARGS)
+
+clean:
+	rm -rf out .pytest_cache

@@ -1,0 +1,45 @@
+"""mi-amr: path tracing of adaptive-mesh-refinement volume data in Mitsuba 3.
+
+Importing this package registers the ``amr`` medium for the active Mitsuba
+variant and for every variant selected later.
+"""
+
+from __future__ import annotations
+
+from ._llvm import ensure_llvm_path
+
+ensure_llvm_path()
+
+import mitsuba as mi  # noqa: E402
+
+from .cells import AMRCells  # noqa: E402
+from .convert import dense_to_amr
+from .io import load_cells, read_exabricks, read_npz, save_cells, write_exabricks, write_npz
+from .transfer import TransferFunction
+
+__version__ = "0.1.0"
+__all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",
+           "read_exabricks", "write_exabricks", "read_npz", "write_npz", "register"]
+
+
+def register(variant: str | None = None):
+    """Register the mi-amr plugins for the active variant (called on import
+    and on every variant change)."""
+    if mi.variant() is None:
+        return
+    from .medium import AMRMedium, require_jit_rgb_variant
+
+    def make_medium(props):
+        require_jit_rgb_variant("the 'amr' medium")
+        return AMRMedium(props)
+
+    mi.register_medium("amr", make_medium)
+
+
+def _on_variant_change(old, new):
+    if new is not None:
+        register()
+
+
+mi.detail.add_variant_callback(_on_variant_change)
+register()

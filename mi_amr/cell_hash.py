@@ -1,0 +1,153 @@
+"""Point location: one open-addressing hash table of cell keys per level.
+
+A cell of level L is keyed by its integer coordinate ``q = (pos - origin) >> L``
+in level-L units. Looking up "the level-L cell at q" costs O(1) expected
+probes regardless of the number of cells; a query point needs one lookup per
+level for ``nearest`` and eight (the 2x2x2 stencil) per level for ``tent``.
+The tables are built once on the host (numpy) and queried in Dr.Jit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .cells import AMRCells
+
+#: Bits per axis in a packed key; level-L coordinates must stay below 2**KEY_BITS.
+KEY_BITS = 21
+EMPTY_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
+MAX_LEVELS = 32
+
+
+def hash_u32(qx, qy, qz):
+    """32-bit spatial hash of integer coordinates (numpy or Dr.Jit UInt32).
+
+    Wrapping uint32 arithmetic, written so that numpy and Dr.Jit give the
+    same bits: a multiply-xor combine followed by a murmur-style finaliser.
+    """
+    h = (qx * 73856093) ^ (qy * 19349663) ^ (qz * 83492791)
+    h = h ^ (h >> 16)
+    h = h * 0x7FEB352D
+    h = h ^ (h >> 15)
+    h = h * 0x846CA68B
+    h = h ^ (h >> 16)
+    return h
+
+
+def pack_key(qx, qy, qz):
+    """Exact 64-bit key of level coordinates, KEY_BITS bits per axis."""
+    return qx | (qy << KEY_BITS) | (qz << (2 * KEY_BITS))
+
+
+class CellHash:
+    """Per-level hash tables over the cells, stored back to back.
+
+    Attributes (host, numpy)
+    ------------------------
+    origin : int64 (3,)
+        Lower corner of the key space in finest units, aligned to the
+        coarsest level present (so every level's ``q`` is an integer >= 0).
+    keys : uint64 (S,), values : float32 (S,)
+        Slots of all tables; empty slots hold ``EMPTY_KEY``.
+    offset, mask : uint32 (MAX_LEVELS,)
+        Start and capacity - 1 of the table of each level.
+    level_bits : int
+        Bit L set when level L has cells.
+    max_probe : int
+        Longest probe sequence any lookup (hit or miss) can take.
+    """
+
+    def __init__(self, cells: AMRCells, load_factor: float = 0.35):
+        lmax = int(cells.level.max())
+        lo, _ = cells.bounds
+        self.origin = (lo >> lmax) << lmax
+        rel = cells.pos - self.origin
+        self.offset = np.zeros(MAX_LEVELS, dtype=np.uint32)
+        self.mask = np.zeros(MAX_LEVELS, dtype=np.uint32)
+        self.level_bits = 0
+        keys, values, max_probe, total = [], [], 1, 0
+        for L in cells.levels:
+            L = int(L)
+            sel = cells.level == L
+            q = (rel[sel] >> L).astype(np.uint64)
+            if q.size and q.max() >= (1 << KEY_BITS):
+                raise ValueError(
+                    f"{cells.source}: level {L} spans {int(q.max()) + 1} cells per axis; "
+                    f"at most {1 << KEY_BITS} are supported")
+            n = int(sel.sum())
+            cap = 1 << max(4, int(np.ceil(np.log2(n / load_factor))))
+            k, v, probes = _build_table(q, cells.value[sel], cap)
+            keys.append(k)
+            values.append(v)
+            max_probe = max(max_probe, probes)
+            self.offset[L] = total
+            self.mask[L] = cap - 1
+            self.level_bits |= 1 << L
+            total += cap
+        self.keys = np.concatenate(keys)
+        self.values = np.concatenate(values)
+        self.max_probe = max_probe
+
+    @property
+    def nbytes(self) -> int:
+        return self.keys.nbytes + self.values.nbytes
+
+    def lookup(self, level: int, q: np.ndarray):
+        """Host lookup (for tests): values and a found mask for int (M, 3) ``q``."""
+        q = np.asarray(q, dtype=np.int64)
+        ok = np.all((q >= 0) & (q < (1 << KEY_BITS)), axis=1)
+        qu = np.where(ok[:, None], q, 0).astype(np.uint64)
+        key = pack_key(qu[:, 0], qu[:, 1], qu[:, 2])
+        h = hash_u32(*(qu[:, i].astype(np.uint32) for i in range(3)))
+        found = np.zeros(len(q), dtype=bool)
+        val = np.zeros(len(q), dtype=np.float32)
+        if not (self.level_bits >> level) & 1:
+            return val, found
+        pending = ok.copy()
+        for p in range(self.max_probe):
+            slot = self.offset[level] + ((h + np.uint32(p)) & self.mask[level])
+            k = self.keys[slot]
+            hit = pending & (k == key)
+            found |= hit
+            val[hit] = self.values[slot[hit]]
+            pending &= ~hit & (k != EMPTY_KEY)
+        return val, found
+
+
+def _build_table(q: np.ndarray, values: np.ndarray, cap: int):
+    """Linear-probing insertion of all keys, vectorised over rounds."""
+    keys = np.full(cap, EMPTY_KEY, dtype=np.uint64)
+    vals = np.zeros(cap, dtype=np.float32)
+    key = pack_key(q[:, 0], q[:, 1], q[:, 2])
+    home = hash_u32(*(q[:, i].astype(np.uint32) for i in range(3))) & np.uint32(cap - 1)
+    pending = np.arange(len(key))
+    probe = np.zeros(len(key), dtype=np.int64)
+    while len(pending):
+        slot = (home[pending].astype(np.int64) + probe[pending]) & (cap - 1)
+        free = keys[slot] == EMPTY_KEY
+        cand = pending[free]
+        cslot = slot[free]
+        _, first = np.unique(cslot, return_index=True)   # one winner per free slot
+        win = cand[first]
+        keys[cslot[first]] = key[win]
+        vals[cslot[first]] = values[win]
+        placed = np.zeros(len(key), dtype=bool)
+        placed[win] = True
+        rest = pending[~placed[pending]]
+        probe[rest] += 1
+        pending = rest
+    # A miss stops at the first empty slot: bound by the longest occupied run.
+    occ = keys != EMPTY_KEY
+    longest = _longest_cyclic_run(occ)
+    return keys, vals, int(max(probe.max() + 1, longest + 1))
+
+
+def _longest_cyclic_run(occ: np.ndarray) -> int:
+    if occ.all():
+        raise ValueError("hash table is full")
+    # rotate so that the array starts right after an empty slot
+    start = int(np.argmin(occ))
+    o = np.roll(occ, -start).astype(np.int8)
+    edges = np.diff(np.concatenate([[0], o, [0]]))
+    starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    return int((ends - starts).max()) if len(starts) else 0

@@ -1,0 +1,182 @@
+"""Cell-centric AMR data: the `AMRCells` container and its validation.
+
+Coordinates are integers in *finest-level cell units*: a cell of ``level`` L
+has width ``w = 2**L`` and covers ``[pos, pos + w)`` on each axis. Level 0 is
+the finest level (DESIGN.md section 2).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import mitsuba as mi
+
+#: Largest supported cell level (a level-30 cell is 2**30 finest cells wide).
+MAX_LEVEL = 30
+
+
+class AMRCells(mi.Object):
+    """A set of AMR cells: lower corners, levels and scalar values.
+
+    Subclasses ``mitsuba.Object`` so that an instance can be passed as the
+    ``data`` entry of a ``mi.load_dict`` scene dictionary.
+
+    Parameters
+    ----------
+    pos : int array (N, 3)
+        Lower cell corners in finest-level units, aligned to ``2**level``.
+    level : int array (N,)
+        Cell levels, ``0`` = finest.
+    value : float array (N,)
+        One finite scalar per cell.
+    overlap : {"error", "finest"}
+        What to do with cells that cover the same space: raise ``ValueError``
+        (default) or keep the finer cells and drop the coarser ones.
+    source : str
+        Name used in error messages (e.g. the file the data came from).
+    """
+
+    def __init__(self, pos, level, value, *, overlap: str = "error",
+                 source: str = "AMR data", validate: bool = True):
+        super().__init__()
+        pos = np.asarray(pos)
+        level = np.asarray(level)
+        value = np.asarray(value)
+        if pos.ndim != 2 or pos.shape[1] != 3:
+            raise ValueError(f"{source}: pos must have shape (N, 3), got {pos.shape}")
+        n = pos.shape[0]
+        if level.shape != (n,) or value.shape != (n,):
+            raise ValueError(
+                f"{source}: inconsistent sizes: pos has {n} cells, level has "
+                f"{level.shape}, value has {value.shape}")
+        if n == 0:
+            raise ValueError(f"{source}: contains no cells")
+        if overlap not in ("error", "finest"):
+            raise ValueError(f"{source}: overlap must be 'error' or 'finest', got {overlap!r}")
+        self.source = source
+        self.pos = np.ascontiguousarray(pos, dtype=np.int64)
+        self.level = np.ascontiguousarray(level, dtype=np.int32)
+        self.value = np.ascontiguousarray(value, dtype=np.float32)
+        if validate:
+            self._validate(overlap)
+
+    # ---- Validation ----------------------------------------------------
+    def _validate(self, overlap: str):
+        src = self.source
+        if np.any(self.level < 0):
+            i = int(np.argmax(self.level < 0))
+            raise ValueError(f"{src}: cell {i} has negative level {self.level[i]}")
+        if np.any(self.level > MAX_LEVEL):
+            i = int(np.argmax(self.level > MAX_LEVEL))
+            raise ValueError(f"{src}: cell {i} has level {self.level[i]} > {MAX_LEVEL}")
+        if not np.all(np.isfinite(self.value)):
+            i = int(np.argmax(~np.isfinite(self.value)))
+            raise ValueError(f"{src}: cell {i} has non-finite value {self.value[i]}")
+        w = (np.int64(1) << self.level.astype(np.int64))[:, None]
+        bad = np.any(self.pos % w != 0, axis=1)
+        if np.any(bad):
+            i = int(np.argmax(bad))
+            raise ValueError(
+                f"{src}: cell {i} at {self.pos[i].tolist()} (level {self.level[i]}) "
+                f"is not aligned to its width {int(w[i, 0])}")
+        lo = self.pos.min(axis=0)
+        hi = (self.pos + w).max(axis=0)
+        if np.any(hi - lo > 2**31 - 1):
+            raise ValueError(f"{src}: bounding box {lo.tolist()}..{hi.tolist()} "
+                             "exceeds 2**31 finest cells")
+        keep = _non_overlapping(self.pos, self.level)
+        if not np.all(keep):
+            if overlap == "error":
+                i = int(np.argmax(~keep))
+                raise ValueError(
+                    f"{src}: {int((~keep).sum())} cells overlap finer or duplicate "
+                    f"cells (first: cell {i} at {self.pos[i].tolist()}, level "
+                    f"{self.level[i]}); pass overlap='finest' to keep the finer ones")
+            self.pos, self.level, self.value = self.pos[keep], self.level[keep], self.value[keep]
+
+    # ---- Properties ----------------------------------------------------
+    def __len__(self):
+        return int(self.value.shape[0])
+
+    @property
+    def width(self) -> np.ndarray:
+        """Cell widths ``2**level`` in finest-level units, int64 (N,)."""
+        return np.int64(1) << self.level.astype(np.int64)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounding box ``(lo, hi)`` of all cells, int64, finest-level units."""
+        return self.pos.min(axis=0), (self.pos + self.width[:, None]).max(axis=0)
+
+    @property
+    def levels(self) -> np.ndarray:
+        """Sorted distinct levels present."""
+        return np.unique(self.level)
+
+    @property
+    def value_range(self) -> tuple[float, float]:
+        return float(self.value.min()), float(self.value.max())
+
+    @property
+    def nbytes(self) -> int:
+        """Memory of the raw data in the ExaBricks layout (20 bytes per cell)."""
+        return 20 * len(self)
+
+    def __repr__(self):
+        lo, hi = self.bounds
+        return (f"AMRCells[{len(self)} cells, levels {self.levels.tolist()}, "
+                f"bounds {lo.tolist()}..{hi.tolist()}, values "
+                f"[{self.value_range[0]:.4g}, {self.value_range[1]:.4g}]]")
+
+    def summary(self) -> str:
+        """Human-readable summary: cells per level, bounds, values, memory."""
+        lo, hi = self.bounds
+        lines = [f"source       : {self.source}",
+                 f"cells        : {len(self)}",
+                 f"bounding box : {lo.tolist()} .. {hi.tolist()} (finest-cell units)",
+                 f"extent       : {(hi - lo).tolist()}",
+                 f"value range  : [{self.value_range[0]:.6g}, {self.value_range[1]:.6g}]",
+                 f"memory       : {self.nbytes / 2**20:.2f} MiB (cells + scalars)",
+                 "cells per level:"]
+        for L in self.levels:
+            n = int((self.level == L).sum())
+            lines.append(f"  level {int(L):2d} (width {2**int(L):>6d}): {n}")
+        return "\n".join(lines)
+
+
+def _non_overlapping(pos: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """Mask of cells that overlap no finer (or duplicate earlier) cell.
+
+    A coarse cell overlaps a finer one exactly when the finer cell's ancestor
+    at the coarse level has the coarse cell's key; we test this per pair of
+    present levels, vectorised with sorted keys.
+    """
+    keep = np.ones(len(level), dtype=bool)
+    levels = np.unique(level)
+    origin = pos.min(axis=0)
+    rel = pos - origin
+    for L in levels:
+        sel = np.nonzero(level == L)[0]
+        k = cell_keys(rel[sel] >> L)
+        _, first = np.unique(k, return_index=True)
+        dup = np.ones(len(sel), dtype=bool)
+        dup[first] = False            # duplicates at one level: keep the first
+        keep[sel[dup]] = False
+    for Lf in levels:
+        fine = rel[level == Lf]
+        for Lc in levels[levels > Lf]:
+            sel = np.nonzero(level == Lc)[0]
+            ancestors = cell_keys(fine >> Lc)
+            keep[sel[np.isin(cell_keys(rel[sel] >> Lc), ancestors)]] = False
+    return keep
+
+
+def cell_keys(q: np.ndarray) -> np.ndarray:
+    """One sortable key per row of a non-negative int (M, 3) array.
+
+    int64 with 21 bits per axis; a void view (exact, slower) for larger
+    coordinates.
+    """
+    q = np.ascontiguousarray(q, dtype=np.int64)
+    if q.size == 0 or q.max() < (1 << 21):
+        return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
+    return q.view(np.dtype((np.void, 24))).ravel()

@@ -1,0 +1,214 @@
+"""The ``mi-amr`` command line: render, info, convert, compare, dataset."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from ._llvm import ensure_llvm_path
+
+
+def _set_variant(variant: str):
+    ensure_llvm_path()
+    import mitsuba as mi
+    if variant not in mi.variants():
+        raise SystemExit(f"mi-amr: variant {variant!r} is not available "
+                         f"(available: {', '.join(mi.variants())})")
+    mi.set_variant(variant)
+    import mi_amr  # noqa: F401  (registers the plugins for this variant)
+    from .medium import require_jit_rgb_variant
+    try:
+        require_jit_rgb_variant("mi-amr render")
+    except RuntimeError as e:
+        raise SystemExit(f"mi-amr: {e}")
+    return mi
+
+
+# ---- render ----------------------------------------------------------------
+def cmd_render(args):
+    mi = _set_variant(args.variant)
+    import drjit as dr
+    import numpy as np
+    from tqdm import tqdm
+
+    from .images import write_exr, write_png
+    params = {}
+    for item in args.define or []:
+        if "=" not in item:
+            raise SystemExit(f"mi-amr render: -D expects NAME=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        params[k] = v
+    scene = mi.load_file(str(args.scene), **params)
+    spp = args.spp
+    passes = max(1, min(args.passes, spp))
+    per = [spp // passes + (1 if i < spp % passes else 0) for i in range(passes)]
+    acc = None
+    t0 = time.perf_counter()
+    with tqdm(total=spp, unit="spp", desc=Path(args.scene).name, disable=args.quiet) as bar:
+        for i, n in enumerate(per):
+            img = mi.render(scene, spp=n, seed=args.seed * 1000003 + i)
+            arr = np.array(img, dtype=np.float64) * n
+            acc = arr if acc is None else acc + arr
+            bar.update(n)
+    img = (acc / spp).astype(np.float32)
+    seconds = time.perf_counter() - t0
+    if not np.all(np.isfinite(img)):
+        raise SystemExit(f"mi-amr: the rendered image contains {int((~np.isfinite(img)).sum())} "
+                         "non-finite values")
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(out, img)
+    write_png(out.with_suffix(".png"), img)
+    if not args.quiet:
+        print(f"wrote {out} and {out.with_suffix('.png')} ({img.shape[1]}x{img.shape[0]}, "
+              f"{spp} spp, {seconds:.2f} s)")
+    dr.sync_thread()
+
+
+# ---- info ------------------------------------------------------------------
+def cmd_info(args):
+    ensure_llvm_path()
+    from .io import load_cells
+    cells = load_cells(args.file, args.scalars)
+    print(cells.summary())
+    if args.json:
+        lo, hi = cells.bounds
+        print(json.dumps({"cells": len(cells), "levels": {int(L): int((cells.level == L).sum()) for L in cells.levels},
+                          "bounds": [lo.tolist(), hi.tolist()], "value_range": list(cells.value_range),
+                          "bytes": cells.nbytes}))
+
+
+# ---- convert ---------------------------------------------------------------
+def cmd_convert(args):
+    ensure_llvm_path()
+    import numpy as np
+
+    from .convert import dense_to_amr
+    from .io import load_cells, save_cells
+    src = Path(args.input)
+    if src.suffix in (".cells", ".npz"):
+        cells = load_cells(src, overlap=args.overlap)
+    elif src.suffix in (".npy", ".raw"):
+        if src.suffix == ".npy":
+            vol = np.load(src, allow_pickle=False)
+        else:
+            if not args.shape:
+                raise SystemExit("mi-amr convert: a .raw volume needs --shape X Y Z")
+            nx, ny, nz = args.shape
+            expected = nx * ny * nz * np.dtype(args.dtype).itemsize
+            size = src.stat().st_size
+            if size != expected:
+                raise SystemExit(f"mi-amr convert: {src} has {size} bytes, but --shape "
+                                 f"{nx} {ny} {nz} with {args.dtype} needs {expected}")
+            vol = np.fromfile(src, dtype=args.dtype).reshape(nz, ny, nx)
+        cells = dense_to_amr(vol, args.threshold, args.max_level, source=str(src))
+    else:
+        raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' "
+                         "(expected .cells, .npz, .npy or .raw)")
+    out = save_cells(cells, args.output)
+    print(f"wrote {out}: {cells}")
+
+
+# ---- compare ---------------------------------------------------------------
+def cmd_compare(args):
+    import numpy as np
+
+    from .images import read_exr, write_exr
+    from .reference import compare_images
+    a, b = read_exr(args.a), read_exr(args.b)
+    try:
+        stats = compare_images(a, b)
+    except ValueError as e:
+        raise SystemExit(f"mi-amr compare: {e}")
+    if args.diff:
+        write_exr(args.diff, np.abs(a - b))
+    if args.json:
+        print(json.dumps(stats, indent=2))
+        return
+    print(f"A: {args.a}\nB: {args.b} (reference)")
+    print(f"RMSE {stats['rmse']:.6g}   relative RMSE {stats['relative_rmse']:.4%}   "
+          f"MAE {stats['mae']:.6g}   max |A-B| {stats['max_abs']:.6g}")
+    print(f"mean A {stats['mean_a']:.6g}   mean B {stats['mean_b']:.6g}")
+    for name, c in zip("RGBA", stats["channels"]):
+        print(f"  {name}: RMSE {c['rmse']:.6g}  mean A {c['mean_a']:.6g}  mean B {c['mean_b']:.6g}  "
+              f"max |A-B| {c['max_abs']:.6g}")
+    if stats["nonfinite_a"] or stats["nonfinite_b"]:
+        print(f"non-finite pixels: A {stats['nonfinite_a']}, B {stats['nonfinite_b']}")
+    if args.diff:
+        print(f"difference image: {args.diff}")
+
+
+# ---- dataset ---------------------------------------------------------------
+def cmd_dataset(args):
+    ensure_llvm_path()
+    from .datasets import make_dataset
+    from .io import save_cells
+    cells = make_dataset(args.name, args.cells, args.levels, args.seed)
+    out = save_cells(cells, args.output)
+    print(f"wrote {out}: {cells}")
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="mi-amr", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("render", help="render a Mitsuba XML scene to EXR (+ PNG preview)")
+    r.add_argument("scene")
+    r.add_argument("-o", "--output", required=True, help="output .exr path")
+    r.add_argument("--spp", type=int, default=64)
+    r.add_argument("--variant", default="llvm_ad_rgb")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--passes", type=int, default=8, help="split the samples into this many passes (progress)")
+    r.add_argument("-D", "--define", action="append", metavar="NAME=VALUE",
+                   help="set a scene <default> parameter, e.g. -D spp=16 -D tf=spiky")
+    r.add_argument("-q", "--quiet", action="store_true")
+    r.set_defaults(func=cmd_render)
+
+    i = sub.add_parser("info", help="summarise an AMR file")
+    i.add_argument("file")
+    i.add_argument("--scalars")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=cmd_info)
+
+    c = sub.add_parser("convert", help="convert between .npz and .cells, or a dense .npy/.raw volume to AMR")
+    c.add_argument("input")
+    c.add_argument("output")
+    c.add_argument("--threshold", type=float, default=0.0, help="max value spread of merged blocks")
+    c.add_argument("--max-level", type=int, default=4)
+    c.add_argument("--shape", type=int, nargs=3, metavar=("X", "Y", "Z"), help="dimensions of a .raw volume")
+    c.add_argument("--dtype", default="float32", help="element type of a .raw volume")
+    c.add_argument("--overlap", choices=("error", "finest"), default="error")
+    c.set_defaults(func=cmd_convert)
+
+    m = sub.add_parser("compare", help="error statistics of A.exr against reference B.exr")
+    m.add_argument("a")
+    m.add_argument("b")
+    m.add_argument("--diff", help="write |A - B| to this .exr")
+    m.add_argument("--json", action="store_true")
+    m.set_defaults(func=cmd_compare)
+
+    d = sub.add_parser("dataset", help="generate a synthetic data set")
+    d.add_argument("name", choices=("cloud", "shell", "stadium"))
+    d.add_argument("output")
+    d.add_argument("--cells", type=int, default=20000)
+    d.add_argument("--levels", type=int, default=4)
+    d.add_argument("--seed", type=int, default=0)
+    d.set_defaults(func=cmd_dataset)
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except (ValueError, FileNotFoundError, MemoryError) as e:
+        print(f"mi-amr {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

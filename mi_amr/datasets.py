@@ -1,0 +1,167 @@
+"""Synthetic AMR data sets, deterministic by seed.
+
+Each data set is an analytic scalar field on the unit cube, sampled by
+top-down refinement: start from a coarse grid at level ``levels - 1``,
+refine (split into 8) the cells where the field varies most, down to level
+0. The refinement fraction per level is set so that the result has about
+``cells`` cells; every level from 0 to ``levels - 1`` is present.
+
+* ``cloud``: turbulent density (a sum of random Fourier modes) thresholded
+  inside a soft ball, with large empty space around it.
+* ``shell``: a thin, dense, finely refined shock shell around a sparse,
+  faintly turbulent interior, like an impact.
+* ``stadium``: a small, finely refined object (a torus) inside a large,
+  coarse, almost empty domain: the "teapot in a stadium" case.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .cells import AMRCells
+
+NAMES = ("cloud", "shell", "stadium")
+
+
+class _Noise:
+    """Band-limited turbulence: a sum of random Fourier modes, amplitude ~ 1/k."""
+
+    def __init__(self, rng, modes=32, kmin=2.0, kmax=16.0):
+        k = np.exp(rng.uniform(np.log(kmin), np.log(kmax), modes))
+        d = rng.normal(size=(modes, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        self.freq = 2 * np.pi * d * k[:, None]
+        self.phase = rng.uniform(0, 2 * np.pi, modes)
+        self.amp = 1.0 / k
+        self.amp /= np.sqrt(0.5 * (self.amp ** 2).sum())
+
+    def __call__(self, x):
+        out = np.zeros(len(x))
+        for f, p, a in zip(self.freq, self.phase, self.amp):
+            out += a * np.sin(x @ f + p)
+        return out
+
+
+def _field(name: str, seed: int):
+    """The field ``f(x)`` of a data set (x in the unit cube, (M, 3)) and a
+    feature test ``g(centre, half_diagonal)``: does a cell touch the
+    feature that must be refined first (the shell, the small object)?"""
+    rng = np.random.default_rng(seed)
+    noise = _Noise(rng)
+    feature = None
+    if name == "cloud":
+        def f(x):
+            r = np.linalg.norm(x - 0.5, axis=1)
+            ball = np.clip(1.0 - (r / 0.42) ** 2, 0.0, 1.0)
+            return np.clip(0.6 * noise(x) + 1.4 * ball - 0.75, 0.0, None)
+    elif name == "shell":
+        center = np.array([0.5, 0.5, 0.5]) + rng.uniform(-0.05, 0.05, 3)
+
+        def f(x):
+            r = np.linalg.norm(x - center, axis=1)
+            rr = 0.33 + 0.015 * noise(x)
+            shell = np.exp(-(((r - rr) / 0.012) ** 2))
+            inner = np.where(r < rr, 0.06 * (1 + 0.5 * noise(2 * x)), 0.0)
+            return shell + np.clip(inner, 0.0, None)
+
+        def feature(c, h):
+            return np.abs(np.linalg.norm(c - center, axis=1) - 0.33) < h + 0.03
+    elif name == "stadium":
+        center = np.array([0.55, 0.45, 0.5]) + rng.uniform(-0.03, 0.03, 3)
+
+        def f(x):
+            p = x - center
+            q = np.sqrt(p[:, 0] ** 2 + p[:, 2] ** 2) - 0.03      # torus, R=0.03
+            d = np.sqrt(q ** 2 + p[:, 1] ** 2) - 0.012            # tube radius 0.012
+            torus = np.clip(1.0 - d / 0.006, 0.0, 1.0)
+            fog = 0.02 * np.clip(noise(x * 0.5) + 0.5, 0, None)
+            return torus + fog
+
+        def feature(c, h):
+            return np.linalg.norm(c - center, axis=1) < h + 0.05
+    else:
+        raise ValueError(f"unknown data set {name!r} (choose from {', '.join(NAMES)})")
+    return f, feature
+
+
+def _variation(f, lo, w, base_vals):
+    """How much the field varies over each cell: spread of f at the centre
+    and the 8 corners, plus the cell's peak value (so bright features refine)."""
+    vals = [base_vals]
+    for c in range(8):
+        off = np.array([(c >> a) & 1 for a in range(3)], dtype=np.float64)
+        vals.append(f(lo + off * w[:, None] * 0.999))
+    v = np.stack(vals)
+    return v.max(axis=0) - v.min(axis=0)
+
+
+def make_dataset(name: str, cells: int = 20000, levels: int = 4, seed: int = 0) -> AMRCells:
+    """Synthetic AMR data set ``name`` with about ``cells`` cells over
+    ``levels`` levels (>= 2), deterministic for a given seed.
+
+    Positions are in finest-level units; the domain is a cube of
+    ``base * 2**(levels - 1)`` finest cells per side.
+    """
+    if name not in NAMES:
+        raise ValueError(f"unknown data set {name!r} (choose from {', '.join(NAMES)})")
+    if levels < 2 or levels > 12:
+        raise ValueError(f"levels must be in 2..12, got {levels}")
+    if cells < 64:
+        raise ValueError(f"cells must be >= 64, got {cells}")
+    f, feature = _field(name, seed)
+    # Nominal growth with 25% refined per level: c_{L} = 0.75 + 2 c_{L-1}.
+    growth = 1.0
+    for _ in range(levels - 1):
+        growth = 0.75 + 2.0 * growth
+    base = max(2, int(round((cells / growth) ** (1 / 3))))
+    top = levels - 1
+    n_fine = base << top                              # finest cells per axis
+    g = np.stack(np.meshgrid(*[np.arange(base)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    pos = (g << top).astype(np.int64)
+    out_pos, out_lvl, out_val = [], [], []
+    budget = float(cells)
+    for L in range(top, -1, -1):
+        w = np.full(len(pos), float(1 << L))
+        x = (pos + 0.5 * w[:, None]) / n_fine
+        val = f(x)
+        if L == 0:
+            keep = np.ones(len(pos), dtype=bool)
+        else:
+            crit = _variation(f, pos / n_fine, w / n_fine, val)
+            if feature is not None:
+                crit = crit + 10.0 * feature(x, 0.87 * w / n_fine)
+            # Refine as many cells as the remaining budget allows at this level.
+            finer_growth = 1.0
+            for _ in range(L - 1):
+                finer_growth = 0.75 + 2.0 * finer_growth
+            emitted = sum(len(p) for p in out_pos)
+            n_ref = int(np.clip((budget - emitted - len(pos)) / (8 * finer_growth - 1), 1, len(pos)))
+            n_ref = min(n_ref, int((crit > 1e-6).sum()) or 1)
+            order = np.argsort(-crit, kind="stable")
+            keep = np.ones(len(pos), dtype=bool)
+            keep[order[:n_ref]] = False
+        out_pos.append(pos[keep])
+        out_lvl.append(np.full(int(keep.sum()), L, dtype=np.int32))
+        out_val.append(val[keep])
+        if L > 0:
+            parents = pos[~keep]
+            h = 1 << (L - 1)
+            offs = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=np.int64) * h
+            pos = (parents[:, None, :] + offs[None]).reshape(-1, 3)
+    return AMRCells(np.concatenate(out_pos), np.concatenate(out_lvl),
+                    np.concatenate(out_val).astype(np.float32),
+                    source=f"dataset {name}(cells={cells}, levels={levels}, seed={seed})",
+                    validate=False)
+
+
+def ensure_dataset(path, name: str, cells: int = 20000, levels: int = 4, seed: int = 0) -> Path:
+    """Write data set ``name`` to ``path`` (``.cells`` or ``.npz``) unless it
+    already exists; returns the path. Used to generate larger data on first use."""
+    from .io import save_cells
+    path = Path(path)
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_cells(make_dataset(name, cells, levels, seed), path)
+    return path

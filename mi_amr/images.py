@@ -1,0 +1,51 @@
+"""Image files: EXR through the OpenEXR package, PNG previews through
+Mitsuba's ``Bitmap`` (sRGB tone mapping)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def write_exr(path, image) -> Path:
+    """Write a float image (H, W), (H, W, 1), (H, W, 3) or (H, W, 4) as EXR."""
+    import OpenEXR
+    img = np.ascontiguousarray(np.asarray(image, dtype=np.float32))
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4):
+        raise ValueError(f"{path}: cannot write an image of shape {img.shape} as EXR")
+    name = {1: "Y", 3: "RGB", 4: "RGBA"}[img.shape[2]]
+    data = img[..., 0] if name == "Y" else img
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, {name: np.ascontiguousarray(data)}) as f:
+        f.write(str(path))
+    return Path(path)
+
+
+def read_exr(path) -> np.ndarray:
+    """Read an EXR file as float32 (H, W, C), channels in RGB(A) or Y order."""
+    import OpenEXR
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            ch = {k: np.asarray(v.pixels, dtype=np.float32) for k, v in f.channels().items()}
+    except Exception as e:  # OpenEXR raises bare Exceptions on damaged files
+        raise ValueError(f"{path}: cannot read EXR file ({e})") from e
+    for names in (("R", "G", "B", "A"), ("R", "G", "B"), ("Y",)):
+        if all(n in ch for n in names):
+            return np.stack([ch[n] for n in names], axis=-1)
+    keys = sorted(ch)
+    return np.stack([ch[k] for k in keys], axis=-1)
+
+
+def write_png(path, image) -> Path:
+    """sRGB 8-bit preview of a linear float image, via ``mitsuba.Bitmap``."""
+    import mitsuba as mi
+    img = np.nan_to_num(np.asarray(image, dtype=np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
+    bmp = mi.Bitmap(np.ascontiguousarray(img), mi.Bitmap.PixelFormat.RGB)
+    bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True).write(str(path))
+    return Path(path)

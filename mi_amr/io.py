@@ -1,0 +1,116 @@
+"""Readers and writers for AMR cell files.
+
+* ExaBricks raw pair: ``NAME.cells`` (little-endian ``int32 x, y, z, level``
+  records, 16 bytes each) and ``NAME.scalars`` (little-endian float32, one
+  per cell, same order).
+* ``.npz`` archives with arrays ``pos`` (N,3), ``level`` (N,), ``value`` (N,);
+  loaded with ``allow_pickle=False``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .cells import AMRCells
+
+CELL_DTYPE = np.dtype([("x", "<i4"), ("y", "<i4"), ("z", "<i4"), ("level", "<i4")])
+
+
+def scalars_path_for(cells_path: str | os.PathLike) -> Path:
+    """The default scalars file of a ``.cells`` file: same stem, ``.scalars``."""
+    p = Path(cells_path)
+    return p.with_suffix(".scalars")
+
+
+def read_exabricks(cells_path, scalars_path=None, *, overlap: str = "error") -> AMRCells:
+    """Read an ExaBricks ``.cells`` / ``.scalars`` pair.
+
+    Raises ``ValueError`` naming the file when a size is not a whole number
+    of records, when the two files disagree on the cell count, or when the
+    content is invalid (see `AMRCells`).
+    """
+    cells_path = Path(cells_path)
+    scalars_path = Path(scalars_path) if scalars_path else scalars_path_for(cells_path)
+    for p in (cells_path, scalars_path):
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: no such file")
+    nc_bytes = cells_path.stat().st_size
+    ns_bytes = scalars_path.stat().st_size
+    if nc_bytes % 16:
+        raise ValueError(f"{cells_path}: size {nc_bytes} bytes is not a multiple of 16 "
+                         "(truncated or not a .cells file)")
+    if ns_bytes % 4:
+        raise ValueError(f"{scalars_path}: size {ns_bytes} bytes is not a multiple of 4 "
+                         "(truncated or not a .scalars file)")
+    if nc_bytes // 16 != ns_bytes // 4:
+        raise ValueError(f"{cells_path} has {nc_bytes // 16} cells but {scalars_path} has "
+                         f"{ns_bytes // 4} values: the files do not belong together or one "
+                         "is truncated")
+    rec = np.fromfile(cells_path, dtype=CELL_DTYPE)
+    val = np.fromfile(scalars_path, dtype="<f4")
+    pos = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
+    return AMRCells(pos, rec["level"], val, overlap=overlap, source=str(cells_path))
+
+
+def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Path, Path]:
+    """Write ``cells`` as an ExaBricks pair; returns the two paths."""
+    cells_path = Path(cells_path)
+    scalars_path = Path(scalars_path) if scalars_path else scalars_path_for(cells_path)
+    if np.any(np.abs(cells.pos) > np.iinfo(np.int32).max):
+        raise ValueError(f"{cells_path}: positions do not fit in int32")
+    rec = np.empty(len(cells), dtype=CELL_DTYPE)
+    rec["x"], rec["y"], rec["z"] = cells.pos.T
+    rec["level"] = cells.level
+    rec.tofile(cells_path)
+    cells.value.astype("<f4").tofile(scalars_path)
+    return cells_path, scalars_path
+
+
+def read_npz(path, *, overlap: str = "error") -> AMRCells:
+    """Read an ``.npz`` archive with ``pos``, ``level`` and ``value`` arrays."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = {"pos", "level", "value"} - set(z.files)
+            if missing:
+                raise ValueError(f"{path}: missing arrays {sorted(missing)}")
+            pos, level, value = z["pos"], z["level"], z["value"]
+    except ValueError as e:
+        if str(path) in str(e):
+            raise
+        raise ValueError(f"{path}: not a valid AMR .npz archive ({e})") from e
+    except (OSError, EOFError) as e:
+        raise ValueError(f"{path}: cannot read .npz archive ({e})") from e
+    for name, arr in (("pos", pos), ("level", level)):
+        if not np.issubdtype(arr.dtype, np.integer):
+            raise ValueError(f"{path}: array '{name}' must be integer, got {arr.dtype}")
+    return AMRCells(pos, level, value, overlap=overlap, source=str(path))
+
+
+def write_npz(cells: AMRCells, path) -> Path:
+    path = Path(path)
+    np.savez_compressed(path, pos=cells.pos.astype(np.int32 if np.abs(cells.pos).max() < 2**31 else np.int64),
+                        level=cells.level, value=cells.value)
+    return path
+
+
+def load_cells(path, scalars=None, *, overlap: str = "error") -> AMRCells:
+    """Load AMR cells from ``.cells`` (+ ``.scalars``) or ``.npz`` by extension."""
+    path = Path(path)
+    if path.suffix == ".npz":
+        return read_npz(path, overlap=overlap)
+    if path.suffix == ".cells":
+        return read_exabricks(path, scalars, overlap=overlap)
+    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected .cells or .npz)")
+
+
+def save_cells(cells: AMRCells, path) -> Path:
+    path = Path(path)
+    if path.suffix == ".npz":
+        return write_npz(cells, path)
+    if path.suffix == ".cells":
+        return write_exabricks(cells, path)[0]
+    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected .cells or .npz)")

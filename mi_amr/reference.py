@@ -1,0 +1,151 @@
+"""Mitsuba's own ``heterogeneous`` + ``gridvolume`` medium on the same data.
+
+The AMR field is resampled at the centres of a dense grid (finest
+resolution by default) with the chosen reconstruction, the TF is applied per
+voxel, and the result becomes two ``gridvolume`` textures: ``sigma_t``
+(opacity, scaled by ``density_scale`` through the medium's ``scale``) and
+``albedo`` (rgb). With ``nearest`` reconstruction this is exactly the field
+of the ``amr`` medium for any TF; with ``tent`` on single-level data and a TF
+whose opacity is linear in value, ``gridvolume``'s trilinear filter makes it
+exact too.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .cells import AMRCells
+from .reconstruct import HostReconstruction, check_method
+from .transfer import TransferFunction
+
+#: Default memory limit of the dense reference (sigma_t + albedo), bytes.
+DEFAULT_MEMORY_LIMIT = 4 << 30
+
+
+def dense_shape(cells: AMRCells, resolution=None) -> tuple[int, int, int]:
+    """``(nz, ny, nx)`` of the dense grid: the finest-level extent, or the
+    given per-axis resolution (x, y, z)."""
+    lo, hi = cells.bounds
+    res = (hi - lo) if resolution is None else np.broadcast_to(np.asarray(resolution, dtype=np.int64), (3,))
+    return int(res[2]), int(res[1]), int(res[0])
+
+
+def dense_bytes(cells: AMRCells, resolution=None) -> int:
+    """Memory of the dense reference: 4 float32 channels per voxel."""
+    return 16 * int(np.prod(dense_shape(cells, resolution)))
+
+
+def resample_dense(cells: AMRCells, method: str = "tent", resolution=None,
+                   memory_limit: int = DEFAULT_MEMORY_LIMIT, chunk: int = 1 << 18):
+    """Reconstruct the field at the voxel centres of a dense grid covering
+    the data bounds. Returns ``(value, found)`` arrays indexed ``[z, y, x]``."""
+    check_method(method)
+    need = dense_bytes(cells, resolution)
+    if need > memory_limit:
+        nz, ny, nx = dense_shape(cells, resolution)
+        raise MemoryError(
+            f"{cells.source}: a dense reference of {nx}x{ny}x{nz} voxels needs "
+            f"{need / 2**30:.1f} GiB, above the limit of {memory_limit / 2**30:.1f} GiB; "
+            "pass a coarser resolution or a larger memory_limit")
+    shape = dense_shape(cells, resolution)
+    lo, hi = cells.bounds
+    voxel = (hi - lo) / np.array(shape[::-1], dtype=np.float64)   # finest units per voxel (x, y, z)
+    rec = HostReconstruction(cells)
+    n = int(np.prod(shape))
+    value = np.zeros(n, dtype=np.float32)
+    found = np.zeros(n, dtype=bool)
+    for s in range(0, n, chunk):
+        idx = np.arange(s, min(n, s + chunk))
+        ijk = np.stack([idx % shape[2], (idx // shape[2]) % shape[1], idx // (shape[2] * shape[1])], axis=1)
+        x = lo + (ijk + 0.5) * voxel
+        v, f = rec(x, method)
+        value[idx], found[idx] = v, f
+    return value.reshape(shape), found.reshape(shape)
+
+
+def reference_medium(cells: AMRCells, tf: TransferFunction, density_scale: float = 1.0,
+                     method: str = "tent", to_world=None, resolution=None,
+                     memory_limit: int = DEFAULT_MEMORY_LIMIT) -> dict:
+    """A ``heterogeneous`` medium dict equivalent to an ``amr`` medium with
+    the same data, TF, scale, reconstruction and ``to_world``.
+
+    ``nearest`` uses ``filter_type="nearest"``, ``tent`` uses trilinear.
+    """
+    value, found = resample_dense(cells, method, resolution, memory_limit)
+    rgba = tf(value)
+    rgba[~found] = 0.0
+    filter_type = "nearest" if method == "nearest" else "trilinear"
+    from .medium import as_transform4f
+    to_world = as_transform4f(to_world)
+
+    def grid(channels):
+        return {"type": "gridvolume", "data": mi.TensorXf(np.ascontiguousarray(channels)),
+                "filter_type": filter_type, "to_world": to_world}
+
+    return {"type": "heterogeneous",
+            "sigma_t": grid(rgba[..., 3:4]),
+            "albedo": grid(rgba[..., 0:3]),
+            "scale": float(density_scale)}
+
+
+# ---- Image statistics ----------------------------------------------------
+def compare_images(a, b) -> dict:
+    """Error statistics of image ``a`` against reference ``b`` (H, W, C)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"images differ in shape: {a.shape} vs {b.shape}")
+    d = a - b
+    out = {"rmse": float(np.sqrt(np.mean(d * d))),
+           "mae": float(np.mean(np.abs(d))),
+           "max_abs": float(np.max(np.abs(d))),
+           "relative_rmse": float(np.sqrt(np.mean(d * d)) / max(np.sqrt(np.mean(b * b)), 1e-30)),
+           "mean_a": float(a.mean()), "mean_b": float(b.mean()),
+           "nonfinite_a": int((~np.isfinite(a)).sum()), "nonfinite_b": int((~np.isfinite(b)).sum()),
+           "channels": []}
+    if a.ndim == 3:
+        for c in range(a.shape[2]):
+            dc = d[..., c]
+            out["channels"].append({"rmse": float(np.sqrt(np.mean(dc * dc))),
+                                    "mean_a": float(a[..., c].mean()),
+                                    "mean_b": float(b[..., c].mean()),
+                                    "max_abs": float(np.abs(dc).max())})
+    return out
+
+
+def render_passes(scene, passes: int, spp: int, seed0: int = 0, sensor=0) -> np.ndarray:
+    """``passes`` independent renders (seeds ``seed0 ..``), shape (P, H, W, C)."""
+    imgs = []
+    for i in range(passes):
+        img = mi.render(scene, spp=spp, seed=seed0 + i, sensor=sensor)
+        imgs.append(np.array(img, dtype=np.float64))
+    return np.stack(imgs)
+
+
+def block_z_scores(passes_a: np.ndarray, passes_b: np.ndarray, block: int = 8,
+                   rel_floor: float = 1e-5) -> np.ndarray:
+    """z-scores of the difference of per-block image means of two estimators.
+
+    Each input holds independent passes (P, H, W, C). Per block (``block``
+    pixels square, channels averaged) the mean over passes and its standard
+    error (sample std / sqrt(P)) are formed; the result is
+    ``(mean_a - mean_b) / sqrt(se_a^2 + se_b^2 + (rel_floor * mean)^2)``
+    per block. The floor stands for float32 rounding: an estimator with zero
+    variance (a block that sees only the background) still carries rounding
+    noise of order 1e-7 relative per path vertex.
+    """
+    def block_means(p):
+        P, H, W = p.shape[:3]
+        hb, wb = H // block, W // block
+        q = p[:, :hb * block, :wb * block].reshape(P, hb, block, wb, block, -1)
+        return q.mean(axis=(2, 4, 5))
+
+    ma, mb = block_means(passes_a), block_means(passes_b)
+    mean_a, mean_b = ma.mean(axis=0), mb.mean(axis=0)
+    se2 = ma.var(axis=0, ddof=1) / len(ma) + mb.var(axis=0, ddof=1) / len(mb)
+    se2 = se2 + (rel_floor * 0.5 * (np.abs(mean_a) + np.abs(mean_b))) ** 2
+    diff = mean_a - mean_b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(se2 > 0, diff / np.sqrt(se2), np.where(diff == 0, 0.0, np.inf))

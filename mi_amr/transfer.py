@@ -1,0 +1,180 @@
+"""RGBA transfer functions (TF) and majorants of value ranges.
+
+A TF is an (N, 4) table over a value domain ``[lo, hi]``. Entry ``i`` sits at
+the normalised value ``u = i / (N - 1)``, with ``u = (v - lo) / (hi - lo)``
+clamped to [0, 1]; between entries the table is interpolated linearly. The
+alpha channel is an opacity in [0, 1] that the medium scales by
+``density_scale`` into an extinction in inverse world units; rgb is the
+single-scattering albedo.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+
+class TransferFunction(mi.Object):
+    """An RGBA lookup table over a scalar value domain.
+
+    Subclasses ``mitsuba.Object`` so that it can be the ``transfer_function``
+    entry of a ``mi.load_dict`` scene dictionary.
+
+    Parameters
+    ----------
+    rgba : array (N, 4), N >= 2
+        Colour (albedo) and opacity per entry, each in [0, 1].
+    domain : (lo, hi)
+        Values mapped to the first and the last entry; ``lo < hi``.
+    """
+
+    def __init__(self, rgba, domain):
+        super().__init__()
+        rgba = np.asarray(rgba, dtype=np.float64)
+        if rgba.ndim != 2 or rgba.shape[1] != 4 or rgba.shape[0] < 2:
+            raise ValueError(f"transfer function table must have shape (N>=2, 4), got {rgba.shape}")
+        if not np.all(np.isfinite(rgba)):
+            raise ValueError("transfer function table contains NaN or Inf")
+        if rgba.min() < 0 or rgba.max() > 1:
+            raise ValueError("transfer function entries must lie in [0, 1], got "
+                             f"[{rgba.min():.4g}, {rgba.max():.4g}]")
+        lo, hi = (float(d) for d in domain)
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(f"transfer function domain must be finite with lo < hi, got {domain}")
+        self.rgba = rgba.astype(np.float32)
+        self.domain = (lo, hi)
+
+    def __len__(self):
+        return self.rgba.shape[0]
+
+    def __repr__(self):
+        return (f"TransferFunction[{len(self)} entries, domain {self.domain}, "
+                f"max alpha {self.rgba[:, 3].max():.3g}]")
+
+    # ---- Evaluation (numpy; the Dr.Jit version lives in the medium) ------
+    def normalize(self, v) -> np.ndarray:
+        """Normalised position ``u`` in [0, 1] of values ``v``."""
+        lo, hi = self.domain
+        return np.clip((np.asarray(v, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+    def __call__(self, v) -> np.ndarray:
+        """RGBA at values ``v`` (any shape) -> shape ``v.shape + (4,)``."""
+        x = self.normalize(v) * (len(self) - 1)
+        i = np.minimum(np.floor(x).astype(np.int64), len(self) - 2)
+        f = (x - i)[..., None]
+        return ((1 - f) * self.rgba[i] + f * self.rgba[i + 1]).astype(np.float32)
+
+    def range_entries(self, vmin, vmax) -> tuple[np.ndarray, np.ndarray]:
+        """Table entries ``lo..hi`` (inclusive) covering value ranges
+        ``[vmin, vmax]`` under linear interpolation (DESIGN.md section 4)."""
+        n1 = len(self) - 1
+        lo = np.floor(self.normalize(vmin) * n1).astype(np.int64)
+        hi = np.minimum(np.floor(self.normalize(vmax) * n1).astype(np.int64) + 1, n1)
+        return np.minimum(lo, n1), hi
+
+    def max_alpha(self, vmin, vmax) -> np.ndarray:
+        """Maximum opacity over value ranges (numpy, brute force, for tests)."""
+        lo, hi = self.range_entries(np.atleast_1d(vmin), np.atleast_1d(vmax))
+        a = self.rgba[:, 3]
+        return np.array([a[l:h + 1].max() for l, h in zip(lo, hi)], dtype=np.float32)
+
+    def sparse_table(self) -> np.ndarray:
+        """Range-maximum sparse table of alpha, shape (K, N), K = floor(log2 N) + 1:
+        row k holds ``max(alpha[i : i + 2**k])`` (clamped at the end)."""
+        a = self.rgba[:, 3].astype(np.float32)
+        rows = [a]
+        k = 1
+        while (1 << k) <= len(a):
+            prev = rows[-1]
+            half = 1 << (k - 1)
+            shifted = np.concatenate([prev[half:], np.full(half, prev[-1])])
+            shifted[len(a) - half:] = prev[len(a) - half:]
+            rows.append(np.maximum(prev, shifted))
+            k += 1
+        return np.stack(rows)
+
+    # ---- Construction ----------------------------------------------------
+    @classmethod
+    def from_colormap(cls, cmap="viridis", opacity=((0.0, 0.0), (1.0, 1.0)),
+                      domain=(0.0, 1.0), n: int = 256) -> "TransferFunction":
+        """A TF from a matplotlib colormap (name or object) and opacity control
+        points ``[(u, alpha), ...]`` in normalised value, linearly interpolated."""
+        import matplotlib
+        cm = matplotlib.colormaps[cmap] if isinstance(cmap, str) else cmap
+        u = np.linspace(0, 1, n)
+        rgba = np.array(cm(u), dtype=np.float64)
+        pts = np.asarray(opacity, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise ValueError("opacity control points must be a sequence of (u, alpha) pairs")
+        order = np.argsort(pts[:, 0], kind="stable")
+        rgba[:, 3] = np.interp(u, pts[order, 0], pts[order, 1])
+        return cls(rgba, domain)
+
+    @classmethod
+    def preset(cls, name: str, domain=(0.0, 1.0), n: int = 256) -> "TransferFunction":
+        """Named presets.
+
+        * ``spiky``: narrow, high-opacity peaks (iso-surface-like).
+        * ``foggy``: low, broad opacity (translucent).
+        * ``ramp``: opacity linear in value (alpha = u), viridis colour.
+        * ``constant``: opacity 1 everywhere, white.
+        """
+        if name == "spiky":
+            peaks = [(0.25, 0.55), (0.5, 0.8), (0.8, 1.0)]
+            u = np.linspace(0, 1, n)
+            alpha = np.zeros(n)
+            for c, a in peaks:
+                alpha = np.maximum(alpha, a * np.clip(1 - np.abs(u - c) / 0.025, 0, 1))
+            tf = cls.from_colormap("plasma", list(zip(u, alpha)), domain, n)
+        elif name == "foggy":
+            tf = cls.from_colormap("viridis", [(0.0, 0.0), (0.15, 0.02), (0.5, 0.08),
+                                               (1.0, 0.15)], domain, n)
+        elif name == "ramp":
+            tf = cls.from_colormap("viridis", [(0.0, 0.0), (1.0, 1.0)], domain, n)
+        elif name == "constant":
+            tf = cls(np.ones((n, 4)), domain)
+        else:
+            raise ValueError(f"unknown transfer function preset {name!r} "
+                             f"(choose from {', '.join(PRESETS)}, or a .json file)")
+        return tf
+
+    # ---- Files -------------------------------------------------------------
+    def to_json(self, path=None) -> str:
+        """``{"domain": [lo, hi], "rgba": [[r, g, b, a], ...]}``; written to
+        ``path`` when given."""
+        text = json.dumps({"domain": list(self.domain),
+                           "rgba": [[round(float(x), 7) for x in row] for row in self.rgba]})
+        if path is not None:
+            Path(path).write_text(text)
+        return text
+
+    @classmethod
+    def from_json(cls, path) -> "TransferFunction":
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"{path}: cannot read transfer function JSON ({e})") from e
+        if not isinstance(d, dict) or "domain" not in d or "rgba" not in d:
+            raise ValueError(f"{path}: expected an object with 'domain' and 'rgba'")
+        try:
+            return cls(d["rgba"], d["domain"])
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{path}: {e}") from e
+
+    @classmethod
+    def load(cls, spec, domain=None) -> "TransferFunction":
+        """A TF from a preset name, a ``.json`` path or a TransferFunction.
+        ``domain`` applies to presets (default [0, 1])."""
+        if isinstance(spec, TransferFunction):
+            return spec
+        spec = str(spec)
+        if spec.endswith(".json"):
+            return cls.from_json(spec)
+        return cls.preset(spec, domain if domain is not None else (0.0, 1.0))
+
+
+PRESETS = ("spiky", "foggy", "ramp", "constant")

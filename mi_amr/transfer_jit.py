@@ -1,0 +1,60 @@
+"""Dr.Jit side of a transfer function: evaluation and range majorants.
+
+All table data, the domain and the table size are opaque Dr.Jit variables,
+so loading a different TF (other values, domain or size) changes no kernel.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .transfer import TransferFunction
+
+
+class DeviceTransferFunction:
+    """A `TransferFunction` uploaded for use in Dr.Jit kernels."""
+
+    def __init__(self, tf: TransferFunction):
+        self.set(tf)
+
+    def set(self, tf: TransferFunction):
+        """Upload a (new) TF: table, range-max sparse table, domain, size."""
+        self.tf = tf
+        n = len(tf)
+        self.rgba = mi.Float(tf.rgba.ravel())
+        self.sparse = mi.Float(tf.sparse_table().ravel())
+        self.n = mi.UInt32(n)
+        self.lo = mi.Float(tf.domain[0])
+        self.inv_width = mi.Float(1.0 / (tf.domain[1] - tf.domain[0]))
+        dr.make_opaque(self.rgba, self.sparse, self.n, self.lo, self.inv_width)
+
+    def _u(self, v):
+        return dr.clip((v - self.lo) * self.inv_width, 0.0, 1.0)
+
+    def eval(self, v, active=True):
+        """(rgb, alpha) at values ``v``: linear interpolation of the table."""
+        n1 = self.n - 1
+        x = self._u(v) * mi.Float(n1)
+        i = dr.minimum(mi.UInt32(dr.floor(x)), n1 - 1)
+        f = x - mi.Float(i)
+        a = dr.gather(mi.Vector4f, self.rgba, i, active)
+        b = dr.gather(mi.Vector4f, self.rgba, i + 1, active)
+        c = dr.fma(f, b - a, a)
+        return mi.Color3f(c.x, c.y, c.z), c.w
+
+    def range_max_alpha(self, vmin, vmax, active=True):
+        """Maximum table alpha over entries ``floor(u_min (N-1)) ..
+        floor(u_max (N-1)) + 1`` (clamped); 0 for an empty range
+        (``vmin > vmax``). O(1) per range via the sparse table."""
+        n1 = self.n - 1
+        lo = dr.minimum(mi.UInt32(dr.floor(self._u(vmin) * mi.Float(n1))), n1)
+        hi = dr.minimum(mi.UInt32(dr.floor(self._u(vmax) * mi.Float(n1))) + 1, n1)
+        valid = active & (vmin <= vmax)
+        hi = dr.maximum(hi, lo)
+        k = 31 - dr.lzcnt(hi - lo + 1)
+        row = k * self.n
+        m0 = dr.gather(mi.Float, self.sparse, row + lo, valid)
+        m1 = dr.gather(mi.Float, self.sparse, row + hi + 1 - (mi.UInt32(1) << k), valid)
+        return dr.select(valid, dr.maximum(m0, m1), 0.0)

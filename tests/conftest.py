@@ -1,0 +1,75 @@
+"""Shared fixtures: the Mitsuba variant and small data factories."""
+
+import numpy as np
+import pytest
+
+import mi_amr  # noqa: F401  (sets DRJIT_LIBLLVM_PATH before mitsuba starts LLVM)
+import mitsuba as mi
+
+
+def _jit_rgb_variants():
+    out = []
+    for v in ("llvm_ad_rgb", "cuda_ad_rgb"):
+        if v not in mi.variants():
+            continue
+        if v.startswith("cuda"):
+            try:
+                import drjit as dr
+                if not dr.has_backend(dr.JitBackend.CUDA):
+                    continue
+            except Exception:
+                continue
+        out.append(v)
+    return out
+
+
+@pytest.fixture(params=_jit_rgb_variants(), scope="module")
+def variant(request):
+    """Every JIT rgb variant available here (llvm_ad_rgb; cuda_ad_rgb on a GPU)."""
+    mi.set_variant(request.param)
+    return request.param
+
+
+@pytest.fixture
+def llvm():
+    mi.set_variant("llvm_ad_rgb")
+    return "llvm_ad_rgb"
+
+
+# ---- Data factories --------------------------------------------------------
+def random_amr(seed=0, n=16, levels=3, quantize=4):
+    """Small random AMR data: a smooth random volume, quantised so that block
+    coarsening produces every level up to ``levels - 1``."""
+    rng = np.random.default_rng(seed)
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n)] * 3, indexing="ij")
+    c = rng.uniform(-0.3, 0.3, 3)
+    v = np.exp(-3 * ((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2))
+    v = v + 0.15 * rng.random(v.shape) * (v > 0.5)
+    v = np.round(v * quantize) / quantize
+    return mi_amr.dense_to_amr(v.astype(np.float32), 0.0, levels - 1)
+
+
+def volume_scene(medium, res=32, integrator="volpath", max_depth=32, emitters="env+sun",
+                 to_world=None):
+    """A small scene: the medium inside a cube covering its unit cube
+    (placed by ``to_world``), seen by a perspective camera."""
+    T = mi.ScalarTransform4f
+    to_world = to_world if to_world is not None else T()
+    cube = to_world @ T().translate([0.5, 0.5, 0.5]) @ T().scale(0.5)
+    scene = {
+        "type": "scene",
+        "integrator": {"type": integrator, "max_depth": max_depth},
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": T().look_at(to_world @ mi.ScalarPoint3f(1.8, 1.3, 2.6),
+                                           to_world @ mi.ScalarPoint3f(0.5, 0.5, 0.5),
+                                           to_world @ mi.ScalarVector3f(0, 1, 0)),
+                   "film": {"type": "hdrfilm", "width": res, "height": res,
+                            "rfilter": {"type": "box"}}},
+        "cube": {"type": "cube", "to_world": cube, "bsdf": {"type": "null"}, "interior": medium},
+    }
+    if "env" in emitters:
+        scene["env"] = {"type": "constant", "radiance": {"type": "rgb", "value": [0.6, 0.7, 0.8]}}
+    if "sun" in emitters:
+        scene["sun"] = {"type": "directional", "direction": [-0.5, -1, -0.3],
+                        "irradiance": {"type": "rgb", "value": 2.0}}
+    return scene

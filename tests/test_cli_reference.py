@@ -1,0 +1,103 @@
+"""The mi-amr command line, the reference builder and the comparison statistics."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_amr
+from mi_amr.cli import main
+from mi_amr.images import read_exr, write_exr
+from mi_amr.io import write_exabricks
+from mi_amr.reference import block_z_scores, reference_medium, render_passes, resample_dense
+
+from conftest import random_amr, volume_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test01_info_reports_levels(tmp_path, capsys):
+    c = random_amr(1, levels=3)
+    write_exabricks(c, tmp_path / "a.cells")
+    assert main(["info", str(tmp_path / "a.cells"), "--json"]) == 0
+    out = capsys.readouterr().out
+    info = json.loads(out.strip().splitlines()[-1])
+    assert info["cells"] == len(c)
+    assert sum(info["levels"].values()) == len(c)
+    assert info["bounds"] == [[0, 0, 0], [16, 16, 16]]
+
+
+def test02_convert_round_trips(tmp_path):
+    rng = np.random.default_rng(0)
+    vol = np.round(rng.random((8, 8, 8)) * 2).astype(np.float32) / 2
+    vol[:4, :4, :4] = 1.0
+    np.save(tmp_path / "v.npy", vol)
+    vol.tofile(tmp_path / "v.raw")
+    assert main(["convert", str(tmp_path / "v.npy"), str(tmp_path / "a.npz")]) == 0
+    assert main(["convert", str(tmp_path / "a.npz"), str(tmp_path / "b.cells")]) == 0
+    assert main(["convert", str(tmp_path / "v.raw"), str(tmp_path / "c.cells"), "--shape", "8", "8", "8"]) == 0
+    for name in ("a.npz", "b.cells", "c.cells"):
+        cells = mi_amr.load_cells(tmp_path / name)
+        val, found = resample_dense(cells, "nearest")
+        assert found.all()
+        np.testing.assert_array_equal(val, vol)
+    # wrong .raw shape: a clear error, not a silent truncation
+    with pytest.raises(SystemExit, match="needs"):
+        main(["convert", str(tmp_path / "v.raw"), str(tmp_path / "d.cells"), "--shape", "8", "8", "9"])
+
+
+def test03_compare_reports_rmse_and_writes_difference(tmp_path, capsys):
+    a = np.ones((4, 5, 3), np.float32)
+    b = a.copy()
+    b[0, 0] = [2, 1, 1]
+    write_exr(tmp_path / "a.exr", a)
+    write_exr(tmp_path / "b.exr", b)
+    assert main(["compare", str(tmp_path / "a.exr"), str(tmp_path / "b.exr"),
+                 "--diff", str(tmp_path / "d.exr"), "--json"]) == 0
+    stats = json.loads(capsys.readouterr().out)
+    assert stats["rmse"] == pytest.approx(np.sqrt(1 / 60))
+    assert stats["channels"][0]["max_abs"] == pytest.approx(1.0)
+    d = read_exr(tmp_path / "d.exr")
+    assert d.shape == (4, 5, 3) and d[0, 0, 0] == 1 and d.sum() == 1
+    (tmp_path / "bad.exr").write_bytes(b"garbage")
+    assert main(["compare", str(tmp_path / "bad.exr"), str(tmp_path / "b.exr")]) == 2
+
+
+def test04_render_writes_exr_and_png(tmp_path):
+    c = random_amr(2, levels=3)
+    write_exabricks(c, tmp_path / "d.cells")
+    scene = (ROOT / "scenes" / "cloud.xml").read_text().replace("data/cloud.cells", "d.cells")
+    (tmp_path / "s.xml").write_text(scene)
+    r = subprocess.run([sys.executable, "-m", "mi_amr.cli", "render", str(tmp_path / "s.xml"),
+                        "-o", str(tmp_path / "o.exr"), "--spp", "4", "-q", "-D", "res=24"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    img = read_exr(tmp_path / "o.exr")
+    assert img.shape == (24, 24, 3) and np.isfinite(img).all() and img.std() > 0
+    assert (tmp_path / "o.png").stat().st_size > 100
+
+
+@pytest.mark.parametrize("name", ["demo", "cloud", "shell", "stadium"])
+def test05_bundled_scenes_load(llvm, name):
+    scene = mi.load_file(str(ROOT / "scenes" / f"{name}.xml"), res=8)
+    img = np.array(mi.render(scene, spp=1))
+    assert np.isfinite(img).all()
+
+
+def test06_reference_refuses_oversized_grids():
+    c = mi_amr.AMRCells([[0, 0, 0], [4096, 4096, 4096]], [12, 0], [1.0, 2.0])
+    with pytest.raises(MemoryError, match="GiB"):
+        resample_dense(c, "nearest")
+
+
+def test07_block_test_detects_a_real_difference(llvm):
+    """Power check: the 4-sigma block test flags a 15% density change."""
+    cells = random_amr(21, n=16, levels=4, quantize=6)
+    tf = mi_amr.TransferFunction.preset("foggy", cells.value_range)
+    a = render_passes(mi.load_dict(volume_scene(reference_medium(cells, tf, 100.0, "nearest"))), 16, 16)
+    b = render_passes(mi.load_dict(volume_scene(reference_medium(cells, tf, 115.0, "nearest"))), 16, 16, seed0=999)
+    assert np.abs(block_z_scores(a, b, 4)).max() > 4.0

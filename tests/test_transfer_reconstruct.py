@@ -1,0 +1,122 @@
+"""Transfer functions, range majorants, reconstruction and the macrocell grid."""
+
+import json
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_amr
+from mi_amr.majorant_grid import MacrocellGrid
+from mi_amr.reconstruct import DeviceReconstruction, HostReconstruction, brute_force
+from mi_amr.transfer import PRESETS, TransferFunction
+from mi_amr.transfer_jit import DeviceTransferFunction
+
+from conftest import random_amr
+
+
+def test01_tf_interpolation_and_clamping():
+    tf = TransferFunction([[0, 0, 0, 0], [1, 0.5, 0, 1], [0, 0, 1, 0.5]], (10, 20))
+    np.testing.assert_allclose(tf([10, 12.5, 15, 17.5, 20]),
+                               [[0, 0, 0, 0], [0.5, 0.25, 0, 0.5], [1, 0.5, 0, 1],
+                                [0.5, 0.25, 0.5, 0.75], [0, 0, 1, 0.5]], atol=1e-6)
+    np.testing.assert_allclose(tf([-100, 100])[:, 3], [0, 0.5])   # clamped
+    for bad in ([[0, 0, 0, 2], [0, 0, 0, 0]], [[0, 0, 0, np.nan], [0, 0, 0, 0]], [[0, 0, 0, 0]]):
+        with pytest.raises(ValueError):
+            TransferFunction(bad, (0, 1))
+    with pytest.raises(ValueError, match="domain"):
+        TransferFunction([[0, 0, 0, 0]] * 2, (1, 1))
+
+
+def test02_presets_json_and_colormap(tmp_path):
+    for name in PRESETS:
+        tf = TransferFunction.preset(name, (0, 2))
+        assert tf.domain == (0, 2) and len(tf) == 256
+    spiky, foggy = TransferFunction.preset("spiky"), TransferFunction.preset("foggy")
+    assert spiky.rgba[:, 3].max() == pytest.approx(1.0) and (spiky.rgba[:, 3] == 0).mean() > 0.5
+    assert foggy.rgba[:, 3].max() < 0.2 and (foggy.rgba[:, 3] > 0).mean() > 0.9
+    with pytest.raises(ValueError, match="unknown transfer function preset"):
+        TransferFunction.preset("nope")
+    tf = TransferFunction.from_colormap("magma", [(0, 0), (0.5, 1), (1, 0.2)], (-1, 1), n=64)
+    assert tf.rgba[32, 3] == pytest.approx(1.0, abs=0.02)
+    p = tmp_path / "tf.json"
+    tf.to_json(p)
+    d = json.loads(p.read_text())
+    assert d["domain"] == [-1, 1] and len(d["rgba"]) == 64
+    back = TransferFunction.from_json(p)
+    np.testing.assert_allclose(back.rgba, tf.rgba, atol=1e-6)
+    p.write_text('{"domain": [0, 1]}')
+    with pytest.raises(ValueError, match="tf.json"):
+        TransferFunction.from_json(p)
+
+
+def test03_range_majorant_matches_brute_force(variant):
+    rng = np.random.default_rng(1)
+    for name, n in (("spiky", 256), ("foggy", 100), ("ramp", 7)):
+        tf = TransferFunction.preset(name, (-1, 3), n=n)
+        dev = DeviceTransferFunction(tf)
+        a = rng.uniform(-2, 4, 2000)
+        b = a + rng.exponential(0.4, 2000)
+        ref = tf.max_alpha(a, b)
+        got = dev.range_max_alpha(mi.Float(a), mi.Float(b)).numpy()
+        np.testing.assert_array_equal(got, ref)
+        empty = dev.range_max_alpha(mi.Float([1.0]), mi.Float([0.5])).numpy()
+        assert empty[0] == 0.0
+        # the range maximum bounds the interpolated TF everywhere inside the range
+        v = a + rng.random(2000) * (b - a)
+        assert np.all(tf(v)[:, 3] <= ref + 1e-6)
+        rgb, alpha = dev.eval(mi.Float(v))
+        np.testing.assert_allclose(alpha.numpy(), tf(v)[:, 3], atol=1e-5)
+        np.testing.assert_allclose(np.array(rgb).T if np.array(rgb).shape[0] == 3 else np.array(rgb),
+                                   tf(v)[:, :3], atol=1e-5)
+
+
+@pytest.mark.parametrize("method", ["tent", "nearest"])
+def test04_reconstruction_matches_brute_force(variant, method):
+    cells = random_amr(7, n=16, levels=4)
+    assert len(cells.levels) >= 3
+    host = HostReconstruction(cells)
+    dev = DeviceReconstruction(host.hash)
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-2, 18, (3000, 3))
+    # also exact cell corners and centres, where ties are decided
+    x[:500] = np.round(x[:500] * 2) / 2
+    ref, ref_found = brute_force(cells, x, method)
+    val, found = host(x, method)
+    np.testing.assert_array_equal(found, ref_found)
+    np.testing.assert_allclose(val, ref, atol=1e-9)
+    xr = (x - host.hash.origin).astype(np.float32)
+    dval, dfound = dev.eval(mi.Vector3f(xr.T), mi.UInt32(host.hash.level_bits), method == "tent")
+    np.testing.assert_array_equal(dfound.numpy(), ref_found)
+    np.testing.assert_allclose(dval.numpy(), ref, atol=2e-6)
+
+
+def test05_tent_is_trilinear_inside_single_level():
+    rng = np.random.default_rng(3)
+    v = rng.random((6, 5, 4)).astype(np.float32)
+    cells = mi_amr.dense_to_amr(v, 0.0, 0)
+    from scipy.interpolate import RegularGridInterpolator
+    interp = RegularGridInterpolator([np.arange(n) + 0.5 for n in (4, 5, 6)], v.transpose(2, 1, 0))
+    x = rng.uniform(0.5, 1, (500, 3)) * np.array([3, 4, 5])
+    val, found = HostReconstruction(cells)(x, "tent")
+    assert found.all()
+    np.testing.assert_allclose(val, interp(x), atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["tent", "nearest"])
+def test06_macrocell_ranges_contain_reconstructed_values(method):
+    cells = random_amr(11, n=16, levels=4)
+    grid = MacrocellGrid(cells, resolution=5, support=method)
+    lo, hi = cells.bounds
+    rng = np.random.default_rng(4)
+    u = rng.random((20000, 3))
+    u[:2000] = np.round(u[:2000] * 10) / 10        # on macrocell faces
+    x = lo + u * (hi - lo)
+    val, found = HostReconstruction(cells)(x, method)
+    idx = np.clip(np.floor(u * grid.res), 0, grid.res - 1).astype(int)
+    flat = idx[:, 0] + grid.res[0] * (idx[:, 1] + grid.res[1] * idx[:, 2])
+    assert np.all(grid.vmin[flat[found]] <= val[found] + 1e-6)
+    assert np.all(grid.vmax[flat[found]] >= val[found] - 1e-6)
+    # and every level that contributes is in the macrocell's level mask
+    assert np.all(grid.level_bits[flat] != 0)

@@ -1,0 +1,22 @@
+#!/bin/sh
+# Idempotent set-up: libLLVM 19 for Dr.Jit's LLVM backend, the .venv with
+# mi-amr installed (editable, with test extras). Safe to run every time.
+set -e
+cd "$(dirname "$0")/.."
+if ! tools/find-llvm19 >/dev/null; then
+    echo "== installing libllvm19 (Dr.Jit's LLVM backend aborts with LLVM 14-16)"
+    SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libllvm19 >/dev/null
+fi
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+    echo "== creating .venv"
+    $PY -m venv .venv
+fi
+if [ ! -f .venv/.installed ] || [ pyproject.toml -nt .venv/.installed ]; then
+    echo "== installing mi-amr into .venv"
+    .venv/bin/python -m pip install -q --upgrade pip >/dev/null
+    .venv/bin/python -m pip install -q -e '.[dev]'
+    touch .venv/.installed
+fi
