@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cells import AMRCells
+from .cells import AMRCells, cell_keys
 
 #: Bits per axis in a packed key; level-L coordinates must stay below 2**KEY_BITS.
 KEY_BITS = 21
@@ -39,68 +39,60 @@ def pack_key(qx, qy, qz):
     return qx | (qy << KEY_BITS) | (qz << (2 * KEY_BITS))
 
 
-class CellHash:
-    """Per-level hash tables over the cells, stored back to back.
+class LevelHash:
+    """Open-addressing hash tables, one per level, stored back to back,
+    mapping integer level coordinates to a payload.
 
     Attributes (host, numpy)
     ------------------------
-    origin : int64 (3,)
-        Lower corner of the key space in finest units, aligned to the
-        coarsest level present (so every level's ``q`` is an integer >= 0).
-    keys : uint64 (S,), values : float32 (S,)
+    keys : uint64 (S,), payload : (S,)
         Slots of all tables; empty slots hold ``EMPTY_KEY``.
     offset, mask : uint32 (MAX_LEVELS,)
         Start and capacity - 1 of the table of each level.
     level_bits : int
-        Bit L set when level L has cells.
+        Bit L set when level L has entries.
     max_probe : int
         Longest probe sequence any lookup (hit or miss) can take.
     """
 
-    def __init__(self, cells: AMRCells, load_factor: float = 0.35):
-        lmax = int(cells.level.max())
-        lo, _ = cells.bounds
-        self.origin = (lo >> lmax) << lmax
-        rel = cells.pos - self.origin
+    def __init__(self, entries: dict, payload_dtype, source: str, load_factor: float = 0.35):
         self.offset = np.zeros(MAX_LEVELS, dtype=np.uint32)
         self.mask = np.zeros(MAX_LEVELS, dtype=np.uint32)
         self.level_bits = 0
-        keys, values, max_probe, total = [], [], 1, 0
-        for L in cells.levels:
-            L = int(L)
-            sel = cells.level == L
-            q = (rel[sel] >> L).astype(np.uint64)
-            if q.size and q.max() >= (1 << KEY_BITS):
+        keys, payload, max_probe, total = [], [], 1, 0
+        for L, (q, data) in sorted(entries.items()):
+            q = np.asarray(q, dtype=np.int64)
+            if q.size and (q.min() < 0 or q.max() >= (1 << KEY_BITS)):
                 raise ValueError(
-                    f"{cells.source}: level {L} spans {int(q.max()) + 1} cells per axis; "
+                    f"{source}: level {L} spans {int(q.max()) + 1} cells per axis; "
                     f"at most {1 << KEY_BITS} are supported")
-            n = int(sel.sum())
+            n = len(q)
             cap = 1 << max(4, int(np.ceil(np.log2(n / load_factor))))
-            k, v, probes = _build_table(q, cells.value[sel], cap)
+            k, v, probes = _build_table(q.astype(np.uint64), np.asarray(data, dtype=payload_dtype), cap)
             keys.append(k)
-            values.append(v)
+            payload.append(v)
             max_probe = max(max_probe, probes)
             self.offset[L] = total
             self.mask[L] = cap - 1
-            self.level_bits |= 1 << L
+            self.level_bits |= 1 << int(L)
             total += cap
         self.keys = np.concatenate(keys)
-        self.values = np.concatenate(values)
+        self.payload = np.concatenate(payload)
         self.max_probe = max_probe
 
     @property
     def nbytes(self) -> int:
-        return self.keys.nbytes + self.values.nbytes
+        return self.keys.nbytes + self.payload.nbytes
 
     def lookup(self, level: int, q: np.ndarray):
-        """Host lookup (for tests): values and a found mask for int (M, 3) ``q``."""
+        """Host lookup: ``(payload, found)`` for int (M, 3) level coordinates ``q``."""
         q = np.asarray(q, dtype=np.int64)
         ok = np.all((q >= 0) & (q < (1 << KEY_BITS)), axis=1)
         qu = np.where(ok[:, None], q, 0).astype(np.uint64)
         key = pack_key(qu[:, 0], qu[:, 1], qu[:, 2])
         h = hash_u32(*(qu[:, i].astype(np.uint32) for i in range(3)))
         found = np.zeros(len(q), dtype=bool)
-        val = np.zeros(len(q), dtype=np.float32)
+        val = np.zeros(len(q), dtype=self.payload.dtype)
         if not (self.level_bits >> level) & 1:
             return val, found
         pending = ok.copy()
@@ -109,15 +101,77 @@ class CellHash:
             k = self.keys[slot]
             hit = pending & (k == key)
             found |= hit
-            val[hit] = self.values[slot[hit]]
+            val[hit] = self.payload[slot[hit]]
             pending &= ~hit & (k != EMPTY_KEY)
         return val, found
+
+
+def key_origin(cells: AMRCells) -> np.ndarray:
+    """Lower corner of the key space in finest units, aligned to the coarsest
+    level present, so that every level's coordinates are integers >= 0."""
+    lmax = int(cells.level.max())
+    lo, _ = cells.bounds
+    return (lo >> lmax) << lmax
+
+
+class CellHash(LevelHash):
+    """Cells keyed by ``q = (pos - origin) >> level``; payload: the value."""
+
+    def __init__(self, cells: AMRCells):
+        self.origin = key_origin(cells)
+        rel = cells.pos - self.origin
+        entries = {int(L): (rel[cells.level == L] >> int(L), cells.value[cells.level == L])
+                   for L in cells.levels}
+        super().__init__(entries, np.float32, cells.source)
+
+    @property
+    def values(self) -> np.ndarray:
+        return self.payload
+
+
+class StencilHash(LevelHash):
+    """The 2x2x2 tent stencils of every level, for one-probe tent lookups.
+
+    At level L a point ``x`` (finest units relative to ``origin``) sees the
+    level-L cells ``b + {0,1}^3`` with ``b = floor(x / 2**L - 1/2)``. Every
+    stencil that holds at least one cell is stored, keyed by ``s = b + 1``
+    (so keys are >= 0); the payload indexes ``values`` (S, 8), corner
+    ``c = dx + 2 dy + 4 dz``, NaN where the stencil has no cell.
+    """
+
+    def __init__(self, cells: AMRCells):
+        self.origin = key_origin(cells)
+        rel = cells.pos - self.origin
+        entries, blocks, count = {}, [], 0
+        corners = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=np.int64)
+        for L in cells.levels:
+            L = int(L)
+            sel = cells.level == L
+            q = rel[sel] >> L
+            # cell q is corner c of the stencil with s = q - corner + 1
+            s_all = (q[:, None, :] - corners[None] + 1).reshape(-1, 3)
+            c_all = np.tile(np.arange(8), len(q))
+            v_all = np.repeat(cells.value[sel], 8)
+            uniq, inv = np.unique(cell_keys(s_all), return_inverse=True)
+            first = np.zeros(len(uniq), dtype=np.int64)
+            first[inv[::-1]] = np.arange(len(inv))[::-1]
+            vals = np.full((len(uniq), 8), np.nan, dtype=np.float32)
+            vals[inv, c_all] = v_all
+            entries[L] = (s_all[first], count + np.arange(len(uniq), dtype=np.uint32))
+            blocks.append(vals)
+            count += len(uniq)
+        super().__init__(entries, np.uint32, cells.source)
+        self.values = np.concatenate(blocks).reshape(-1)
+
+    @property
+    def nbytes(self) -> int:
+        return super().nbytes + self.values.nbytes
 
 
 def _build_table(q: np.ndarray, values: np.ndarray, cap: int):
     """Linear-probing insertion of all keys, vectorised over rounds."""
     keys = np.full(cap, EMPTY_KEY, dtype=np.uint64)
-    vals = np.zeros(cap, dtype=np.float32)
+    vals = np.zeros(cap, dtype=values.dtype)
     key = pack_key(q[:, 0], q[:, 1], q[:, 2])
     home = hash_u32(*(q[:, i].astype(np.uint32) for i in range(3))) & np.uint32(cap - 1)
     pending = np.arange(len(key))

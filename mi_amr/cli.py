@@ -1,4 +1,5 @@
-"""The ``mi-amr`` command line: render, info, convert, compare, dataset."""
+"""The ``mi-amr`` command line: render, reference, frametime, info, convert,
+compare, dataset."""
 
 from __future__ import annotations
 
@@ -35,13 +36,7 @@ def cmd_render(args):
     from tqdm import tqdm
 
     from .images import write_exr, write_png
-    params = {}
-    for item in args.define or []:
-        if "=" not in item:
-            raise SystemExit(f"mi-amr render: -D expects NAME=VALUE, got {item!r}")
-        k, v = item.split("=", 1)
-        params[k] = v
-    scene = mi.load_file(str(args.scene), **params)
+    scene = mi.load_file(str(args.scene), **_scene_params(args))
     spp = args.spp
     passes = max(1, min(args.passes, spp))
     per = [spp // passes + (1 if i < spp % passes else 0) for i in range(passes)]
@@ -66,6 +61,88 @@ def cmd_render(args):
         print(f"wrote {out} and {out.with_suffix('.png')} ({img.shape[1]}x{img.shape[0]}, "
               f"{spp} spp, {seconds:.2f} s)")
     dr.sync_thread()
+
+
+# ---- reference / frametime -------------------------------------------------
+def _scene_params(args):
+    params = {}
+    for item in getattr(args, "define", None) or []:
+        if "=" not in item:
+            raise SystemExit(f"mi-amr: -D expects NAME=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        params[k] = v
+    return params
+
+
+def _timed_render(mi, scene, spp, repeats, seed=0):
+    """Median wall time of ``repeats`` renders after a warm-up render that
+    compiles the kernels; returns (seconds, compile_seconds, image)."""
+    import numpy as np
+    t0 = time.perf_counter()
+    np.array(mi.render(scene, spp=1, seed=seed + 10_000))
+    compile_s = time.perf_counter() - t0
+    times, img = [], None
+    for r in range(repeats):
+        t0 = time.perf_counter()
+        img = np.array(mi.render(scene, spp=spp, seed=seed + r))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), compile_s, img
+
+
+def cmd_reference(args):
+    mi = _set_variant(args.variant)
+    import tempfile
+
+    import numpy as np
+
+    from .images import write_exr, write_png
+    from .scene_xml import reference_scene
+    with tempfile.TemporaryDirectory() as tmp:
+        scene, _ = reference_scene(args.scene, tmp, **_scene_params(args))
+        img = np.array(mi.render(scene, spp=args.spp, seed=args.seed), dtype=np.float32)
+    write_exr(args.output, img)
+    write_png(Path(args.output).with_suffix(".png"), img)
+    print(f"wrote {args.output} (heterogeneous + gridvolume reference, {args.spp} spp)")
+
+
+def cmd_frametime(args):
+    mi = _set_variant(args.variant)
+    import tempfile
+
+    import numpy as np
+
+    from .reference import compare_images
+    from .scene_xml import reference_scene, with_amr_parameters
+    params = _scene_params(args)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        configs = [("amr majorant=ray", lambda: with_amr_parameters(args.scene, {"majorant": "ray"}, **params)),
+                   ("amr majorant=global", lambda: with_amr_parameters(args.scene, {"majorant": "global"}, **params)),
+                   ("heterogeneous reference", lambda: reference_scene(args.scene, tmp, **params)[0])]
+        images = {}
+        for name, load in configs:
+            t0 = time.perf_counter()
+            scene = load()
+            load_s = time.perf_counter() - t0
+            sec, comp, img = _timed_render(mi, scene, args.spp, args.repeats, seed=1000 * len(rows))
+            images[name] = img
+            rows.append({"config": name, "load_s": load_s, "compile_s": comp, "frame_s": sec})
+    ref_t = rows[-1]["frame_s"]
+    ref_img = images["heterogeneous reference"]
+    print(f"{args.scene}: {args.spp} spp per frame, median of {args.repeats} frames "
+          f"(after a warm-up frame that compiles the kernels)")
+    print(f"{'configuration':26s} {'load s':>8s} {'compile s':>10s} {'frame s':>9s} "
+          f"{'vs reference':>13s} {'mean radiance':>14s}")
+    for r in rows:
+        r["speedup_vs_reference"] = ref_t / r["frame_s"]
+        r["mean"] = float(images[r["config"]].mean())
+        print(f"{r['config']:26s} {r['load_s']:8.2f} {r['compile_s']:10.2f} {r['frame_s']:9.3f} "
+              f"{r['speedup_vs_reference']:12.2f}x {r['mean']:14.5f}")
+    for name in ("amr majorant=ray", "amr majorant=global"):
+        st = compare_images(images[name], ref_img)
+        print(f"relative RMSE of {name} vs reference at {args.spp} spp: {st['relative_rmse']:.3%}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
 
 
 # ---- info ------------------------------------------------------------------
@@ -166,6 +243,26 @@ def build_parser():
                    help="set a scene <default> parameter, e.g. -D spp=16 -D tf=spiky")
     r.add_argument("-q", "--quiet", action="store_true")
     r.set_defaults(func=cmd_render)
+
+    f = sub.add_parser("reference", help="render a scene with every amr medium replaced by "
+                                         "heterogeneous + gridvolume (dense resampling)")
+    f.add_argument("scene")
+    f.add_argument("-o", "--output", required=True)
+    f.add_argument("--spp", type=int, default=64)
+    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--variant", default="llvm_ad_rgb")
+    f.add_argument("-D", "--define", action="append", metavar="NAME=VALUE")
+    f.set_defaults(func=cmd_reference)
+
+    t = sub.add_parser("frametime", help="frame time of a scene with majorant=ray, =global and "
+                                         "the heterogeneous reference, as ratios")
+    t.add_argument("scene")
+    t.add_argument("--spp", type=int, default=16)
+    t.add_argument("--repeats", type=int, default=3)
+    t.add_argument("--variant", default="llvm_ad_rgb")
+    t.add_argument("--json", help="also write the numbers to this file")
+    t.add_argument("-D", "--define", action="append", metavar="NAME=VALUE")
+    t.set_defaults(func=cmd_frametime)
 
     i = sub.add_parser("info", help="summarise an AMR file")
     i.add_argument("file")

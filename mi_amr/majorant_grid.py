@@ -22,12 +22,13 @@ from .cells import AMRCells
 
 
 def default_resolution(cells: AMRCells) -> np.ndarray:
-    """Grid resolution chosen from the data: about 64 cells per macrocell
-    on average, a power of two along the longest axis between 8 and 128,
-    never finer than the finest level, other axes in proportion."""
+    """Grid resolution chosen from the data: about 8 cells per macrocell on
+    average, a power of two along the longest axis between 8 and 128, never
+    finer than the finest level, other axes in proportion. (Measured on the
+    bundled scenes: 16-32 macrocells per axis for 20k cells beat 8 and 64.)"""
     lo, hi = cells.bounds
     ext = (hi - lo).astype(np.float64)
-    longest = 2 ** round(np.log2(max(len(cells) / 64.0, 1.0)) / 3)
+    longest = 2 ** round(np.log2(max(len(cells) / 8.0, 1.0)) / 3)
     longest = int(np.clip(longest, 8, 128))
     res = np.maximum(1, np.round(longest * ext / ext.max())).astype(np.int64)
     return np.minimum(res, np.maximum(1, ext.astype(np.int64)))

@@ -9,7 +9,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .cell_hash import CellHash
 from .cells import AMRCells
 from .io import load_cells
 from .majorant_grid import MacrocellGrid
@@ -145,15 +144,14 @@ class AMRMedium(mi.Medium):
 
         # ---- Structures (host build, then upload) ----
         t0 = time.perf_counter()
-        self.cell_hash = CellHash(self.cells)
+        self._sampler = DeviceReconstruction(self.cells, self.reconstruction)
         self.grid = MacrocellGrid(self.cells, grid_res, support=self.reconstruction)
         self.build_seconds = time.perf_counter() - t0
-        self._sampler = DeviceReconstruction(self.cell_hash)
         self._grid = DeviceMacrocellGrid(self.grid)
         self._tf = DeviceTransferFunction(self.tf)
 
         lo, hi = self.cells.bounds
-        self._offset = mi.Vector3f(*[float(c) for c in lo - self.cell_hash.origin])
+        self._offset = mi.Vector3f(*[float(c) for c in lo - self._sampler.origin])
         self._extent = mi.Vector3f(*[float(c) for c in hi - lo])
         self._to_local = mi.Transform4f(self.to_world_scalar.inverse())
         self._scale = mi.Float(self.density_scale)
@@ -237,7 +235,7 @@ class AMRMedium(mi.Medium):
         level_bits = dr.gather(mi.UInt32, self._grid.level_bits,
                                self._grid.flat(self._grid.cell_of(u)), inside)
         x = self._offset + u * self._extent
-        value, found = self._sampler.eval(x, level_bits, self.reconstruction == "tent", inside)
+        value, found = self._sampler.eval(x, level_bits, inside)
         rgb, alpha = self._tf.eval(value, found)
         sigma_t = dr.select(found, self._scale * alpha, 0.0)
         sigma_s = rgb * sigma_t

@@ -5,7 +5,7 @@ Methods (DESIGN.md section 3), ``x`` in finest-level cell units:
 * ``tent`` (default): ``f(x) = sum_i phi_i(x) v_i / sum_i phi_i(x)`` with
   ``phi_i(x) = prod_k max(0, 1 - |x_k - c_ik| / w_i)``; continuous across
   level boundaries, trilinear inside a same-level region. No value where
-  ``sum phi <= 1e-20``. Cost: 8 hash lookups per level that can contribute.
+  ``sum phi <= 1e-20``. Cost: one stencil lookup (8 values) per level that can contribute.
 * ``nearest``: the value of the finest cell containing ``x`` (piecewise
   constant). Cost: one hash lookup per level, finest first, stopping at the
   first hit.
@@ -21,7 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .cell_hash import KEY_BITS, CellHash, hash_u32, pack_key
+from .cell_hash import KEY_BITS, CellHash, StencilHash, hash_u32, pack_key
 from .cells import AMRCells
 
 METHODS = ("tent", "nearest")
@@ -104,49 +104,55 @@ class HostReconstruction:
 
 # ---- Dr.Jit ----------------------------------------------------------------
 class DeviceReconstruction:
-    """The `CellHash` uploaded to Dr.Jit, and the per-sample reconstruction."""
+    """Per-sample reconstruction in Dr.Jit.
 
-    def __init__(self, cell_hash: CellHash):
-        self.hash = cell_hash
-        self.keys = mi.UInt64(cell_hash.keys)
-        self.values = mi.Float(cell_hash.values)
-        self.offset = mi.UInt32(cell_hash.offset)
-        self.mask = mi.UInt32(cell_hash.mask)
-        self.max_probe = mi.UInt32(cell_hash.max_probe)
-        dr.make_opaque(self.keys, self.values, self.offset, self.mask, self.max_probe)
+    ``nearest`` probes a `CellHash` level by level, finest first, and stops
+    at the first cell that contains ``x``. ``tent`` probes a `StencilHash`
+    once per level that can contribute: a hit yields the level's whole
+    2x2x2 stencil (8 gathers from contiguous memory), so a sample costs
+    about one probe plus 8 gathers per contributing level.
+    """
+
+    def __init__(self, cells: AMRCells, method: str):
+        self.method = check_method(method)
+        self.hash = StencilHash(cells) if method == "tent" else CellHash(cells)
+        self.origin = self.hash.origin
+        self.keys = mi.UInt64(self.hash.keys)
+        self.offset = mi.UInt32(self.hash.offset)
+        self.mask = mi.UInt32(self.hash.mask)
+        self.max_probe = mi.UInt32(self.hash.max_probe)
+        if method == "tent":
+            self.payload = mi.UInt32(self.hash.payload)
+            self.values = mi.Float(self.hash.values)
+        else:
+            self.payload = mi.Float(self.hash.payload)
+            self.values = mi.Float(0.0)
+        dr.make_opaque(self.keys, self.payload, self.values, self.offset, self.mask, self.max_probe)
+
+    @property
+    def nbytes(self) -> int:
+        return self.hash.nbytes
 
     @dr.syntax
-    def eval(self, x: mi.Vector3f, level_bits: mi.UInt32, tent: bool, active=True):
-        """Reconstruct at ``x`` (finest units relative to ``hash.origin``).
+    def eval(self, x: mi.Vector3f, level_bits: mi.UInt32, active=True):
+        """Reconstruct at ``x`` (finest units relative to ``origin``).
 
         ``level_bits``: the levels that may contribute at ``x`` (from the
-        macrocell grid). ``tent`` selects the method at trace time.
-        Returns ``(value, found)``; the loop runs at most
-        ``levels x corners x max_probe`` iterations.
+        macrocell grid). Returns ``(value, found)``. The loop does one probe
+        per iteration and runs at most ``levels x max_probe`` iterations.
         """
-        corners = 8 if tent else 1
+        tent = self.method == "tent"
         remaining = dr.select(active, level_bits, 0)
-        corner = mi.UInt32(0)
         probe = mi.UInt32(0)
         sum_w = mi.Float(0.0)
         sum_wv = mi.Float(0.0)
         found = mi.Bool(False)
         while dr.hint(remaining != 0, label="amr_reconstruct"):
-            # ---- Candidate cell of the current level and stencil corner ----
+            # ---- Key of the current level: the stencil base, or the cell ----
             L = dr.tzcnt(remaining)
-            inv_w = dr.rcp(mi.Float(mi.UInt32(1) << L))
-            xl = x * inv_w
-            if dr.hint(tent, mode='scalar'):
-                base = dr.floor(xl - 0.5)
-                q = mi.Vector3f(base.x + mi.Float(corner & 1),
-                                base.y + mi.Float((corner >> 1) & 1),
-                                base.z + mi.Float((corner >> 2) & 1))
-                d = dr.abs(xl - (q + 0.5))
-                weight = dr.maximum(0.0, 1.0 - d.x) * dr.maximum(0.0, 1.0 - d.y) * dr.maximum(0.0, 1.0 - d.z)
-            else:
-                q = dr.floor(xl)
-                weight = mi.Float(1.0)
-            in_range = dr.all((q >= 0.0) & (q < float(1 << KEY_BITS))) & (weight > 0.0)
+            xl = x * dr.rcp(mi.Float(mi.UInt32(1) << L))
+            q = dr.floor(xl - 0.5) + 1.0 if dr.hint(tent, mode="scalar") else dr.floor(xl)
+            in_range = dr.all((q >= 0.0) & (q < float(1 << KEY_BITS)))
             qi = mi.Vector3u(dr.select(in_range, q, 0.0))
 
             # ---- One linear-probing step in the level's table ----
@@ -155,21 +161,30 @@ class DeviceReconstruction:
             slot = dr.gather(mi.UInt32, self.offset, L) + ((h + probe) & dr.gather(mi.UInt32, self.mask, L))
             k = dr.gather(mi.UInt64, self.keys, slot, in_range)
             hit = in_range & (k == key)
-            v = dr.gather(mi.Float, self.values, slot, hit)
-            sum_w += dr.select(hit, weight, 0.0)
-            sum_wv += dr.select(hit, weight * v, 0.0)
-            found |= hit
-            corner_done = hit | ~in_range | (k == 0xFFFFFFFFFFFFFFFF) | (probe + 1 >= self.max_probe)
+            if dr.hint(tent, mode="scalar"):
+                # Tent weights of the 8 stencil cells (Eq. phi_i, DESIGN.md section 3)
+                base = (q - 1.0) + 0.5                        # centre of corner 0, level units
+                idx = dr.gather(mi.UInt32, self.payload, slot, hit) * 8
+                for c in range(8):
+                    off = mi.Vector3f(c & 1, (c >> 1) & 1, (c >> 2) & 1)
+                    d = dr.abs(xl - (base + off))
+                    w = dr.maximum(0.0, 1.0 - d.x) * dr.maximum(0.0, 1.0 - d.y) * dr.maximum(0.0, 1.0 - d.z)
+                    v = dr.gather(mi.Float, self.values, idx + c, hit & (w > 0.0))
+                    ok = hit & (w > 0.0) & ~dr.isnan(v)
+                    sum_w += dr.select(ok, w, 0.0)
+                    sum_wv += dr.select(ok, w * v, 0.0)
+            else:
+                v = dr.gather(mi.Float, self.payload, slot, hit)
+                sum_wv = dr.select(hit, v, sum_wv)
+                found |= hit
+            level_done = hit | ~in_range | (k == 0xFFFFFFFFFFFFFFFF) | (probe + 1 >= self.max_probe)
 
-            # ---- Advance: next probe, next corner, or next level ----
-            probe = dr.select(corner_done, 0, probe + 1)
-            corner = dr.select(corner_done, corner + 1, corner)
-            level_done = corner >= corners
+            # ---- Advance: next probe or next level ----
+            probe = dr.select(level_done, 0, probe + 1)
             remaining = dr.select(level_done, remaining & (remaining - 1), remaining)
-            corner = dr.select(level_done, 0, corner)
-            if dr.hint(not tent, mode='scalar'):
+            if dr.hint(not tent, mode="scalar"):
                 remaining = dr.select(found, 0, remaining)
-        if dr.hint(tent, mode='scalar'):
+        if dr.hint(tent, mode="scalar"):
             found = sum_w > WEIGHT_EPS
             value = dr.select(found, sum_wv / dr.maximum(sum_w, WEIGHT_EPS), 0.0)
         else:

@@ -101,3 +101,41 @@ def test07_block_test_detects_a_real_difference(llvm):
     a = render_passes(mi.load_dict(volume_scene(reference_medium(cells, tf, 100.0, "nearest"))), 16, 16)
     b = render_passes(mi.load_dict(volume_scene(reference_medium(cells, tf, 115.0, "nearest"))), 16, 16, seed0=999)
     assert np.abs(block_z_scores(a, b, 4)).max() > 4.0
+
+
+def test08_reference_scene_from_xml_matches_amr(llvm, tmp_path):
+    """`reference_scene` swaps the amr medium for heterogeneous + gridvolume
+    in an XML scene; with nearest reconstruction both agree in expectation."""
+    from mi_amr.scene_xml import reference_scene, with_amr_parameters
+    c = random_amr(5, levels=3, quantize=5)
+    write_exabricks(c, tmp_path / "cloud.cells")
+    scene = (ROOT / "scenes" / "cloud.xml").read_text()
+    (tmp_path / "s.xml").write_text(scene)
+    (tmp_path / "data").mkdir()
+    write_exabricks(c, tmp_path / "data" / "cloud.cells")
+    ref, media = reference_scene(tmp_path / "s.xml", tmp_path / "work", res=24, reconstruction="nearest")
+    assert len(media) == 1 and len(media[0].cells) == len(c)
+    assert any(p.suffix == ".vol" for p in (tmp_path / "work").iterdir())
+    amr = with_amr_parameters(tmp_path / "s.xml", {"majorant": "global"}, res=24, reconstruction="nearest")
+    a = render_passes(amr, 16, 8)
+    b = render_passes(ref, 16, 8, seed0=500)
+    assert np.abs(block_z_scores(a, b, 4)).max() < 4.0
+    assert a.mean(axis=0)[..., 0].std() > 0.01
+    with pytest.raises(ValueError, match="no <medium"):
+        (tmp_path / "empty.xml").write_text('<scene version="3.0.0"/>')
+        reference_scene(tmp_path / "empty.xml", tmp_path / "w2")
+
+
+def test09_frametime_reports_three_configurations(tmp_path):
+    c = random_amr(6, levels=3)
+    (tmp_path / "data").mkdir()
+    write_exabricks(c, tmp_path / "data" / "cloud.cells")
+    (tmp_path / "s.xml").write_text((ROOT / "scenes" / "cloud.xml").read_text())
+    r = subprocess.run([sys.executable, "-m", "mi_amr.cli", "frametime", str(tmp_path / "s.xml"),
+                        "--spp", "2", "--repeats", "1", "-D", "res=16", "--json", str(tmp_path / "t.json")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = json.loads((tmp_path / "t.json").read_text())
+    assert [x["config"] for x in rows] == ["amr majorant=ray", "amr majorant=global", "heterogeneous reference"]
+    assert all(x["frame_s"] > 0 and np.isfinite(x["mean"]) for x in rows)
+    assert rows[-1]["speedup_vs_reference"] == pytest.approx(1.0)

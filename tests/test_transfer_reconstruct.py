@@ -77,7 +77,7 @@ def test04_reconstruction_matches_brute_force(variant, method):
     cells = random_amr(7, n=16, levels=4)
     assert len(cells.levels) >= 3
     host = HostReconstruction(cells)
-    dev = DeviceReconstruction(host.hash)
+    dev = DeviceReconstruction(cells, method)
     rng = np.random.default_rng(2)
     x = rng.uniform(-2, 18, (3000, 3))
     # also exact cell corners and centres, where ties are decided
@@ -86,8 +86,8 @@ def test04_reconstruction_matches_brute_force(variant, method):
     val, found = host(x, method)
     np.testing.assert_array_equal(found, ref_found)
     np.testing.assert_allclose(val, ref, atol=1e-9)
-    xr = (x - host.hash.origin).astype(np.float32)
-    dval, dfound = dev.eval(mi.Vector3f(xr.T), mi.UInt32(host.hash.level_bits), method == "tent")
+    xr = (x - dev.origin).astype(np.float32)
+    dval, dfound = dev.eval(mi.Vector3f(xr.T), mi.UInt32(host.hash.level_bits))
     np.testing.assert_array_equal(dfound.numpy(), ref_found)
     np.testing.assert_allclose(dval.numpy(), ref, atol=2e-6)
 
