@@ -16,6 +16,7 @@ from .cells import AMRCells  # noqa: E402
 from .convert import dense_to_amr
 from .io import load_cells, read_exabricks, read_npz, save_cells, write_exabricks, write_npz
 from .transfer import TransferFunction
+from . import datasets  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",

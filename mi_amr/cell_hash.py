@@ -95,14 +95,16 @@ class LevelHash:
         val = np.zeros(len(q), dtype=self.payload.dtype)
         if not (self.level_bits >> level) & 1:
             return val, found
-        pending = ok.copy()
+        pending = np.nonzero(ok)[0]
         for p in range(self.max_probe):
-            slot = self.offset[level] + ((h + np.uint32(p)) & self.mask[level])
+            if not len(pending):
+                break
+            slot = self.offset[level] + ((h[pending] + np.uint32(p)) & self.mask[level])
             k = self.keys[slot]
-            hit = pending & (k == key)
-            found |= hit
-            val[hit] = self.payload[slot[hit]]
-            pending &= ~hit & (k != EMPTY_KEY)
+            hit = k == key[pending]
+            found[pending[hit]] = True
+            val[pending[hit]] = self.payload[slot[hit]]
+            pending = pending[~hit & (k != EMPTY_KEY)]
         return val, found
 
 

@@ -38,9 +38,13 @@ def dense_bytes(cells: AMRCells, resolution=None) -> int:
 
 
 def resample_dense(cells: AMRCells, method: str = "tent", resolution=None,
-                   memory_limit: int = DEFAULT_MEMORY_LIMIT, chunk: int = 1 << 18):
+                   memory_limit: int = DEFAULT_MEMORY_LIMIT, chunk: int = 1 << 22,
+                   device: bool | None = None):
     """Reconstruct the field at the voxel centres of a dense grid covering
-    the data bounds. Returns ``(value, found)`` arrays indexed ``[z, y, x]``."""
+    the data bounds. Returns ``(value, found)`` arrays indexed ``[z, y, x]``.
+
+    ``device``: evaluate with the Dr.Jit reconstruction (fast, multi-threaded;
+    the default when a JIT variant is active) or with the numpy one."""
     check_method(method)
     need = dense_bytes(cells, resolution)
     if need > memory_limit:
@@ -52,7 +56,19 @@ def resample_dense(cells: AMRCells, method: str = "tent", resolution=None,
     shape = dense_shape(cells, resolution)
     lo, hi = cells.bounds
     voxel = (hi - lo) / np.array(shape[::-1], dtype=np.float64)   # finest units per voxel (x, y, z)
-    rec = HostReconstruction(cells)
+    if device is None:
+        device = mi.variant() is not None and not mi.variant().startswith("scalar")
+    if device:
+        from .reconstruct import DeviceReconstruction
+        dev = DeviceReconstruction(cells, method)
+        bits = mi.UInt32(dev.hash.level_bits)
+
+        def rec(x, method):
+            xr = (x - dev.origin).astype(np.float32)
+            v, f = dev.eval(mi.Vector3f(np.ascontiguousarray(xr.T)), bits)
+            return v.numpy(), f.numpy()
+    else:
+        rec = HostReconstruction(cells)
     n = int(np.prod(shape))
     value = np.zeros(n, dtype=np.float32)
     found = np.zeros(n, dtype=bool)
