@@ -36,6 +36,14 @@ def register(variant: str | None = None):
 
     mi.register_medium("amr", make_medium)
 
+    from .integrator import AMRVolpathIntegrator
+
+    def make_integrator(props):
+        require_jit_rgb_variant("the 'amrvolpath' integrator")
+        return AMRVolpathIntegrator(props)
+
+    mi.register_integrator("amrvolpath", make_integrator)
+
 
 def _on_variant_change(old, new):
     if new is not None:

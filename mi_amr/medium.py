@@ -11,17 +11,29 @@ import numpy as np
 
 from .cells import AMRCells
 from .io import load_cells
+from .brick_sampling import BrickListGrid, BrickSampler, DeviceBricks
+from .bricks import Bricks
+from .cell_hash import key_origin
+from .kdtree_sah import build_sah_kdtree
+from .local_tracking import track_segments
 from .majorant_grid import MacrocellGrid
 from .reconstruct import DeviceReconstruction, check_method
+from .region_tree import box_value_ranges, build_region_tree
 from .tracking import DeviceMacrocellGrid, intersect_unit_cube, safe_rcp
+from .traversal import DeviceTree, GridSegments, TreeSegments
 from .transfer import TransferFunction
 from .transfer_jit import DeviceTransferFunction
 
 MAJORANTS = ("ray", "global")
+TRAVERSALS = ("grid", "abr", "brick", "kdtree")
+SAMPLINGS = ("hash", "abr", "brick")
+#: Bound on the iterations of one tracking loop (reported by the counters).
+MAX_TRACKING_ITERATIONS = 1 << 20
 OVERLAPS = ("error", "finest")
 _KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
           "density_scale", "reconstruction", "majorant", "grid_resolution",
-          "overlap", "to_world", "sample_emitters"}
+          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
+          "kdtree_leaves"}
 
 
 def as_transform4f(t) -> "mi.ScalarTransform4f":
@@ -139,24 +151,35 @@ class AMRMedium(mi.Medium):
         grid_res = props.get("grid_resolution", None)
         if grid_res is not None and int(grid_res) < 1:
             raise ValueError(f"amr: grid_resolution must be >= 1, got {grid_res}")
+        self.grid_resolution = None if grid_res is None else int(grid_res)
+        self.traversal = _choice(props, "traversal", "grid", TRAVERSALS)
+        self.sampling = _choice(props, "sampling", "hash", SAMPLINGS)
+        self.brick_size = int(props.get("brick_size", 8))
+        self.kdtree_leaves = int(props.get("kdtree_leaves", 4096))
+        if self.brick_size < 1 or self.kdtree_leaves < 1:
+            raise ValueError("amr: brick_size and kdtree_leaves must be >= 1")
 
         self.to_world_scalar = as_transform4f(props.get("to_world", None))
 
-        # ---- Structures (host build, then upload) ----
-        t0 = time.perf_counter()
-        self._sampler = DeviceReconstruction(self.cells, self.reconstruction)
-        self.grid = MacrocellGrid(self.cells, grid_res, support=self.reconstruction)
-        self.build_seconds = time.perf_counter() - t0
-        self._grid = DeviceMacrocellGrid(self.grid)
-        self._tf = DeviceTransferFunction(self.tf)
-
+        # ---- Common device data ----
         lo, hi = self.cells.bounds
-        self._offset = mi.Vector3f(*[float(c) for c in lo - self._sampler.origin])
+        self.origin = key_origin(self.cells)
+        self._offset = mi.Vector3f(*[float(c) for c in lo - self.origin])
         self._extent = mi.Vector3f(*[float(c) for c in hi - lo])
         self._to_local = mi.Transform4f(self.to_world_scalar.inverse())
         self._scale = mi.Float(self.density_scale)
-        dr.make_opaque(self._offset, self._extent, self._to_local, self._scale)
+        self._max_iterations = mi.UInt32(MAX_TRACKING_ITERATIONS)
+        dr.make_opaque(self._offset, self._extent, self._to_local, self._scale, self._max_iterations)
+        self._tf = DeviceTransferFunction(self.tf)
         self._ray_mu = None
+        self._structures = {}
+        self.build_seconds = {}
+        self.counters_enabled = False
+        self._counters = None
+
+        # ---- Structures the chosen traversal and sampling use ----
+        self._segments()
+        self._point_sampler()
         self.update_majorants()
 
     # ---- Construction helpers ---------------------------------------------
@@ -191,12 +214,112 @@ class AMRMedium(mi.Medium):
             scalars = str(resolver.resolve(str(scalars)))
         return load_cells(path, scalars, overlap=overlap)
 
+    # ---- Structures (built on first use) ------------------------------------
+    def _build(self, name, make):
+        if name not in self._structures:
+            t0 = time.perf_counter()
+            self._structures[name] = make()
+            self.build_seconds[name] = time.perf_counter() - t0
+            if getattr(self, "_majorants_ready", False):
+                self.update_majorants()
+        return self._structures[name]
+
+    @property
+    def grid(self) -> MacrocellGrid:
+        return self._grid.host
+
+    @property
+    def _grid(self) -> DeviceMacrocellGrid:
+        return self._build("grid", lambda: DeviceMacrocellGrid(
+            MacrocellGrid(self.cells, self.grid_resolution, support=self.reconstruction)))
+
+    @property
+    def bricks(self) -> Bricks:
+        return self._build("bricks", lambda: Bricks(self.cells, self.brick_size))
+
+    def _brick_tree(self, kind: str) -> DeviceTree:
+        """kd-tree over brick domains (``abr``) or brick bounds (``brick``)."""
+        def make():
+            b = self.bricks
+            lo, hi = self.cells.bounds
+            if kind == "abr":
+                blo, bhi = b.domains()
+            else:
+                blo, bhi = b.lo.astype(np.float64), b.hi.astype(np.float64)
+            tree = build_region_tree(np.round(2 * blo).astype(np.int64), np.round(2 * bhi).astype(np.int64),
+                                     2 * lo, 2 * hi)
+            dlo, dhi = b.domains()
+            if self.reconstruction == "nearest":
+                dlo, dhi = b.lo.astype(np.float64), b.hi.astype(np.float64)
+            vmin, vmax = box_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, dlo, dhi, b.vmin, b.vmax)
+            return DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), vmin, vmax)
+        return self._build(f"{kind}_tree", make)
+
+    def _kdtree(self) -> DeviceTree:
+        def make():
+            g = self._grid
+            r = g.host.res
+            maj = self._tf_host_majorants(g.host.vmin, g.host.vmax).reshape(r[2], r[1], r[0]).transpose(2, 1, 0)
+            vmin = g.host.vmin.reshape(r[2], r[1], r[0]).transpose(2, 1, 0)
+            vmax = g.host.vmax.reshape(r[2], r[1], r[0]).transpose(2, 1, 0)
+            tree, lmin, lmax = build_sah_kdtree(maj, vmin, vmax, self.kdtree_leaves)
+            return DeviceTree(tree, np.zeros(3), 1.0 / r, lmin, lmax)
+        return self._build("kdtree", make)
+
+    def _tf_host_majorants(self, vmin, vmax):
+        """Host majorants (inverse local units) of value ranges, for the SAH
+        build: density_scale * max alpha, times the local-to-world scale."""
+        lo, hi = self.tf.range_entries(np.where(np.isfinite(vmin), vmin, 0), np.where(np.isfinite(vmax), vmax, 0))
+        st = self.tf.sparse_table()
+        k = np.floor(np.log2(hi - lo + 1)).astype(np.int64)
+        m = np.maximum(st[k, lo], st[k, hi + 1 - (1 << k)])
+        m = np.where(vmin <= vmax, m, 0.0)
+        world = np.array(self.to_world_scalar.matrix, dtype=np.float64)[:3, :3]
+        return self.density_scale * m * float(np.cbrt(abs(np.linalg.det(world))) or 1.0)
+
+    def _segments(self):
+        """The segment iterator of the chosen traversal."""
+        if self.traversal == "grid":
+            return GridSegments(self._grid)
+        if self.traversal == "kdtree":
+            return TreeSegments(self._kdtree())
+        return TreeSegments(self._brick_tree(self.traversal))
+
+    def _point_sampler(self):
+        if self.sampling == "hash":
+            return self._build("hash", lambda: DeviceReconstruction(self.cells, self.reconstruction))
+        dev_bricks = self._build("device_bricks", lambda: DeviceBricks(self.bricks, self.origin))
+        if self.sampling == "abr":
+            return BrickSampler(dev_bricks, self.reconstruction, "abr", abr_tree=self._brick_tree("abr"))
+        lo, hi = self.cells.bounds
+        res = self.grid.res if "grid" in self._structures else _list_grid_resolution(self.cells)
+        lists = self._build("brick_lists", lambda: BrickListGrid(self.bricks, lo, hi - lo, res))
+        return BrickSampler(dev_bricks, self.reconstruction, "brick", list_grid=lists)
+
+    @property
+    def structure_bytes(self) -> int:
+        """Memory of every structure built so far (host arrays uploaded)."""
+        total = 0
+        for name, obj in self._structures.items():
+            host = getattr(obj, "host", obj)
+            total += int(getattr(host, "nbytes", 0) or getattr(obj, "nbytes", 0))
+        return total
+
     # ---- Transfer function / majorants ---------------------------------------
     def update_majorants(self):
-        """Recompute every macrocell majorant from the value ranges, the TF
-        and the density scale (one Dr.Jit kernel), and the global maximum."""
-        self._grid.update_majorants(self._tf, self._scale)
-        self._global_mu = dr.max(self._grid.majorant)
+        """Recompute the majorants of every built structure from its value
+        ranges, the TF and the density scale (one Dr.Jit kernel each), and
+        the global maximum."""
+        self._majorants_ready = True
+        mus = []
+        for name in ("grid", "abr_tree", "brick_tree", "kdtree"):
+            if name in self._structures:
+                self._structures[name].update_majorants(self._tf, self._scale)
+                mus.append(dr.max(self._structures[name].majorant))
+        self._global_mu = mus[0] if mus else mi.Float(0.0)
+        for m in mus[1:]:
+            self._global_mu = dr.maximum(self._global_mu, m)
+        self._global_mu = mi.Float(dr.ravel(self._global_mu))
         dr.make_opaque(self._global_mu)
 
     @property
@@ -208,6 +331,47 @@ class AMRMedium(mi.Medium):
         """Macrocell majorants as a numpy array indexed ``[z, y, x]``."""
         r = self.grid.res
         return self._grid.majorant.numpy().reshape(r[2], r[1], r[0])
+
+    # ---- Density ----------------------------------------------------------------
+    def eval_local(self, u: mi.Vector3f, active=True):
+        """``(albedo, sigma_t)`` at local point ``u`` (unit cube); sigma_t in
+        inverse world units, 0 outside the data or where no value exists."""
+        inside = mi.Bool(active) & dr.all((u >= 0.0) & (u <= 1.0))
+        x = self._offset + u * self._extent
+        sampler = self._point_sampler()
+        if self.sampling == "hash":
+            g = self._grid
+            level_bits = dr.gather(mi.UInt32, g.level_bits, g.flat(g.cell_of(u)), inside)
+            value, found = sampler.eval(x, level_bits, inside)
+        else:
+            value, found = sampler.eval(x, u, inside)
+        rgb, alpha = self._tf.eval(value, found)
+        sigma_t = dr.select(found, self._scale * alpha, 0.0)
+        return rgb, sigma_t
+
+    # ---- Local-majorant tracking (used by the amrvolpath integrator) ---------
+    def local_ray(self, ray: mi.Ray3f):
+        return self._to_local @ ray.o, self._to_local @ ray.d
+
+    def free_flight(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active):
+        """Delta tracking through local-majorant segments along ``ray`` up to
+        ``t_max``. Returns ``(collided, t, albedo, sigma_t, counts)``."""
+        return self._track(ray, t_max, sampler, active, ratio=False)
+
+    def transmittance(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active):
+        """Ratio-tracking estimate of transmittance along ``ray`` over
+        ``[0, t_max]``. Returns ``(T, counts)``."""
+        _, _, _, T, counts = self._track(ray, t_max, sampler, active, ratio=True)
+        return T, counts
+
+    def _track(self, ray, t_max, sampler, active, ratio):
+        o, d = self.local_ray(ray)
+        hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
+        t_lo = dr.maximum(t0, 0.0)
+        t_hi = dr.minimum(t1, t_max)
+        active = mi.Bool(active) & hit & (t_lo < t_hi) & (self._global_mu > 0.0)
+        return track_segments(self._segments(), self.eval_local, o, d, t_lo, t_hi, sampler,
+                              active, ratio, self._max_iterations)
 
     # ---- Mitsuba medium interface -------------------------------------------
     def intersect_aabb(self, ray: mi.Ray3f):
@@ -230,14 +394,7 @@ class AMRMedium(mi.Medium):
     def get_scattering_coefficients(self, mei: mi.MediumInteraction3f, active=True):
         mu = self._current_majorant()
         self._ray_mu = None          # consumed: sample_interaction calls this last
-        u = self._to_local @ mei.p
-        inside = mi.Bool(active) & dr.all((u >= 0.0) & (u <= 1.0))
-        level_bits = dr.gather(mi.UInt32, self._grid.level_bits,
-                               self._grid.flat(self._grid.cell_of(u)), inside)
-        x = self._offset + u * self._extent
-        value, found = self._sampler.eval(x, level_bits, inside)
-        rgb, alpha = self._tf.eval(value, found)
-        sigma_t = dr.select(found, self._scale * alpha, 0.0)
+        rgb, sigma_t = self.eval_local(self._to_local @ mei.p, active)
         sigma_s = rgb * sigma_t
         sigma_n = dr.maximum(mu - sigma_t, 0.0)
         return mi.Color3f(sigma_s), mi.Color3f(sigma_n), mi.Color3f(sigma_t)
@@ -248,8 +405,21 @@ class AMRMedium(mi.Medium):
     def to_string(self):
         return (f"AMRMedium[\n  cells = {len(self.cells)},\n  levels = "
                 f"{self.cells.levels.tolist()},\n  reconstruction = {self.reconstruction},\n"
-                f"  majorant = {self.majorant_mode},\n  grid_resolution = {self.grid.res.tolist()},\n"
+                f"  majorant = {self.majorant_mode},\n  traversal = {self.traversal},\n  sampling = {self.sampling},\n"
+                f"  structures = {sorted(self._structures)},\n"
                 f"  density_scale = {self.density_scale},\n  transfer_function = {self.tf}\n]")
+
+
+def _choice(props, name, default, choices):
+    v = str(props.get(name, default))
+    if v not in choices:
+        raise ValueError(f"amr: unknown {name} {v!r} (choose from {', '.join(choices)})")
+    return v
+
+
+def _list_grid_resolution(cells):
+    from .majorant_grid import default_resolution
+    return default_resolution(cells)
 
 
 def _positive_float(props, name, default):

@@ -1,0 +1,139 @@
+"""Point location and reconstruction through bricks (Dr.Jit).
+
+* ``abr`` sampling: find the active brick region (ABR) that contains the
+  point (kd-tree descent) and visit its constant list of bricks.
+* ``brick`` sampling: visit the bricks whose *extended domain* contains the
+  point, found through a uniform grid of per-macrocell brick lists.
+
+Within a brick, ``tent`` is trilinear interpolation over the 2x2x2 cells
+around the point with the weights of cells outside the brick dropped; the
+weights of all visited bricks are summed and normalised (DESIGN.md section
+3). ``nearest`` takes the finest brick whose bounds contain the point.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .bricks import Bricks
+from .majorant_grid import _expand_boxes
+from .reconstruct import WEIGHT_EPS
+
+
+class DeviceBricks:
+    """Bricks in Dr.Jit; positions in finest units relative to ``origin``."""
+
+    def __init__(self, bricks: Bricks, origin):
+        self.host = bricks
+        lo = (bricks.lo - np.asarray(origin)).astype(np.float32)
+        self.lo = mi.Vector3f(lo.T.copy())
+        self.dims = mi.Vector3i(bricks.dims.T.astype(np.int32).copy())
+        self.width = mi.Float(bricks.width.astype(np.float32))
+        self.offset = mi.UInt32(bricks.offset.astype(np.uint32))
+        self.values = mi.Float(bricks.values)
+        dr.make_opaque(self.lo, self.dims, self.width, self.offset, self.values)
+
+    def contribution(self, b, x, tent: bool, active):
+        """``(sum_w, sum_wv, inside)`` of brick ``b`` at point ``x``."""
+        lo = dr.gather(mi.Vector3f, self.lo, b, active)
+        dims = dr.gather(mi.Vector3i, self.dims, b, active)
+        w = dr.gather(mi.Float, self.width, b, active)
+        off = dr.gather(mi.UInt32, self.offset, b, active)
+        xb = (x - lo) * dr.rcp(w)
+        inside = active & dr.all((xb >= 0.0) & (xb < mi.Vector3f(dims)))
+        if not tent:
+            i = dr.clip(mi.Vector3i(dr.floor(xb)), 0, dims - 1)
+            v = dr.gather(mi.Float, self.values, off + mi.UInt32(i.x + dims.x * (i.y + dims.y * i.z)), inside)
+            return dr.select(inside, w, 0.0), dr.select(inside, v, 0.0), inside
+        xc = xb - 0.5
+        base = mi.Vector3i(dr.floor(xc))
+        sum_w = mi.Float(0.0)
+        sum_wv = mi.Float(0.0)
+        for c in range(8):
+            i = base + mi.Vector3i(c & 1, (c >> 1) & 1, (c >> 2) & 1)
+            ok = active & dr.all((i >= 0) & (i < dims))
+            dd = dr.abs(xc - mi.Vector3f(i))
+            wt = dr.maximum(0.0, 1.0 - dd.x) * dr.maximum(0.0, 1.0 - dd.y) * dr.maximum(0.0, 1.0 - dd.z)
+            ok &= wt > 0.0
+            v = dr.gather(mi.Float, self.values, off + mi.UInt32(i.x + dims.x * (i.y + dims.y * i.z)), ok)
+            sum_w += dr.select(ok, wt, 0.0)
+            sum_wv += dr.select(ok, wt * v, 0.0)
+        return sum_w, sum_wv, inside
+
+
+class BrickListGrid:
+    """Per-macrocell lists of the bricks whose extended domain overlaps it."""
+
+    def __init__(self, bricks: Bricks, lo, extent, res):
+        res = np.asarray(res, dtype=np.int64)
+        dlo, dhi = bricks.domains()
+        scale = res / np.asarray(extent, dtype=np.float64)
+        i0 = np.clip(np.floor((dlo - lo) * scale), 0, res - 1).astype(np.int64)
+        i1 = np.clip(np.floor((dhi - lo) * scale), 0, res - 1).astype(np.int64)
+        idx, owner = _expand_boxes(i0, i1, res)
+        order = np.argsort(idx, kind="stable")
+        idx, owner = idx[order], owner[order]
+        n = int(np.prod(res))
+        count = np.bincount(idx, minlength=n).astype(np.uint32)
+        offset = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.uint32)
+        self.res_host = res
+        self.max_list = int(count.max())
+        self.res = mi.Vector3i(*[int(r) for r in res])
+        self.count = mi.UInt32(count)
+        self.offset = mi.UInt32(offset)
+        self.items = mi.UInt32(owner.astype(np.uint32))
+        self.nbytes = count.nbytes * 2 + owner.size * 4
+        dr.make_opaque(self.res, self.count, self.offset, self.items)
+
+    def cell(self, u):
+        c = dr.clip(mi.Vector3i(dr.floor(u * mi.Vector3f(self.res))), 0, self.res - 1)
+        return mi.UInt32(c.x + self.res.x * (c.y + self.res.y * c.z))
+
+
+class BrickSampler:
+    """Reconstruction through bricks, with ABR or brick-domain point location."""
+
+    def __init__(self, bricks: DeviceBricks, method: str, mode: str, abr_tree=None, list_grid=None):
+        self.bricks = bricks
+        self.tent = method == "tent"
+        self.mode = mode
+        self.abr = abr_tree
+        self.grid = list_grid
+
+    @dr.syntax
+    def eval(self, x: mi.Vector3f, u: mi.Vector3f, active=True):
+        """Value and found mask at ``x`` (finest units rel. to the brick
+        origin), ``u`` the same point in the unit cube."""
+        if dr.hint(self.mode == "abr", mode="scalar"):
+            leaf = self.abr.locate(u, mi.Vector3f(1.0), active)
+            start = dr.gather(mi.UInt32, self.abr.list_offset, leaf, active)
+            count = dr.gather(mi.UInt32, self.abr.list_count, leaf, active)
+            items = self.abr.items
+        else:
+            cell = self.grid.cell(u)
+            start = dr.gather(mi.UInt32, self.grid.offset, cell, active)
+            count = dr.gather(mi.UInt32, self.grid.count, cell, active)
+            items = self.grid.items
+        count = dr.select(active, count, 0)
+        i = mi.UInt32(0)
+        sum_w = mi.Float(0.0)
+        sum_wv = mi.Float(0.0)
+        best_w = mi.Float(dr.inf)
+        while dr.hint(i < count, label="amr_brick_list"):
+            b = dr.gather(mi.UInt32, items, start + i)
+            w, wv, inside = self.bricks.contribution(b, x, self.tent, i < count)
+            if dr.hint(self.tent, mode="scalar"):
+                sum_w += w
+                sum_wv += wv
+            else:
+                finer = inside & (w < best_w)          # finest containing brick wins
+                best_w = dr.select(finer, w, best_w)
+                sum_wv = dr.select(finer, wv, sum_wv)
+            i += 1
+        if dr.hint(self.tent, mode="scalar"):
+            found = sum_w > WEIGHT_EPS
+            return dr.select(found, sum_wv / dr.maximum(sum_w, WEIGHT_EPS), 0.0), found
+        found = best_w < dr.inf
+        return dr.select(found, sum_wv, 0.0), found

@@ -1,0 +1,339 @@
+"""The ``amrvolpath`` integrator: Mitsuba's volpath with local majorants.
+
+Same estimator as Mitsuba's ``volpath`` (unidirectional volumetric path
+tracing, next-event estimation with ratio-tracked shadow rays, MIS between
+emitter and BSDF/phase sampling for emitters hit by chance, Russian
+roulette, nested media and index-matched boundaries). For ``amr`` media,
+free flights (delta tracking) and shadow rays (ratio tracking) run segment
+by segment through the medium's traversal structure, each segment with its
+own majorant, without restarting at null collisions. Every other medium goes
+through ``Medium.sample_interaction`` exactly as in volpath.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .local_tracking import TrackingCounts
+
+COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped")
+
+
+def _mis(pdf_a, pdf_b):
+    """Power heuristic; 0 where it is undefined (both pdfs 0, or infinite)."""
+    a2 = dr.square(pdf_a)
+    w = a2 / (a2 + dr.square(pdf_b))
+    return dr.detach(dr.select(dr.isfinite(w), w, 0.0))
+
+
+def _channel(spec, channel):
+    return dr.select(channel == 0, spec[0], dr.select(channel == 1, spec[1], spec[2]))
+
+
+class AMRVolpathIntegrator(mi.SamplingIntegrator):
+    r"""
+    AMR volumetric path tracer (:monosp:`amrvolpath`)
+    -------------------------------------------------
+
+    A drop-in replacement for ``volpath`` that tracks through the local
+    majorants of ``amr`` media.
+
+    .. pluginparameters::
+
+     * - max_depth
+       - |int|
+       - Longest path depth (-1: infinite). Default: -1.
+     * - rr_depth
+       - |int|
+       - Depth from which Russian roulette starts. Default: 5.
+     * - hide_emitters
+       - |bool|
+       - Hide directly visible emitters. Default: false.
+     * - counters
+       - |bool|
+       - Count density look-ups, null and real collisions and traversal
+         steps per render (see `counters()`). Default: false (no cost).
+    """
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        known = {"max_depth", "rr_depth", "hide_emitters", "counters"}
+        for k in props.keys():
+            if k not in known:
+                raise ValueError(f"amrvolpath: unknown parameter {k!r} (known: {', '.join(sorted(known))})")
+        md = int(props.get("max_depth", -1))
+        if md < -1:
+            raise ValueError("amrvolpath: max_depth must be -1 (infinite) or >= 0")
+        self.max_depth = 0xFFFFFFFF if md == -1 else md
+        self.rr_depth = int(props.get("rr_depth", 5))
+        if self.rr_depth <= 0:
+            raise ValueError("amrvolpath: rr_depth must be > 0")
+        self.hide_emitters = bool(props.get("hide_emitters", False))
+        self.counters_enabled = bool(props.get("counters", False))
+        self._counter_array = dr.zeros(mi.UInt64, len(COUNTER_NAMES))
+
+    # ---- Counters ------------------------------------------------------------
+    def reset_counters(self):
+        self._counter_array = dr.zeros(mi.UInt64, len(COUNTER_NAMES))
+
+    def counters(self) -> dict:
+        """Totals since the last `reset_counters` (or construction)."""
+        vals = self._counter_array.numpy()
+        return {k: int(v) for k, v in zip(COUNTER_NAMES, vals)}
+
+    def _count(self, counts: TrackingCounts):
+        if not self.counters_enabled:
+            return
+        for i, name in enumerate(COUNTER_NAMES):
+            v = getattr(counts, name)
+            dr.scatter_reduce(dr.ReduceOp.Add, self._counter_array, mi.UInt64(v), mi.UInt32(i))
+
+    # ---- Scene analysis ---------------------------------------------------------
+    @staticmethod
+    def _media(scene):
+        """(amr media, whether any other medium exists) in the scene."""
+        from .medium import AMRMedium
+        amr, other = [], False
+        seen = set()
+        objs = [s for s in scene.shapes()]
+        for shape in objs:
+            for m in (shape.interior_medium(), shape.exterior_medium()):
+                if m is None or id(m) in seen:
+                    continue
+                seen.add(id(m))
+                if isinstance(m, AMRMedium):
+                    amr.append(m)
+                else:
+                    other = True
+        for sensor in scene.sensors():
+            m = sensor.medium() if hasattr(sensor, "medium") else None
+            if m is not None and id(m) not in seen:
+                seen.add(id(m))
+                if isinstance(m, AMRMedium):
+                    amr.append(m)
+                else:
+                    other = True
+        return amr, other
+
+    # ---- Radiance ------------------------------------------------------------
+    @dr.syntax
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        amr_media, has_other = self._media(scene)
+        amr_ptrs = [mi.MediumPtr(m) for m in amr_media]
+
+        ray = mi.Ray3f(ray)
+        L = mi.Spectrum(0.0)
+        throughput = mi.Spectrum(1.0)
+        eta = mi.Float(1.0)
+        depth = mi.UInt32(0)
+        active = mi.Bool(active)
+        valid_ray = mi.Bool(False)
+        specular_chain = mi.Bool(True)
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        needs_intersection = mi.Bool(True)
+        last_event = dr.zeros(mi.Interaction3f)
+        last_pdf = mi.Float(1.0)
+        medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
+        channel = mi.UInt32(dr.minimum(3.0 * sampler.next_1d(active), 2.0))
+        counts = TrackingCounts()
+
+        while dr.hint(active, label="amrvolpath"):
+            # ---- Russian roulette (as in volpath) ----
+            q = dr.minimum(dr.max(throughput) * dr.square(eta), 0.95)
+            perform_rr = depth > self.rr_depth
+            active &= (sampler.next_1d(active) < q) | ~perform_rr
+            throughput = dr.select(perform_rr, throughput * dr.rcp(q), throughput)
+            active &= dr.any(throughput != 0.0)
+
+            # ---- Surface along the ray (bounds the medium segment) ----
+            intersect = active & needs_intersection
+            si[intersect] = scene.ray_intersect(ray, intersect)
+            needs_intersection &= ~intersect
+
+            active_medium = active & (medium != None)  # noqa: E711
+            act_scatter = mi.Bool(False)
+            act_null = mi.Bool(False)
+            mei = dr.zeros(mi.MediumInteraction3f)
+
+            # ---- amr media: delta tracking through local majorants ----
+            for k in range(len(amr_media)):
+                is_k = active_medium & (medium == amr_ptrs[k])
+                hit, t, albedo, sigma_t, c = amr_media[k].free_flight(ray, si.t, sampler, is_k)
+                counts = counts + c
+                real = is_k & hit
+                mei[real] = self._medium_interaction(ray, t, albedo, sigma_t, amr_ptrs[k])
+                throughput[real] *= albedo               # sigma_s / sigma_t
+                act_scatter |= real
+
+            # ---- other media: Mitsuba's sample_interaction, as in volpath ----
+            if dr.hint(has_other, mode="scalar"):
+                is_other = active_medium
+                for p in amr_ptrs:
+                    is_other &= medium != p
+                m_other = medium.sample_interaction(ray, sampler.next_1d(is_other), channel, is_other)
+                m_other.t[is_other & (si.t < m_other.t)] = dr.inf
+                tr, ff_pdf = medium.transmittance_eval_pdf(m_other, si, is_other)
+                tr_pdf = _channel(ff_pdf, channel)
+                throughput[is_other] *= dr.select(tr_pdf > 0.0, tr / tr_pdf, 0.0)
+                valid_o = is_other & m_other.is_valid()
+                p_real = _channel(m_other.sigma_t, channel) / _channel(m_other.combined_extinction, channel)
+                null_o = valid_o & (sampler.next_1d(valid_o) >= p_real)
+                real_o = valid_o & ~null_o
+                throughput[null_o] *= m_other.sigma_n / (1.0 - p_real)
+                throughput[real_o] *= m_other.sigma_s / p_real
+                mei[valid_o] = m_other
+                act_scatter |= real_o
+                act_null |= null_o
+                # continue from the null collision: keep the surface hit
+                ray.o[null_o] = m_other.p
+                si.t[null_o] = si.t - m_other.t
+
+            escaped_medium = active_medium & ~act_scatter & ~act_null
+            depth[act_scatter] += 1
+            last_event[act_scatter] = mei
+            active &= depth < self.max_depth
+            act_scatter &= active
+
+            # ---- Medium scattering: NEE and phase sampling ----
+            phase_ctx = mi.PhaseFunctionContext(sampler)
+            phase = mei.medium.phase_function()
+            phase[~act_scatter] = dr.zeros(mi.PhaseFunctionPtr)
+            sample_emitters = mei.medium.use_emitter_sampling()
+            specular_chain &= ~act_scatter
+            specular_chain |= act_scatter & ~sample_emitters
+            nee_m = act_scatter & sample_emitters
+            if dr.hint(len(scene.emitters()) > 0, mode="scalar"):
+                emitted, ds, c = self._sample_emitter(mei, scene, sampler, medium, channel,
+                                                      nee_m, amr_media, amr_ptrs, has_other)
+                counts = counts + c
+                phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
+                L[nee_m] += throughput * phase_val * _mis(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf)) * emitted
+
+            wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, sampler.next_1d(act_scatter),
+                                                       sampler.next_2d(act_scatter), act_scatter)
+            act_scatter &= phase_pdf > 0.0
+            throughput[act_scatter] *= phase_weight
+            ray[act_scatter] = mei.spawn_ray(wo)
+            needs_intersection |= act_scatter
+            last_pdf[act_scatter] = phase_pdf
+            valid_ray |= act_scatter
+
+            # ---- Surfaces (and rays that left their medium) ----
+            active_surface = (active & ~active_medium) | (escaped_medium & active)
+            emitter = si.emitter(scene)
+            active_e = active_surface & (emitter != None)  # noqa: E711
+            if dr.hint(self.hide_emitters, mode="scalar"):
+                active_e &= ~(depth == 0)
+            ds = mi.DirectionSample3f(scene, si, last_event)
+            em_pdf = scene.pdf_emitter_direction(last_event, ds, active_e & ~specular_chain)
+            count_direct = (depth == 0) | specular_chain
+            mis = dr.select(count_direct, 1.0, _mis(last_pdf, em_pdf))
+            L[active_e] += throughput * emitter.eval(si, active_e) * mis
+
+            active_surface &= si.is_valid()
+            ctx = mi.BSDFContext()
+            bsdf = si.bsdf(ray)
+            nee_s = active_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth + 1 < self.max_depth)
+            if dr.hint(len(scene.emitters()) > 0, mode="scalar"):
+                mei_s = dr.zeros(mi.MediumInteraction3f)
+                emitted, ds, c = self._sample_emitter(si, scene, sampler, medium, channel,
+                                                      nee_s, amr_media, amr_ptrs, has_other)
+                counts = counts + c
+                wo_l = si.to_local(ds.d)
+                bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo_l, nee_s)
+                L[nee_s] += throughput * bsdf_val * _mis(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
+
+            bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active_surface),
+                                          sampler.next_2d(active_surface), active_surface)
+            active_surface &= bs.pdf > 0.0
+            throughput[active_surface] *= bsdf_weight
+            eta[active_surface] *= bs.eta
+            ray[active_surface] = si.spawn_ray(si.to_world(bs.wo))
+            needs_intersection |= active_surface
+            non_null = active_surface & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
+            depth[non_null] += 1
+            last_event[non_null] = si
+            last_pdf[non_null] = bs.pdf
+            valid_ray |= non_null
+            specular_chain |= non_null & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            specular_chain &= ~(active_surface & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Smooth))
+            transition = active_surface & si.is_medium_transition()
+            medium[transition] = si.target_medium(ray.d)
+            active &= active_surface | act_scatter | act_null
+
+        self._count(counts)
+        return L, valid_ray, []
+
+    @staticmethod
+    def _medium_interaction(ray, t, albedo, sigma_t, ptr):
+        mei = dr.zeros(mi.MediumInteraction3f)
+        mei.t = t
+        mei.p = ray(t)
+        mei.wi = -ray.d
+        mei.sh_frame = mi.Frame3f(mei.wi)
+        mei.time = ray.time
+        mei.wavelengths = ray.wavelengths
+        mei.medium = ptr
+        mei.sigma_t = mi.Color3f(sigma_t)
+        mei.sigma_s = albedo * sigma_t
+        mei.combined_extinction = mi.Color3f(sigma_t)
+        return mei
+
+    @dr.syntax
+    def _sample_emitter(self, ref, scene, sampler, medium, channel, active,
+                        amr_media, amr_ptrs, has_other):
+        """Next-event estimation: an emitter sample and its transmittance
+        through media (ratio tracking) and index-matched surfaces."""
+        active = mi.Bool(active)
+        ds, emitter_val = scene.sample_emitter_direction(ref, sampler.next_2d(active), False, active)
+        active &= ds.pdf != 0.0
+        ray = ref.spawn_ray_to(ds.p)
+        max_dist = mi.Float(ray.maxt)
+        total = mi.Float(0.0)
+        T = mi.Spectrum(1.0)
+        medium = mi.MediumPtr(medium)
+        counts = TrackingCounts()
+        it = mi.UInt32(0)
+        while dr.hint(active, label="amrvolpath_shadow"):
+            remaining = max_dist - total
+            ray.maxt = remaining
+            active &= remaining > 0.0
+            si = scene.ray_intersect(ray, active)
+            seg = dr.minimum(si.t, remaining)
+            in_medium = active & (medium != None)  # noqa: E711
+            moved = mi.Bool(False)
+            for k in range(len(amr_media)):
+                is_k = in_medium & (medium == amr_ptrs[k])
+                Tk, c = amr_media[k].transmittance(ray, seg, sampler, is_k)
+                counts = counts + c
+                T[is_k] *= Tk
+            if dr.hint(has_other, mode="scalar"):
+                is_other = in_medium
+                for p in amr_ptrs:
+                    is_other &= medium != p
+                ray_o = mi.Ray3f(ray)
+                ray_o.maxt = seg
+                m_o = medium.sample_interaction(ray_o, sampler.next_1d(is_other), channel, is_other)
+                hit_o = is_other & m_o.is_valid() & (m_o.t < seg)
+                # spectral media: analytic transmittance up to the next event
+                spectral = is_other & medium.has_spectral_extinction()
+                t_end = dr.select(hit_o, m_o.t, seg)
+                tr = dr.exp(-(t_end - dr.maximum(m_o.mint, 0.0)) * m_o.combined_extinction)
+                tr_pdf = dr.select(hit_o, _channel(tr * m_o.combined_extinction, channel), _channel(tr, channel))
+                T[spectral & (dr.isfinite(m_o.mint))] *= dr.select(tr_pdf > 0.0, tr / tr_pdf, 0.0)
+                T[hit_o] *= dr.select(spectral, m_o.sigma_n, m_o.sigma_n / m_o.combined_extinction)
+                ray.o[hit_o] = m_o.p
+                total[hit_o] += m_o.t
+                moved |= hit_o
+            # ---- the surface (or the emitter) at the end of the segment ----
+            at_surface = active & ~moved & si.is_valid() & (si.t < remaining)
+            bsdf = si.bsdf(ray)
+            T[at_surface] *= bsdf.eval_null_transmission(si, at_surface)
+            total[at_surface] += si.t
+            ray[at_surface] = si.spawn_ray_to(ds.p)
+            medium[at_surface & si.is_medium_transition()] = si.target_medium(ray.d)
+            active &= (at_surface | moved) & dr.any(T != 0.0)
+            it += 1
+            active &= it < 4096
+        return emitter_val * T, ds, counts
