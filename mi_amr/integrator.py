@@ -17,7 +17,10 @@ import mitsuba as mi
 
 from .local_tracking import TrackingCounts
 
-COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped")
+#: Free-flight look-ups, null and real collisions, traversal steps, loops
+#: stopped by the iteration bound; then the same for shadow rays.
+COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped",
+                 "shadow_lookups", "shadow_steps", "shadow_capped")
 
 
 def _mis(pdf_a, pdf_b):
@@ -78,15 +81,19 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
         self._counter_array = dr.zeros(mi.UInt64, len(COUNTER_NAMES))
 
     def counters(self) -> dict:
-        """Totals since the last `reset_counters` (or construction)."""
+        """Totals since the last `reset_counters` (or construction), with
+        ``lookups_per_collision`` = free-flight look-ups / real collisions."""
         vals = self._counter_array.numpy()
-        return {k: int(v) for k, v in zip(COUNTER_NAMES, vals)}
+        out = {k: int(v) for k, v in zip(COUNTER_NAMES, vals)}
+        out["lookups_per_collision"] = out["lookups"] / out["real"] if out["real"] else float("nan")
+        return out
 
-    def _count(self, counts: TrackingCounts):
+    def _count(self, free: TrackingCounts, shadow: TrackingCounts):
         if not self.counters_enabled:
             return
-        for i, name in enumerate(COUNTER_NAMES):
-            v = getattr(counts, name)
+        values = (free.lookups, free.null, free.real, free.steps, free.capped,
+                  shadow.lookups, shadow.steps, shadow.capped)
+        for i, v in enumerate(values):
             dr.scatter_reduce(dr.ReduceOp.Add, self._counter_array, mi.UInt64(v), mi.UInt32(i))
 
     # ---- Scene analysis ---------------------------------------------------------
@@ -137,6 +144,7 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
         medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
         channel = mi.UInt32(dr.minimum(3.0 * sampler.next_1d(active), 2.0))
         counts = TrackingCounts()
+        shadow_counts = TrackingCounts()
 
         while dr.hint(active, label="amrvolpath"):
             # ---- Russian roulette (as in volpath) ----
@@ -206,7 +214,7 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
             if dr.hint(len(scene.emitters()) > 0, mode="scalar"):
                 emitted, ds, c = self._sample_emitter(mei, scene, sampler, medium, channel,
                                                       nee_m, amr_media, amr_ptrs, has_other)
-                counts = counts + c
+                shadow_counts = shadow_counts + c
                 phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
                 L[nee_m] += throughput * phase_val * _mis(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf)) * emitted
 
@@ -236,10 +244,9 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
             bsdf = si.bsdf(ray)
             nee_s = active_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth + 1 < self.max_depth)
             if dr.hint(len(scene.emitters()) > 0, mode="scalar"):
-                mei_s = dr.zeros(mi.MediumInteraction3f)
                 emitted, ds, c = self._sample_emitter(si, scene, sampler, medium, channel,
                                                       nee_s, amr_media, amr_ptrs, has_other)
-                counts = counts + c
+                shadow_counts = shadow_counts + c
                 wo_l = si.to_local(ds.d)
                 bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo_l, nee_s)
                 L[nee_s] += throughput * bsdf_val * _mis(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
@@ -262,7 +269,7 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
             medium[transition] = si.target_medium(ray.d)
             active &= active_surface | act_scatter | act_null
 
-        self._count(counts)
+        self._count(counts, shadow_counts)
         return L, valid_ray, []
 
     @staticmethod

@@ -94,3 +94,28 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
         alive &= ~capped
     counts = TrackingCounts(lookups, n_null, n_real, steps, dr.select(it >= max_iterations, 1, 0))
     return collided, t, albedo, result, counts
+
+
+@dr.syntax
+def span_majorant(segments, o, d, t_lo, t_hi, active, max_steps):
+    """Walk all segments over ``[t_lo, t_hi]`` and return ``(found, t_first,
+    t_last, mu_max)``: the span from the start of the first to the end of
+    the last segment with a non-zero majorant, and the largest majorant met
+    (the "ray-wise" majorant for Mitsuba's stock volpath, DESIGN.md section 6)."""
+    state = segments.begin(o, d, t_lo, t_hi, active)
+    found = mi.Bool(False)
+    t_first = mi.Float(t_hi)
+    t_last = mi.Float(t_lo)
+    mu_max = mi.Float(0.0)
+    it = mi.UInt32(0)
+    alive = mi.Bool(active) & (t_lo < t_hi)
+    while dr.hint(alive, label="amr_span_majorant"):
+        state, s0, s1, mu, valid = segments.advance(o, d, state, t_hi, alive)
+        nonzero = valid & (mu > 0.0)
+        t_first = dr.select(nonzero & ~found, s0, t_first)
+        t_last = dr.select(nonzero, s1, t_last)
+        mu_max = dr.select(valid, dr.maximum(mu_max, mu), mu_max)
+        found |= nonzero
+        it += 1
+        alive &= valid & (s1 < t_hi) & (it < max_steps)
+    return found, t_first, t_last, mu_max

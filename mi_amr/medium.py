@@ -15,7 +15,7 @@ from .brick_sampling import BrickListGrid, BrickSampler, DeviceBricks
 from .bricks import Bricks
 from .cell_hash import key_origin
 from .kdtree_sah import build_sah_kdtree
-from .local_tracking import track_segments
+from .local_tracking import span_majorant, track_segments
 from .majorant_grid import MacrocellGrid
 from .reconstruct import DeviceReconstruction, check_method
 from .region_tree import box_value_ranges, build_region_tree
@@ -217,6 +217,8 @@ class AMRMedium(mi.Medium):
     # ---- Structures (built on first use) ------------------------------------
     def _build(self, name, make):
         if name not in self._structures:
+            if dr.flag(dr.JitFlag.SymbolicScope):
+                raise RuntimeError(f"amr: structure '{name}' must be built before rendering")
             t0 = time.perf_counter()
             self._structures[name] = make()
             self.build_seconds[name] = time.perf_counter() - t0
@@ -233,13 +235,23 @@ class AMRMedium(mi.Medium):
         return self._build("grid", lambda: DeviceMacrocellGrid(
             MacrocellGrid(self.cells, self.grid_resolution, support=self.reconstruction)))
 
+    def _host_cached(self, key, make):
+        """Host structures depend only on the cells and build options: cache
+        them on the AMRCells object so that media sharing data (a re-loaded
+        scene, a benchmark) build them once."""
+        cache = self.cells.__dict__.setdefault("_mi_amr_cache", {})
+        if key not in cache:
+            cache[key] = make()
+        return cache[key]
+
     @property
     def bricks(self) -> Bricks:
-        return self._build("bricks", lambda: Bricks(self.cells, self.brick_size))
+        return self._build("bricks", lambda: self._host_cached(
+            ("bricks", self.brick_size), lambda: Bricks(self.cells, self.brick_size)))
 
     def _brick_tree(self, kind: str) -> DeviceTree:
         """kd-tree over brick domains (``abr``) or brick bounds (``brick``)."""
-        def make():
+        def make_host():
             b = self.bricks
             lo, hi = self.cells.bounds
             if kind == "abr":
@@ -252,6 +264,12 @@ class AMRMedium(mi.Medium):
             if self.reconstruction == "nearest":
                 dlo, dhi = b.lo.astype(np.float64), b.hi.astype(np.float64)
             vmin, vmax = box_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, dlo, dhi, b.vmin, b.vmax)
+            return tree, vmin, vmax
+
+        def make():
+            lo, hi = self.cells.bounds
+            tree, vmin, vmax = self._host_cached((f"{kind}_tree", self.brick_size, self.reconstruction),
+                                                 make_host)
             return DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), vmin, vmax)
         return self._build(f"{kind}_tree", make)
 
@@ -287,12 +305,13 @@ class AMRMedium(mi.Medium):
 
     def _point_sampler(self):
         if self.sampling == "hash":
+            self._grid                      # its level masks limit the levels visited
             return self._build("hash", lambda: DeviceReconstruction(self.cells, self.reconstruction))
         dev_bricks = self._build("device_bricks", lambda: DeviceBricks(self.bricks, self.origin))
         if self.sampling == "abr":
             return BrickSampler(dev_bricks, self.reconstruction, "abr", abr_tree=self._brick_tree("abr"))
         lo, hi = self.cells.bounds
-        res = self.grid.res if "grid" in self._structures else _list_grid_resolution(self.cells)
+        res = _list_grid_resolution(self.cells)
         lists = self._build("brick_lists", lambda: BrickListGrid(self.bricks, lo, hi - lo, res))
         return BrickSampler(dev_bricks, self.reconstruction, "brick", list_grid=lists)
 
@@ -383,7 +402,9 @@ class AMRMedium(mi.Medium):
             return hit & (self._global_mu > 0.0), t0, t1
         t_start = dr.maximum(t0, 0.0)
         t_end = dr.minimum(t1, ray.maxt)
-        found, t_first, t_last, mu = self._grid.ray_majorant(o, d, t_start, t_end, hit)
+        segments = self._segments()
+        found, t_first, t_last, mu = span_majorant(segments, o, d, t_start, t_end, hit,
+                                                   segments.max_steps())
         self._ray_mu = mu
         return found, t_first, t_last
 
@@ -418,8 +439,12 @@ def _choice(props, name, default, choices):
 
 
 def _list_grid_resolution(cells):
-    from .majorant_grid import default_resolution
-    return default_resolution(cells)
+    """Brick-list grid: about two finest cells per list cell (short lists),
+    at most 128 along the longest axis."""
+    lo, hi = cells.bounds
+    ext = (hi - lo).astype(np.float64)
+    longest = int(np.clip(ext.max() / 2, 1, 128))
+    return np.maximum(1, np.round(longest * ext / ext.max())).astype(np.int64)
 
 
 def _positive_float(props, name, default):

@@ -50,7 +50,7 @@ def random_amr(seed=0, n=16, levels=3, quantize=4):
 
 
 def volume_scene(medium, res=32, integrator="volpath", max_depth=32, emitters="env+sun",
-                 to_world=None):
+                 to_world=None, target=(0.5, 0.5, 0.5), fov=40):
     """A small scene: the medium inside a cube covering its unit cube
     (placed by ``to_world``), seen by a perspective camera."""
     T = mi.ScalarTransform4f
@@ -59,9 +59,9 @@ def volume_scene(medium, res=32, integrator="volpath", max_depth=32, emitters="e
     scene = {
         "type": "scene",
         "integrator": {"type": integrator, "max_depth": max_depth},
-        "sensor": {"type": "perspective", "fov": 40,
+        "sensor": {"type": "perspective", "fov": fov,
                    "to_world": T().look_at(to_world @ mi.ScalarPoint3f(1.8, 1.3, 2.6),
-                                           to_world @ mi.ScalarPoint3f(0.5, 0.5, 0.5),
+                                           to_world @ mi.ScalarPoint3f(*target),
                                            to_world @ mi.ScalarVector3f(0, 1, 0)),
                    "film": {"type": "hdrfilm", "width": res, "height": res,
                             "rfilter": {"type": "box"}}},

@@ -1,0 +1,212 @@
+"""The mi-amr benchmark: render time against error, in one process.
+
+    python -m mi_amr.bench [--quick] --out DIR [FILE.cells ...]
+
+For each data set (the synthetic ``cloud``, ``shell``, ``stadium`` and any
+``.cells`` file given) x transfer function (``spiky``, ``foggy``) x
+configuration (Mitsuba's ``heterogeneous`` + ``gridvolume`` reference on the
+dense resampling, the ``amr`` medium in stock ``volpath`` with ``global``
+and ``ray`` majorants, and ``amrvolpath`` with every traversal x sampling),
+it measures build time, kernel compile time (the first frame), the median
+frame time, RMSE against a high-sample reference image, efficiency
+``1 / (MSE * seconds)``, density look-ups per real collision, structure
+memory and the majorant recompute time of a TF change. Reconstruction is
+``nearest`` by default so that the dense reference renders exactly the same
+field and every configuration converges to the same image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+from ._llvm import ensure_llvm_path
+
+TRAVERSALS = ("grid", "abr", "brick", "kdtree")
+SAMPLINGS = ("hash", "abr", "brick")
+SCALES = {("cloud", "spiky"): 60.0, ("cloud", "foggy"): 150.0,
+          ("shell", "spiky"): 60.0, ("shell", "foggy"): 200.0,
+          ("stadium", "spiky"): 300.0, ("stadium", "foggy"): 300.0}
+
+
+def all_configs():
+    out = ["reference", "volpath/global", "volpath/ray"]
+    out += [f"amrvolpath/{t}/{s}" for t in TRAVERSALS for s in SAMPLINGS]
+    return out
+
+
+def bench_scene(medium, res: int, integrator: dict):
+    """The benchmark view: the volume in the unit cube, sun and sky light."""
+    import mitsuba as mi
+    T = mi.ScalarTransform4f
+    return {"type": "scene", "integrator": integrator,
+            "sensor": {"type": "perspective", "fov": 38,
+                       "to_world": T().look_at([1.7, 1.25, 2.4], [0.5, 0.47, 0.5], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
+            "env": {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.55, 0.65]}},
+            "sun": {"type": "directional", "direction": [-0.5, -1.0, -0.35],
+                    "irradiance": {"type": "rgb", "value": 2.5}},
+            "volume": {"type": "cube", "to_world": T().translate([0.5, 0.5, 0.5]) @ T().scale(0.5),
+                       "bsdf": {"type": "null"}, "interior": medium}}
+
+
+def run_config(mi, config, cells, tf, scale, args, ref_image=None):
+    """Measure one configuration; returns (record, image)."""
+    import drjit as dr
+    import numpy as np
+
+    from .reference import dense_bytes, reference_medium
+    kind = config.split("/")
+    integ = {"type": "volpath", "max_depth": args.max_depth}
+    t0 = time.perf_counter()
+    if kind[0] == "reference":
+        medium = reference_medium(cells, tf, scale, args.reconstruction)
+    else:
+        medium = {"type": "amr", "data": cells, "transfer_function": tf, "density_scale": scale,
+                  "reconstruction": args.reconstruction}
+        if kind[0] == "volpath":
+            medium["majorant"] = kind[1]
+        else:
+            medium.update(traversal=kind[1], sampling=kind[2])
+            integ = {"type": "amrvolpath", "max_depth": args.max_depth, "counters": True}
+    scene = mi.load_dict(bench_scene(medium, args.res, integ))
+    build_s = time.perf_counter() - t0
+    integrator = scene.integrator()
+    t0 = time.perf_counter()
+    np.array(mi.render(scene, spp=1, seed=99_999))
+    compile_s = time.perf_counter() - t0
+    times, img = [], None
+    acc = None
+    for r in range(args.repeats):
+        if hasattr(integrator, "reset_counters"):
+            integrator.reset_counters()
+        t0 = time.perf_counter()
+        img = np.array(mi.render(scene, spp=args.spp, seed=r), dtype=np.float64)
+        times.append(time.perf_counter() - t0)
+        acc = img if acc is None else acc + img
+    seconds = statistics.median(times)
+    rec = {"config": config, "build_s": build_s, "compile_s": compile_s,
+           "seconds_per_frame": seconds, "spp": args.spp,
+           "seconds_per_spp": seconds / args.spp, "mean": float(img.mean())}
+    if ref_image is not None:
+        mse = float(np.mean((img - ref_image) ** 2))
+        rec["rmse"] = mse ** 0.5
+        rec["efficiency"] = 1.0 / (mse * seconds) if mse > 0 else float("inf")
+    if hasattr(integrator, "counters"):
+        c = integrator.counters()
+        rec["lookups_per_collision"] = c["lookups_per_collision"]
+        rec["counters"] = c
+    else:
+        rec["lookups_per_collision"] = None
+    if kind[0] == "reference":
+        rec["structure_bytes"] = dense_bytes(cells)
+        rec["majorant_update_s"] = None
+    else:
+        med = [s for s in scene.shapes() if s.interior_medium() is not None][0].interior_medium()
+        rec["structure_bytes"] = med.structure_bytes
+        dr.eval()
+        t0 = time.perf_counter()
+        for _ in range(5):
+            med.update_majorants()
+            dr.eval(med._global_mu)
+            dr.sync_thread()
+        rec["majorant_update_s"] = (time.perf_counter() - t0) / 5
+        rec["build_detail_s"] = dict(med.build_seconds)
+    return rec, acc / args.repeats
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m mi_amr.bench", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("files", nargs="*", help="extra .cells data sets")
+    p.add_argument("--out", required=True, help="results folder")
+    p.add_argument("--quick", action="store_true", help="small sizes: minutes on 2 cores")
+    p.add_argument("--cells", type=int, default=20000)
+    p.add_argument("--res", type=int, default=128)
+    p.add_argument("--spp", type=int, default=16)
+    p.add_argument("--ref-spp", type=int, default=1024)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--max-depth", type=int, default=64)
+    p.add_argument("--datasets", nargs="*", default=["cloud", "shell", "stadium"])
+    p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
+    p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
+    p.add_argument("--reconstruction", default="nearest", choices=("nearest", "tent"))
+    p.add_argument("--variant", default="llvm_ad_rgb")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.cells, args.res, args.spp, args.ref_spp, args.repeats = 4000, 48, 4, 128, 2
+
+    ensure_llvm_path()
+    import mitsuba as mi
+    mi.set_variant(args.variant)
+    import mi_amr
+    from .datasets import make_dataset
+    from .io import load_cells
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    configs = args.configs or all_configs()
+    data = [(n, make_dataset(n, cells=args.cells, levels=7 if n == "stadium" else 4)) for n in args.datasets]
+    data += [(Path(f).stem, load_cells(f)) for f in args.files]
+    records = []
+    for name, cells in data:
+        for tf_name in args.tfs:
+            tf = mi_amr.TransferFunction.preset(tf_name, cells.value_range)
+            scale = SCALES.get((name, tf_name), 100.0)
+            # High-sample reference image: the default amrvolpath configuration.
+            ref_args = argparse.Namespace(**{**vars(args), "spp": args.ref_spp, "repeats": 1})
+            _, ref_img = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, ref_args)
+            ref_rec = None
+            for config in configs:
+                rec, _ = run_config(mi, config, cells, tf, scale, args, ref_img)
+                rec.update(dataset=name, tf=tf_name, cells=len(cells), density_scale=scale)
+                if config == "reference":
+                    ref_rec = rec
+                rec["efficiency_vs_reference"] = (rec["efficiency"] / ref_rec["efficiency"]
+                                                  if ref_rec and ref_rec.get("efficiency") else None)
+                records.append(rec)
+                lpc = rec["lookups_per_collision"]
+                print(f"{name:8s} {tf_name:6s} {config:24s} {rec['seconds_per_spp'] * 1e3:8.2f} ms/spp "
+                      f"rmse {rec['rmse']:.4f} eff x{rec['efficiency_vs_reference'] or float('nan'):6.2f} "
+                      f"lookups/coll {lpc if lpc is not None else float('nan'):6.2f} "
+                      f"build {rec['build_s']:6.2f}s", flush=True)
+            (out / "results.json").write_text(json.dumps(records, indent=1, default=float))
+    write_tables(records, out)
+    print(f"wrote {out / 'results.json'} and {out / 'tables.md'}")
+    return 0
+
+
+def write_tables(records, out: Path):
+    """One Markdown table per data set, laid out like the paper's Table 2."""
+    lines = ["# mi-amr benchmark", ""]
+    for name in dict.fromkeys(r["dataset"] for r in records):
+        rows = [r for r in records if r["dataset"] == name]
+        tfs = list(dict.fromkeys(r["tf"] for r in rows))
+        lines += [f"## {name} ({rows[0]['cells']} cells)", "",
+                  "| configuration | " + " | ".join(f"{t}: ms/spp | {t}: eff. vs ref | {t}: look-ups/coll."
+                                                     for t in tfs) + " | memory MiB |",
+                  "|---|" + "---|---|---|" * len(tfs) + "---|"]
+        for config in dict.fromkeys(r["config"] for r in rows):
+            cells = []
+            mem = None
+            for t in tfs:
+                r = next((x for x in rows if x["config"] == config and x["tf"] == t), None)
+                if r is None:
+                    cells += ["", "", ""]
+                    continue
+                mem = r["structure_bytes"] / 2**20
+                eff = r.get("efficiency_vs_reference")
+                lpc = r.get("lookups_per_collision")
+                cells += [f"{r['seconds_per_spp'] * 1e3:.2f}", f"{eff:.2f}x" if eff else "",
+                          f"{lpc:.2f}" if lpc else ""]
+            lines.append(f"| {config} | " + " | ".join(cells) + f" | {mem:.2f} |")
+        lines.append("")
+    (out / "tables.md").write_text("\n".join(lines))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,143 @@
+"""Builders of the ExaBricks family against brute-force oracles."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_amr
+from mi_amr.brick_sampling import BrickListGrid, BrickSampler, DeviceBricks
+from mi_amr.bricks import Bricks
+from mi_amr.cell_hash import key_origin
+from mi_amr.datasets import make_dataset
+from mi_amr.kdtree_sah import build_sah_kdtree
+from mi_amr.reconstruct import brute_force
+from mi_amr.region_tree import box_value_ranges, build_region_tree
+from mi_amr.traversal import DeviceTree
+
+from conftest import random_amr
+
+
+@pytest.fixture(scope="module", params=[0, 1])
+def data(request):
+    if request.param == 0:
+        return random_amr(31, n=16, levels=4, quantize=5)
+    return make_dataset("shell", cells=1500, seed=2)
+
+
+def test01_bricks_are_complete_same_level_boxes(data):
+    b = Bricks(data, max_width=4)
+    assert b.dims.prod(axis=1).sum() == len(data)
+    assert np.all(b.dims <= 4)
+    cells = {(tuple(p), int(l)): float(v) for p, l, v in zip(data.pos.tolist(), data.level, data.value)}
+    seen = set()
+    for i in range(len(b)):
+        w = int(b.width[i])
+        nx, ny, nz = b.dims[i]
+        zz, yy, xx = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+        pos = b.lo[i] + np.stack([xx.ravel(), yy.ravel(), zz.ravel()], 1) * w
+        vals = b.values[b.offset[i]:b.offset[i] + nx * ny * nz]
+        for p, v in zip(pos.tolist(), vals):
+            key = (tuple(p), int(b.level[i]))
+            assert cells[key] == v            # every brick cell exists, same level, same value
+            assert key not in seen            # and belongs to one brick only
+            seen.add(key)
+    assert len(seen) == len(data)
+
+
+def test02_abrs_partition_space_with_exact_brick_lists(data):
+    b = Bricks(data)
+    dlo, dhi = b.domains()
+    lo, hi = data.bounds
+    tree = build_region_tree(np.round(2 * dlo).astype(np.int64), np.round(2 * dhi).astype(np.int64), 2 * lo, 2 * hi)
+    # partition: leaf volumes add up to the root, and random points lie in exactly one leaf
+    vol = np.prod(tree.leaf_hi - tree.leaf_lo, axis=1)
+    assert vol.sum() == np.prod(2 * (hi - lo))
+    rng = np.random.default_rng(0)
+    p = 2 * lo + rng.random((3000, 3)) * 2 * (hi - lo)
+    inside = np.all((p[:, None] > tree.leaf_lo[None]) & (p[:, None] < tree.leaf_hi[None]), axis=2)
+    assert np.all(inside.sum(axis=1) == 1)
+    assert np.array_equal(np.argmax(inside, axis=1), tree.locate(p))
+    # each leaf's list is exactly the bricks whose domain overlaps it
+    for L in range(tree.n_leaves):
+        ov = np.nonzero(np.all((2 * dlo < tree.leaf_hi[L]) & (2 * dhi > tree.leaf_lo[L]), axis=1))[0]
+        got = tree.items[tree.list_offset[L]:tree.list_offset[L] + tree.list_count[L]]
+        assert np.array_equal(np.sort(got), ov)
+
+
+@pytest.mark.parametrize("method", ["tent", "nearest"])
+def test03_leaf_ranges_contain_reconstructed_values(data, method):
+    b = Bricks(data)
+    dlo, dhi = b.domains()
+    lo, hi = data.bounds
+    rng = np.random.default_rng(1)
+    x = lo + rng.random((20000, 3)) * (hi - lo)
+    val, found = brute_force(data, x, method)
+    for boxes in ((dlo, dhi), (b.lo.astype(float), b.hi.astype(float))):
+        tree = build_region_tree(np.round(2 * boxes[0]).astype(np.int64), np.round(2 * boxes[1]).astype(np.int64),
+                                 2 * lo, 2 * hi)
+        vmin, vmax = box_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, dlo, dhi, b.vmin, b.vmax)
+        leaf = tree.locate(2 * x)
+        assert np.all(vmin[leaf][found] <= val[found] + 1e-6)
+        assert np.all(vmax[leaf][found] >= val[found] - 1e-6)
+
+
+@pytest.mark.parametrize("mode", ["abr", "brick"])
+@pytest.mark.parametrize("method", ["tent", "nearest"])
+def test04_brick_sampling_matches_brute_force(variant, data, mode, method):
+    b = Bricks(data)
+    origin = key_origin(data)
+    lo, hi = data.bounds
+    dev = DeviceBricks(b, origin)
+    if mode == "abr":
+        dlo, dhi = b.domains()
+        tree = build_region_tree(np.round(2 * dlo).astype(np.int64), np.round(2 * dhi).astype(np.int64), 2 * lo, 2 * hi)
+        sampler = BrickSampler(dev, method, "abr",
+                               abr_tree=DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), np.zeros(tree.n_leaves), np.zeros(tree.n_leaves)))
+    else:
+        sampler = BrickSampler(dev, method, "brick", list_grid=BrickListGrid(b, lo, hi - lo, [7, 5, 6]))
+    rng = np.random.default_rng(3)
+    x = lo + rng.random((4000, 3)) * (hi - lo)
+    x[:400] = np.round(x[:400] * 2) / 2                  # cell faces and centres
+    ref, ref_found = brute_force(data, x, method)
+    u = (x - lo) / (hi - lo)
+    val, found = sampler.eval(mi.Vector3f((x - origin).T.astype(np.float32)), mi.Vector3f(u.T.astype(np.float32)))
+    np.testing.assert_array_equal(found.numpy(), ref_found)
+    np.testing.assert_allclose(val.numpy(), ref, atol=2e-6)
+
+
+def test05_sah_kdtree_partitions_the_grid_within_budget():
+    rng = np.random.default_rng(4)
+    maj = np.zeros((16, 12, 10), np.float32)
+    maj[3:6, 2:9, 4:7] = 5.0
+    maj[10:15, 1:3, 1:9] = rng.random((5, 2, 8)) * 3
+    vmin = rng.random(maj.shape).astype(np.float32)
+    vmax = vmin + 1
+    tree, lmin, lmax = build_sah_kdtree(maj, vmin, vmax, max_leaves=40)
+    assert 2 <= tree.n_leaves <= 40
+    vol = np.prod(tree.leaf_hi - tree.leaf_lo, axis=1)
+    assert vol.sum() == maj.size
+    cover = np.zeros(maj.shape, int)
+    for L in range(tree.n_leaves):
+        a, b = tree.leaf_lo[L].astype(int), tree.leaf_hi[L].astype(int)
+        cover[a[0]:b[0], a[1]:b[1], a[2]:b[2]] += 1
+        assert lmin[L] == vmin[a[0]:b[0], a[1]:b[1], a[2]:b[2]].min()
+        assert lmax[L] == vmax[a[0]:b[0], a[1]:b[1], a[2]:b[2]].max()
+    assert np.all(cover == 1)
+    # the SAH separates the empty space from the dense block
+    centre = tree.locate(np.array([[4.5, 5.5, 5.5]]))[0]
+    empty = tree.locate(np.array([[0.5, 11.5, 0.5]]))[0]
+    assert centre != empty
+
+
+def test06_medium_structures_are_built_only_when_used(llvm):
+    c = random_amr(5)
+    m = mi.load_dict({"type": "amr", "data": c, "traversal": "grid", "sampling": "hash"})
+    assert sorted(m._structures) == ["grid", "hash"]
+    m = mi.load_dict({"type": "amr", "data": c, "traversal": "abr", "sampling": "brick"})
+    assert "grid" not in m._structures and "hash" not in m._structures
+    assert {"abr_tree", "bricks", "brick_lists"} <= set(m._structures)
+    with pytest.raises(Exception, match="unknown traversal 'octree'"):
+        mi.load_dict({"type": "amr", "data": c, "traversal": "octree"})
+    with pytest.raises(Exception, match="unknown sampling"):
+        mi.load_dict({"type": "amr", "data": c, "sampling": "cells"})
