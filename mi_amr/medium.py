@@ -18,7 +18,7 @@ from .kdtree_sah import build_sah_kdtree
 from .local_tracking import span_majorant, track_segments
 from .majorant_grid import MacrocellGrid
 from .reconstruct import DeviceReconstruction, check_method
-from .region_tree import box_value_ranges, build_region_tree
+from .region_tree import build_region_tree, exact_value_ranges
 from .tracking import DeviceMacrocellGrid, intersect_unit_cube, safe_rcp
 from .traversal import DeviceTree, GridSegments, TreeSegments
 from .transfer import TransferFunction
@@ -260,10 +260,7 @@ class AMRMedium(mi.Medium):
                 blo, bhi = b.lo.astype(np.float64), b.hi.astype(np.float64)
             tree = build_region_tree(np.round(2 * blo).astype(np.int64), np.round(2 * bhi).astype(np.int64),
                                      2 * lo, 2 * hi)
-            dlo, dhi = b.domains()
-            if self.reconstruction == "nearest":
-                dlo, dhi = b.lo.astype(np.float64), b.hi.astype(np.float64)
-            vmin, vmax = box_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, dlo, dhi, b.vmin, b.vmax)
+            vmin, vmax = exact_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, b, self.reconstruction)
             return tree, vmin, vmax
 
         def make():
@@ -274,12 +271,18 @@ class AMRMedium(mi.Medium):
         return self._build(f"{kind}_tree", make)
 
     def _kdtree(self) -> DeviceTree:
+        """SAH kd-tree built for the current TF over a macrocell grid four
+        times finer than the default one (at most 128 per axis)."""
         def make():
-            g = self._grid
-            r = g.host.res
-            maj = self._tf_host_majorants(g.host.vmin, g.host.vmax).reshape(r[2], r[1], r[0]).transpose(2, 1, 0)
-            vmin = g.host.vmin.reshape(r[2], r[1], r[0]).transpose(2, 1, 0)
-            vmax = g.host.vmax.reshape(r[2], r[1], r[0]).transpose(2, 1, 0)
+            from .majorant_grid import default_resolution
+            res = int(min(128, 4 * default_resolution(self.cells).max()))
+            g = self._host_cached(("kd_grid", res, self.reconstruction),
+                                  lambda: MacrocellGrid(self.cells, res, support=self.reconstruction))
+            r = g.res
+            shape = (r[2], r[1], r[0])
+            maj = self._tf_host_majorants(g.vmin, g.vmax).reshape(shape).transpose(2, 1, 0)
+            vmin = g.vmin.reshape(shape).transpose(2, 1, 0)
+            vmax = g.vmax.reshape(shape).transpose(2, 1, 0)
             tree, lmin, lmax = build_sah_kdtree(maj, vmin, vmax, self.kdtree_leaves)
             return DeviceTree(tree, np.zeros(3), 1.0 / r, lmin, lmax)
         return self._build("kdtree", make)

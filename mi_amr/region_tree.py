@@ -140,3 +140,53 @@ def _depth(axis, child) -> int:
             depth[c] = depth[c + 1] = depth[n] + 1
             best = max(best, depth[n] + 1)
     return int(best)
+
+
+def exact_value_ranges(leaf_lo, leaf_hi, bricks, method: str = "tent", chunk: int = 4096):
+    """Exact value range of each leaf box (finest units): min/max over the
+    cells whose tent support (``tent``) or cell box (``nearest``) overlaps
+    the leaf's interior. Candidate bricks come from a conservative domain
+    test; within each brick only the sub-box of cells that reach the leaf
+    is visited (vectorised over all leaf-brick pairs)."""
+    from .majorant_grid import _expand_boxes
+    n = len(leaf_lo)
+    out_min = np.full(n, np.inf, dtype=np.float32)
+    out_max = np.full(n, -np.inf, dtype=np.float32)
+    dlo, dhi = bricks.domains()
+    order = np.argsort(dlo[:, 0], kind="stable")
+    w_all = bricks.width.astype(np.float64)
+    ext = (1.5, 0.5) if method == "tent" else (1.0, 0.0)    # support reach below / above, in cells
+    for s in range(0, n, chunk):
+        llo, lhi = leaf_lo[s:s + chunk], leaf_hi[s:s + chunk]
+        a = np.searchsorted(dlo[order, 0], lhi[:, 0].max(), side="right")
+        sel = order[:a][dhi[order[:a], 0] >= llo[:, 0].min()]
+        if not len(sel):
+            continue
+        ov = np.all((dlo[sel][None] <= lhi[:, None]) & (dhi[sel][None] >= llo[:, None]), axis=2)
+        li, bj = np.nonzero(ov)
+        b = sel[bj]
+        w = w_all[b][:, None]
+        lo = bricks.lo[b].astype(np.float64)
+        dims = bricks.dims[b]
+        i0 = np.floor((llo[li] - lo) / w - ext[0]).astype(np.int64) + 1
+        i1 = np.ceil((lhi[li] - lo) / w + ext[1]).astype(np.int64) - 1
+        i0 = np.maximum(i0, 0)
+        i1 = np.minimum(i1, dims - 1)
+        keep = np.all(i0 <= i1, axis=1)
+        li, b, i0, i1, dims = li[keep], b[keep], i0[keep], i1[keep], dims[keep]
+        if not len(li):
+            continue
+        # enumerate every (pair, cell) of the sub-boxes
+        counts = (i1 - i0 + 1)
+        total = counts.prod(axis=1)
+        owner = np.repeat(np.arange(len(li)), total)
+        local = np.arange(int(total.sum())) - np.repeat(np.cumsum(total) - total, total)
+        cx, cy = counts[owner, 0], counts[owner, 1]
+        x = i0[owner, 0] + local % cx
+        y = i0[owner, 1] + (local // cx) % cy
+        z = i0[owner, 2] + local // (cx * cy)
+        d = dims[owner]
+        v = bricks.values[bricks.offset[b[owner]] + x + d[:, 0] * (y + d[:, 1] * z)]
+        np.minimum.at(out_min, s + li[owner], v)
+        np.maximum.at(out_max, s + li[owner], v)
+    return out_min, out_max

@@ -12,7 +12,7 @@ from mi_amr.cell_hash import key_origin
 from mi_amr.datasets import make_dataset
 from mi_amr.kdtree_sah import build_sah_kdtree
 from mi_amr.reconstruct import brute_force
-from mi_amr.region_tree import box_value_ranges, build_region_tree
+from mi_amr.region_tree import box_value_ranges, build_region_tree, exact_value_ranges
 from mi_amr.traversal import DeviceTree
 
 from conftest import random_amr
@@ -76,10 +76,11 @@ def test03_leaf_ranges_contain_reconstructed_values(data, method):
     for boxes in ((dlo, dhi), (b.lo.astype(float), b.hi.astype(float))):
         tree = build_region_tree(np.round(2 * boxes[0]).astype(np.int64), np.round(2 * boxes[1]).astype(np.int64),
                                  2 * lo, 2 * hi)
-        vmin, vmax = box_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, dlo, dhi, b.vmin, b.vmax)
         leaf = tree.locate(2 * x)
-        assert np.all(vmin[leaf][found] <= val[found] + 1e-6)
-        assert np.all(vmax[leaf][found] >= val[found] - 1e-6)
+        for vmin, vmax in (box_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, dlo, dhi, b.vmin, b.vmax),
+                           exact_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, b, method)):
+            assert np.all(vmin[leaf][found] <= val[found] + 1e-6)
+            assert np.all(vmax[leaf][found] >= val[found] - 1e-6)
 
 
 @pytest.mark.parametrize("mode", ["abr", "brick"])
