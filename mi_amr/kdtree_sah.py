@@ -8,8 +8,11 @@ a binned surface-area heuristic whose cost of a leaf is
 
 (rays hit a leaf with probability proportional to its surface area and then
 take ``mu * chord`` density look-ups; ``SA * mean chord = V``). A priority
-queue always splits the leaf with the largest cost reduction, until
-``max_leaves`` leaves exist or no split helps. Leaves keep the min/max value
+queue always splits the most expensive leaf, at the binned plane that
+minimises the children's summed cost, until ``max_leaves`` leaves exist or
+every leaf is one macrocell. (Splitting only on a positive cost reduction
+stalls: with range majorants both halves of a region often keep the same
+maximum until the boxes are small.) Leaves keep the min/max value
 range of their macrocells, so majorants stay valid for any TF; the topology
 is only good for the TF it was built with, and is rebuilt when it changes.
 """
@@ -43,7 +46,7 @@ def build_sah_kdtree(majorant: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
         sub = majorant[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
         mu = float(sub.max())
         parent = cost(lo, hi, mu)
-        best = (0.0, None, None)
+        best = (None, None, None)
         for a in range(3):
             n = hi[a] - lo[a]
             if n < 2:
@@ -62,10 +65,9 @@ def build_sah_kdtree(majorant: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
             sa_r = 2 * (er_a * o0 + er_a * o1 + o0 * o1)
             c = (c_trav * (sa_l + sa_r) + left * ea * o0 * o1 + right * er_a * o0 * o1)
             i = int(np.argmin(c))
-            gain = parent - c[i]
-            if gain > best[0]:
-                best = (gain, a, int(lo[a] + k[i]))
-        return best
+            if best[0] is None or c[i] < best[0]:
+                best = (float(c[i]), a, int(lo[a] + k[i]))
+        return parent, best[1], best[2]
 
     root = (np.zeros(3, np.int64), res.copy())
     nodes = {0: root}
@@ -73,7 +75,7 @@ def build_sah_kdtree(majorant: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
     heap = []
     g, a, s = best_split(*root)
     if a is not None:
-        heapq.heappush(heap, (-g, 0, a, s))
+        heapq.heappush(heap, (-g, 0, a, s))        # most expensive leaf first
     n_leaves = 1
     while heap and n_leaves < max_leaves:
         _, node, a, s = heapq.heappop(heap)
