@@ -7,7 +7,7 @@ RUN   := DRJIT_LIBLLVM_PATH="$$(tools/find-llvm19)" $(PY)
 SPP   ?= 64
 PYTEST_ARGS ?=
 
-.PHONY: setup demo test test-all bench clean
+.PHONY: setup demo test test-all bench bench-quick clean
 
 setup:
 	@tools/setup.sh
@@ -24,3 +24,9 @@ test-all: setup
 
 clean:
 	rm -rf out .pytest_cache
+
+bench-quick: setup
+	$(RUN) -m mi_amr.bench --quick --out out/bench-quick
+
+bench: setup
+	$(RUN) -m mi_amr.bench --out out/bench

@@ -54,7 +54,7 @@ def bench_scene(medium, res: int, integrator: dict):
                        "bsdf": {"type": "null"}, "interior": medium}}
 
 
-def run_config(mi, config, cells, tf, scale, args, ref_image=None):
+def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resolution=None):
     """Measure one configuration; returns (record, image)."""
     import drjit as dr
     import numpy as np
@@ -68,6 +68,8 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None):
     else:
         medium = {"type": "amr", "data": cells, "transfer_function": tf, "density_scale": scale,
                   "reconstruction": args.reconstruction}
+        if grid_resolution is not None:
+            medium["grid_resolution"] = int(grid_resolution)
         if kind[0] == "volpath":
             medium["majorant"] = kind[1]
         else:
@@ -79,21 +81,29 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None):
     t0 = time.perf_counter()
     np.array(mi.render(scene, spp=1, seed=99_999))
     compile_s = time.perf_counter() - t0
-    times, img = [], None
+    times, mses, img = [], [], None
     acc = None
+    if hasattr(integrator, "reset_counters"):
+        integrator.reset_counters()
     for r in range(args.repeats):
-        if hasattr(integrator, "reset_counters"):
-            integrator.reset_counters()
         t0 = time.perf_counter()
         img = np.array(mi.render(scene, spp=args.spp, seed=r), dtype=np.float64)
         times.append(time.perf_counter() - t0)
         acc = img if acc is None else acc + img
+        if ref_image is not None:
+            mses.append(float(np.mean((img - ref_image) ** 2)))
     seconds = statistics.median(times)
-    rec = {"config": config, "build_s": build_s, "compile_s": compile_s,
+    curve = []
+    if ref_image is not None:
+        for n in args.curve_spp:
+            t0 = time.perf_counter()
+            im = np.array(mi.render(scene, spp=n, seed=777 + n), dtype=np.float64)
+            curve.append([n, time.perf_counter() - t0, float(np.sqrt(np.mean((im - ref_image) ** 2)))])
+    rec = {"config": config, "build_s": build_s, "compile_s": compile_s, "curve": curve,
            "seconds_per_frame": seconds, "spp": args.spp,
            "seconds_per_spp": seconds / args.spp, "mean": float(img.mean())}
     if ref_image is not None:
-        mse = float(np.mean((img - ref_image) ** 2))
+        mse = float(np.mean(mses))               # over the repeats: a steadier estimate
         rec["rmse"] = mse ** 0.5
         rec["efficiency"] = 1.0 / (mse * seconds) if mse > 0 else float("inf")
     if hasattr(integrator, "counters"):
@@ -136,9 +146,14 @@ def main(argv=None):
     p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
     p.add_argument("--reconstruction", default="nearest", choices=("nearest", "tent"))
     p.add_argument("--variant", default="llvm_ad_rgb")
+    p.add_argument("--curve-spp", type=int, nargs="*", default=[1, 2, 4, 8],
+                   help="sample counts of the error-against-time curves")
+    p.add_argument("--sweep", type=int, nargs="*", default=[8, 12, 16, 24, 32, 48, 64, 96],
+                   help="grid resolutions of the sweep (amrvolpath/grid/hash); empty: no sweep")
     args = p.parse_args(argv)
     if args.quick:
-        args.cells, args.res, args.spp, args.ref_spp, args.repeats = 4000, 48, 4, 128, 2
+        args.cells, args.res, args.spp, args.ref_spp, args.repeats = 4000, 48, 4, 128, 3
+        args.curve_spp, args.sweep = [1, 2, 4], [8, 16, 32, 64]
 
     ensure_llvm_path()
     import mitsuba as mi
@@ -152,7 +167,8 @@ def main(argv=None):
     configs = args.configs or all_configs()
     data = [(n, make_dataset(n, cells=args.cells, levels=7 if n == "stadium" else 4)) for n in args.datasets]
     data += [(Path(f).stem, load_cells(f)) for f in args.files]
-    records = []
+    records, sweeps = [], []
+    t_start = time.perf_counter()
     for name, cells in data:
         for tf_name in args.tfs:
             tf = mi_amr.TransferFunction.preset(tf_name, cells.value_range)
@@ -174,14 +190,89 @@ def main(argv=None):
                       f"rmse {rec['rmse']:.4f} eff x{rec['efficiency_vs_reference'] or float('nan'):6.2f} "
                       f"lookups/coll {lpc if lpc is not None else float('nan'):6.2f} "
                       f"build {rec['build_s']:6.2f}s", flush=True)
+            if args.sweep:
+                sweeps.append(grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img))
             (out / "results.json").write_text(json.dumps(records, indent=1, default=float))
-    write_tables(records, out)
-    print(f"wrote {out / 'results.json'} and {out / 'tables.md'}")
+            (out / "sweep.json").write_text(json.dumps(sweeps, indent=1, default=float))
+    write_tables(records, sweeps, out)
+    plot_curves(records, out)
+    plot_sweeps(sweeps, out)
+    print(f"wrote {out}/results.json, sweep.json, tables.md and the PNG curves "
+          f"({time.perf_counter() - t_start:.0f} s)")
     return 0
 
 
-def write_tables(records, out: Path):
-    """One Markdown table per data set, laid out like the paper's Table 2."""
+def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
+    """Efficiency of amrvolpath/grid/hash over grid resolutions, and of the
+    resolution `auto_resolution` picks (Fig. 8 of the paper)."""
+    from .majorant_grid import auto_resolution
+    rows = []
+    for r in args.sweep:
+        rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img, grid_resolution=r)
+        rows.append({"grid_resolution": r, "efficiency": rec["efficiency"],
+                     "seconds_per_spp": rec["seconds_per_spp"],
+                     "lookups_per_collision": rec["lookups_per_collision"]})
+    auto, costs = auto_resolution(cells, tf, scale, support=args.reconstruction)
+    rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img, grid_resolution=auto)
+    best = max(rows, key=lambda x: x["efficiency"])
+    out = {"dataset": name, "tf": tf_name, "rows": rows, "auto_resolution": auto,
+           "auto_efficiency": rec["efficiency"], "best_resolution": best["grid_resolution"],
+           "best_efficiency": best["efficiency"], "auto_vs_best": rec["efficiency"] / best["efficiency"],
+           "model_costs": costs}
+    print(f"{name:8s} {tf_name:6s} grid sweep: best R={best['grid_resolution']}, auto R={auto} "
+          f"reaches {out['auto_vs_best']:.0%} of the best efficiency", flush=True)
+    return out
+
+
+def plot_curves(records, out: Path):
+    """RMSE against render seconds, log-log, one PNG per data set x TF."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    for key in dict.fromkeys((r["dataset"], r["tf"]) for r in records):
+        rows = [r for r in records if (r["dataset"], r["tf"]) == key and r.get("curve")]
+        if not rows:
+            continue
+        fig, ax = plt.subplots(figsize=(7, 5))
+        for r in rows:
+            c = [p for p in r["curve"] if p[2] > 0]
+            style = "-" if r["config"].startswith("amrvolpath") else "--"
+            lw = 2.5 if r["config"] in ("reference", "amrvolpath/grid/hash") else 1.0
+            ax.loglog([p[1] for p in c], [p[2] for p in c], style, marker="o", ms=3, lw=lw, label=r["config"])
+        ax.set_xlabel("render time [s]")
+        ax.set_ylabel("RMSE vs high-spp image")
+        ax.set_title(f"{key[0]} / {key[1]}: error against time")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7, ncol=2)
+        fig.tight_layout()
+        fig.savefig(out / f"curves_{key[0]}_{key[1]}.png", dpi=110)
+        plt.close(fig)
+
+
+def plot_sweeps(sweeps, out: Path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    if not sweeps:
+        return
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for sw in sweeps:
+        r = [x["grid_resolution"] for x in sw["rows"]]
+        e = [x["efficiency"] / sw["best_efficiency"] for x in sw["rows"]]
+        line, = ax.semilogx(r, e, marker="o", label=f"{sw['dataset']}/{sw['tf']}")
+        ax.plot([sw["auto_resolution"]], [sw["auto_vs_best"]], marker="*", ms=14, color=line.get_color())
+    ax.set_xlabel("grid resolution (macrocells along the longest axis)")
+    ax.set_ylabel("efficiency / best of sweep (star: automatic choice)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "grid_sweep.png", dpi=110)
+    plt.close(fig)
+
+
+def write_tables(records, sweeps, out: Path):
+    """One Markdown table per data set, laid out like the paper's Table 2,
+    and the grid-resolution sweep."""
     lines = ["# mi-amr benchmark", ""]
     for name in dict.fromkeys(r["dataset"] for r in records):
         rows = [r for r in records if r["dataset"] == name]
@@ -204,6 +295,13 @@ def write_tables(records, out: Path):
                 cells += [f"{r['seconds_per_spp'] * 1e3:.2f}", f"{eff:.2f}x" if eff else "",
                           f"{lpc:.2f}" if lpc else ""]
             lines.append(f"| {config} | " + " | ".join(cells) + f" | {mem:.2f} |")
+        lines.append("")
+    if sweeps:
+        lines += ["## Grid resolution sweep (amrvolpath/grid/hash)", "",
+                  "| data set | TF | best R | best efficiency | auto R | auto / best |", "|---|---|---|---|---|---|"]
+        for sw in sweeps:
+            lines.append(f"| {sw['dataset']} | {sw['tf']} | {sw['best_resolution']} | {sw['best_efficiency']:.4g} | "
+                         f"{sw['auto_resolution']} | {sw['auto_vs_best']:.0%} |")
         lines.append("")
     (out / "tables.md").write_text("\n".join(lines))
 

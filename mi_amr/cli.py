@@ -288,6 +288,9 @@ def build_parser():
     m.add_argument("--json", action="store_true")
     m.set_defaults(func=cmd_compare)
 
+    sub.add_parser("bench", help="the benchmark: mi-amr bench --quick --out DIR "
+                                 "(same as python -m mi_amr.bench)")
+
     d = sub.add_parser("dataset", help="generate a synthetic data set")
     d.add_argument("name", choices=("cloud", "shell", "stadium"))
     d.add_argument("output")
@@ -299,6 +302,10 @@ def build_parser():
 
 
 def main(argv=None):
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["bench"]:                 # hand every remaining option to the benchmark
+        from .bench import main as bench_main
+        return bench_main(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         args.func(args)

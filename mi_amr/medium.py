@@ -16,7 +16,7 @@ from .bricks import Bricks
 from .cell_hash import key_origin
 from .kdtree_sah import build_sah_kdtree
 from .local_tracking import span_majorant, track_segments
-from .majorant_grid import MacrocellGrid
+from .majorant_grid import MacrocellGrid, auto_resolution, range_majorants_host
 from .reconstruct import DeviceReconstruction, check_method
 from .region_tree import build_region_tree, exact_value_ranges
 from .tracking import DeviceMacrocellGrid, intersect_unit_cube, safe_rcp
@@ -232,8 +232,19 @@ class AMRMedium(mi.Medium):
 
     @property
     def _grid(self) -> DeviceMacrocellGrid:
-        return self._build("grid", lambda: DeviceMacrocellGrid(
-            MacrocellGrid(self.cells, self.grid_resolution, support=self.reconstruction)))
+        def make():
+            res = self.grid_resolution
+            if res is None:                 # cost model of the data and the TF
+                res, _ = auto_resolution(self.cells, self.tf, self.density_scale,
+                                         self.world_scale, self.reconstruction)
+            return DeviceMacrocellGrid(MacrocellGrid(self.cells, res, support=self.reconstruction))
+        return self._build("grid", make)
+
+    @property
+    def world_scale(self) -> float:
+        """Geometric mean scale of ``to_world`` (local unit length in world units)."""
+        m = np.array(self.to_world_scalar.matrix, dtype=np.float64)[:3, :3]
+        return float(np.cbrt(abs(np.linalg.det(m)))) or 1.0
 
     def _host_cached(self, key, make):
         """Host structures depend only on the cells and build options: cache
@@ -288,15 +299,8 @@ class AMRMedium(mi.Medium):
         return self._build("kdtree", make)
 
     def _tf_host_majorants(self, vmin, vmax):
-        """Host majorants (inverse local units) of value ranges, for the SAH
-        build: density_scale * max alpha, times the local-to-world scale."""
-        lo, hi = self.tf.range_entries(np.where(np.isfinite(vmin), vmin, 0), np.where(np.isfinite(vmax), vmax, 0))
-        st = self.tf.sparse_table()
-        k = np.floor(np.log2(hi - lo + 1)).astype(np.int64)
-        m = np.maximum(st[k, lo], st[k, hi + 1 - (1 << k)])
-        m = np.where(vmin <= vmax, m, 0.0)
-        world = np.array(self.to_world_scalar.matrix, dtype=np.float64)[:3, :3]
-        return self.density_scale * m * float(np.cbrt(abs(np.linalg.det(world))) or 1.0)
+        """Host majorants in inverse local units, for the SAH build."""
+        return range_majorants_host(self.tf, vmin, vmax, self.density_scale) * self.world_scale
 
     def _segments(self):
         """The segment iterator of the chosen traversal."""
