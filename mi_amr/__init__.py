@@ -20,7 +20,8 @@ from . import datasets  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",
-           "read_exabricks", "write_exabricks", "read_npz", "write_npz", "register"]
+           "read_exabricks", "write_exabricks", "read_npz", "write_npz", "register",
+           "set_transfer_function", "amr_media"]
 
 
 def register(variant: str | None = None):
@@ -52,3 +53,30 @@ def _on_variant_change(old, new):
 
 mi.detail.add_variant_callback(_on_variant_change)
 register()
+
+
+def amr_media(scene_or_medium) -> list:
+    """The `amr` media of a scene (or the medium itself, in a list)."""
+    from .medium import AMRMedium
+    if isinstance(scene_or_medium, AMRMedium):
+        return [scene_or_medium]
+    found = []
+    for shape in scene_or_medium.shapes():
+        for m in (shape.interior_medium(), shape.exterior_medium()):
+            if isinstance(m, AMRMedium) and all(m is not f for f in found):
+                found.append(m)
+    return found
+
+
+def set_transfer_function(scene_or_medium, tf=None, density_scale=None):
+    """Change the transfer function (new table, domain or size) and/or the
+    density scale of every `amr` medium of a scene, or of one medium. Only
+    the majorants are recomputed; no structure is rebuilt (except the
+    pre-classified kd-tree) and no kernel is recompiled. Returns the media."""
+    media = amr_media(scene_or_medium)
+    if not media:
+        raise ValueError("set_transfer_function: no amr medium found")
+    for m in media:
+        new_tf = m.tf if tf is None else TransferFunction.load(tf, m.tf.domain)
+        m.set_transfer_function(new_tf, density_scale)
+    return media

@@ -109,7 +109,7 @@ def _expand_boxes(i0: np.ndarray, i1: np.ndarray, res: np.ndarray):
 #: Cost of one DDA step relative to one density look-up (tent/nearest hash
 #: sampling on llvm_ad_rgb), used by `auto_resolution`; calibrated with the
 #: grid-resolution sweep of ``python -m mi_amr.bench``.
-STEP_COST = 0.35
+STEP_COST = 0.08
 CANDIDATES = (8, 16, 32, 64, 128)
 
 

@@ -171,6 +171,9 @@ class AMRMedium(mi.Medium):
         self._max_iterations = mi.UInt32(MAX_TRACKING_ITERATIONS)
         dr.make_opaque(self._offset, self._extent, self._to_local, self._scale, self._max_iterations)
         self._tf = DeviceTransferFunction(self.tf)
+        self._tf_rgba = mi.Float(self.tf.rgba.ravel())
+        self._tf_domain = mi.Float(self.tf.domain)
+        dr.make_opaque(self._tf_rgba, self._tf_domain)
         self._ray_mu = None
         self._structures = {}
         self.build_seconds = {}
@@ -426,6 +429,57 @@ class AMRMedium(mi.Medium):
         sigma_s = rgb * sigma_t
         sigma_n = dr.maximum(mu - sigma_t, 0.0)
         return mi.Color3f(sigma_s), mi.Color3f(sigma_n), mi.Color3f(sigma_t)
+
+    # ---- Scene parameters (mi.traverse) ------------------------------------------
+    def traverse(self, callback):
+        """Expose ``density_scale``, the TF table ``tf_rgba``
+        (flat float array, N x 4, row major) and ``tf_domain``
+        ([lo, hi]); ``params.update()`` then recomputes the majorants."""
+        callback.put("density_scale", self._scale, mi.ParamFlags.NonDifferentiable)
+        callback.put("tf_rgba", self._tf_rgba, mi.ParamFlags.NonDifferentiable)
+        callback.put("tf_domain", self._tf_domain, mi.ParamFlags.NonDifferentiable)
+
+    def parameters_changed(self, keys=None):
+        keys = set(keys or [])
+        if keys & {"tf_rgba", "tf_domain"}:
+            rgba = np.asarray(self._tf_rgba.numpy(), dtype=np.float64)
+            dom = self._tf_domain.numpy()
+            if rgba.size % 4:
+                raise ValueError(f"amr: transfer_function.rgba must hold N x 4 values, got {rgba.size}")
+            self.set_transfer_function(TransferFunction(rgba.reshape(-1, 4), (float(dom[0]), float(dom[1]))),
+                                       update=False)
+        if "density_scale" in keys:
+            v = float(self._scale.numpy()[0])
+            if not np.isfinite(v) or v < 0:
+                raise ValueError(f"amr: density_scale must be a finite non-negative number, got {v}")
+            self.density_scale = v
+        self.update_majorants()
+
+    def set_transfer_function(self, tf: TransferFunction, density_scale=None, update: bool = True):
+        """Use a new TF (new table, domain or size) and/or density scale:
+        uploads the small table and recomputes every majorant; the kernels are
+        not recompiled (all TF data are opaque). The pre-classified kd-tree is
+        rebuilt, since its topology was chosen for the old TF."""
+        if not isinstance(tf, TransferFunction):
+            raise ValueError(f"amr: expected a TransferFunction, got {type(tf).__name__}")
+        self.tf = tf
+        self._tf.set(tf)
+        # the traversed parameters are updated in place (SceneParameters hold them)
+        mi.set_property(self._tf_rgba, mi.Float(tf.rgba.ravel()))
+        mi.set_property(self._tf_domain, mi.Float(tf.domain))
+        if density_scale is not None:
+            if not np.isfinite(density_scale) or density_scale < 0:
+                raise ValueError(f"amr: density_scale must be a finite non-negative number, got {density_scale}")
+            self.density_scale = float(density_scale)
+            mi.set_property(self._scale, mi.Float(self.density_scale))
+        dr.make_opaque(self._tf_rgba, self._tf_domain, self._scale)
+        if "kdtree" in self._structures:
+            t0 = time.perf_counter()
+            del self._structures["kdtree"]
+            self._kdtree()
+            self.build_seconds["kdtree_rebuild"] = time.perf_counter() - t0
+        if update:
+            self.update_majorants()
 
     def _current_majorant(self):
         return self._ray_mu if self._ray_mu is not None else self._global_mu

@@ -1,0 +1,51 @@
+"""The benchmark writes the promised files and fields (tiny sizes)."""
+
+import json
+import math
+
+from mi_amr.bench import all_configs, main
+
+
+def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
+    out = tmp_path / "bench"
+    code = main(["--out", str(out), "--cells", "800", "--res", "16", "--spp", "2", "--ref-spp", "16",
+                 "--repeats", "2", "--datasets", "cloud", "--tfs", "spiky",
+                 "--configs", "reference", "volpath/ray", "amrvolpath/grid/hash", "amrvolpath/abr/brick",
+                 "--curve-spp", "1", "2", "--sweep", "8", "16"])
+    assert code == 0
+    records = json.loads((out / "results.json").read_text())
+    assert [r["config"] for r in records] == ["reference", "volpath/ray", "amrvolpath/grid/hash",
+                                              "amrvolpath/abr/brick"]
+    for r in records:
+        for field in ("dataset", "tf", "config", "seconds_per_spp", "rmse", "efficiency",
+                      "efficiency_vs_reference", "lookups_per_collision", "structure_bytes"):
+            assert field in r, field
+        assert r["seconds_per_spp"] > 0 and math.isfinite(r["rmse"]) and r["rmse"] > 0
+        assert len(r["curve"]) == 2
+    assert records[0]["efficiency_vs_reference"] == 1.0
+    assert records[2]["lookups_per_collision"] >= 1.0
+    assert all(r["structure_bytes"] > 0 for r in records)
+    sweep = json.loads((out / "sweep.json").read_text())
+    assert sweep[0]["auto_resolution"] in (8, 16, 32, 64, 128) and len(sweep[0]["rows"]) == 2
+    assert (out / "tables.md").read_text().count("| amrvolpath/grid/hash |") == 1
+    assert (out / "curves_cloud_spiky.png").stat().st_size > 1000
+    assert (out / "grid_sweep.png").stat().st_size > 1000
+
+
+def test02_config_names():
+    names = all_configs()
+    assert names[:3] == ["reference", "volpath/global", "volpath/ray"]
+    assert "amrvolpath/grid/abr" in names and "amrvolpath/kdtree/brick" in names
+    assert len(names) == 3 + 4 * 3
+
+
+def test03_reference_that_does_not_fit_is_reported(llvm, tmp_path):
+    out = tmp_path / "bench"
+    assert main(["--out", str(out), "--cells", "800", "--res", "8", "--spp", "1", "--ref-spp", "4",
+                 "--repeats", "1", "--datasets", "shell", "--tfs", "foggy", "--sweep",
+                 "--curve-spp", "1", "--configs", "reference", "amrvolpath/grid/hash",
+                 "--memory-limit", "1e-6"]) == 0
+    records = json.loads((out / "results.json").read_text())
+    assert "GiB" in records[0]["skipped"]
+    assert records[1]["efficiency_vs_reference"] is None and records[1]["rmse"] > 0
+    assert "skipped" in (out / "tables.md").read_text()

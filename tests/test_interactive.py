@@ -1,0 +1,71 @@
+"""Transfer-function changes: majorants recomputed, nothing rebuilt or recompiled."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_amr
+
+from conftest import random_amr, volume_scene
+
+
+def _key(params, suffix):
+    keys = [k for k in params.keys() if k.endswith(suffix)]
+    assert len(keys) == 1, keys
+    return keys[0]
+
+
+def test01_traverse_exposes_tf_and_scale(llvm):
+    cells = random_amr(3)
+    scene = mi.load_dict(volume_scene({"type": "amr", "data": cells, "transfer_function": "ramp",
+                                       "density_scale": 5.0}, res=16))
+    med = mi_amr.amr_media(scene)[0]
+    params = mi.traverse(scene)
+    k_scale = _key(params, "density_scale")
+    k_rgba = _key(params, "tf_rgba")
+    k_dom = _key(params, "tf_domain")
+    assert dr.width(params[k_rgba]) == 4 * len(med.tf)
+    before = med.majorant_grid.copy()
+    params[k_scale] = 10.0
+    params.update()
+    np.testing.assert_allclose(med.majorant_grid, 2 * before, rtol=1e-6)
+    # zero opacity everywhere: every majorant becomes 0
+    rgba = np.array(params[k_rgba]).reshape(-1, 4)
+    rgba[:, 3] = 0
+    params[k_rgba] = mi.Float(rgba.ravel())
+    params.update()
+    assert med.majorant_grid.max() == 0 and med.global_majorant == 0
+    params[k_dom] = mi.Float([0.0, 2.0])
+    params.update()
+    assert med.tf.domain == (0.0, 2.0)
+
+
+def test02_tf_change_recompiles_no_kernel(llvm):
+    cells = random_amr(4)
+    scene = mi.load_dict(volume_scene({"type": "amr", "data": cells, "transfer_function": "spiky",
+                                       "density_scale": 20.0}, res=16, integrator="amrvolpath"))
+    first = np.array(mi.render(scene, spp=2, seed=0))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()                                    # clear
+    try:
+        tf = mi_amr.TransferFunction.from_colormap("magma", [(0, 0), (0.5, 1), (1, 0.2)],
+                                                   cells.value_range, n=64)   # other size and values
+        mi_amr.set_transfer_function(scene, tf, density_scale=35.0)
+        second = np.array(mi.render(scene, spp=2, seed=0))
+        history = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert history, "no kernel was launched"
+    assert all(h["cache_hit"] for h in history), [h.get("cache_key") for h in history if not h["cache_hit"]]
+    assert np.isfinite(second).all() and np.abs(second - first).max() > 1e-3
+
+
+def test03_kdtree_is_rebuilt_and_says_so(llvm):
+    cells = random_amr(5)
+    med = mi.load_dict({"type": "amr", "data": cells, "traversal": "kdtree", "transfer_function": "spiky"})
+    assert "kdtree_rebuild" not in med.build_seconds
+    mi_amr.set_transfer_function(med, "foggy")
+    assert med.build_seconds["kdtree_rebuild"] > 0
+    with pytest.raises(ValueError, match="density_scale"):
+        mi_amr.set_transfer_function(med, density_scale=-1.0)
