@@ -203,12 +203,68 @@ def main(argv=None):
                 sweeps.append(grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img))
             (out / "results.json").write_text(json.dumps(records, indent=1, default=float))
             (out / "sweep.json").write_text(json.dumps(sweeps, indent=1, default=float))
-    write_tables(records, sweeps, out)
+    tf_timing = tf_change_timing(mi, args, data[0][1] if data else None)
+    (out / "tf_change.json").write_text(json.dumps(tf_timing, indent=1, default=float))
+    write_tables(records, sweeps, out, tf_timing)
     plot_curves(records, out)
     plot_sweeps(sweeps, out)
     print(f"wrote {out}/results.json, sweep.json, tables.md and the PNG curves "
           f"({time.perf_counter() - t_start:.0f} s)")
     return 0
+
+
+def tf_change_timing(mi, args, cells):
+    """Majorant recompute time for 10^5, 10^6 and 10^7 leaves (one Dr.Jit
+    kernel over the leaves' value ranges), and the first frame after a TF
+    change against the steady-state frame time."""
+    import drjit as dr
+    import numpy as np
+
+    import mi_amr
+    from .transfer_jit import DeviceTransferFunction
+    rng = np.random.default_rng(0)
+    tf = DeviceTransferFunction(mi_amr.TransferFunction.preset("spiky", (0.0, 1.0)))
+    scale = mi.Float(50.0)
+    dr.make_opaque(scale)
+    out = {"recompute": []}
+    for n in (10**5, 10**6, 10**7):
+        a = rng.random(n, dtype=np.float32)
+        vmin = mi.Float(a)
+        vmax = mi.Float(a + rng.random(n, dtype=np.float32) * 0.2)
+        dr.eval(vmin, vmax)
+        times = []
+        for i in range(6):
+            t0 = time.perf_counter()
+            maj = scale * tf.range_max_alpha(vmin, vmax)
+            dr.eval(maj)
+            dr.sync_thread()
+            times.append(time.perf_counter() - t0)
+        ms = 1e3 * statistics.median(times[1:])          # the first includes compilation
+        out["recompute"].append({"leaves": n, "ms": ms, "ms_per_million": ms / (n / 1e6)})
+        print(f"majorant recompute: {n:>9d} leaves {ms:8.2f} ms ({ms / (n / 1e6):.2f} ms per 10^6)", flush=True)
+    if cells is not None:
+        scene = mi.load_dict(bench_scene({"type": "amr", "data": cells, "transfer_function": "foggy",
+                                          "density_scale": 150.0}, args.res,
+                                         {"type": "amrvolpath", "max_depth": args.max_depth}))
+        np.array(mi.render(scene, spp=args.spp, seed=0))        # compile
+        new_tf = mi_amr.TransferFunction.from_colormap("magma", [(0, 0), (0.4, 0.2), (1, 0.1)],
+                                                       cells.value_range, n=128)
+        t0 = time.perf_counter()
+        mi_amr.set_transfer_function(scene, new_tf, density_scale=120.0)
+        update_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        np.array(mi.render(scene, spp=args.spp, seed=7))
+        first = time.perf_counter() - t0
+        steady = []                                    # the same TF, frames after the first
+        for r in range(3):
+            t0 = time.perf_counter()
+            np.array(mi.render(scene, spp=args.spp, seed=r))
+            steady.append(time.perf_counter() - t0)
+        out["frame"] = {"steady_s": statistics.median(steady), "first_after_change_s": first,
+                        "ratio": first / statistics.median(steady), "set_transfer_function_s": update_s}
+        print(f"first frame after a TF change: {first:.3f} s vs steady {statistics.median(steady):.3f} s "
+              f"({out['frame']['ratio']:.2f}x); set_transfer_function {1e3 * update_s:.1f} ms", flush=True)
+    return out
 
 
 def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
@@ -279,7 +335,7 @@ def plot_sweeps(sweeps, out: Path):
     plt.close(fig)
 
 
-def write_tables(records, sweeps, out: Path):
+def write_tables(records, sweeps, out: Path, tf_timing=None):
     """One Markdown table per data set, laid out like the paper's Table 2,
     and the grid-resolution sweep."""
     lines = ["# mi-amr benchmark", ""]
@@ -314,6 +370,17 @@ def write_tables(records, sweeps, out: Path):
         for sw in sweeps:
             lines.append(f"| {sw['dataset']} | {sw['tf']} | {sw['best_resolution']} | {sw['best_efficiency']:.4g} | "
                          f"{sw['auto_resolution']} | {sw['auto_vs_best']:.0%} |")
+        lines.append("")
+    if tf_timing:
+        lines += ["## Transfer-function change", "", "| leaves | majorant recompute ms | ms per 10^6 leaves |",
+                  "|---|---|---|"]
+        for r in tf_timing["recompute"]:
+            lines.append(f"| {r['leaves']} | {r['ms']:.2f} | {r['ms_per_million']:.2f} |")
+        if "frame" in tf_timing:
+            f = tf_timing["frame"]
+            lines += ["", f"First frame after a TF change: {f['first_after_change_s']:.3f} s, steady state "
+                          f"{f['steady_s']:.3f} s ({f['ratio']:.2f}x); set_transfer_function "
+                          f"{1e3 * f['set_transfer_function_s']:.1f} ms."]
         lines.append("")
     (out / "tables.md").write_text("\n".join(lines))
 
