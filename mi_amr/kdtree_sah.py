@@ -23,7 +23,7 @@ import heapq
 
 import numpy as np
 
-from .region_tree import RegionTree
+from .region_tree import RegionTree, split_node
 
 
 def build_sah_kdtree(majorant: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
@@ -80,16 +80,8 @@ def build_sah_kdtree(majorant: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
     while heap and n_leaves < max_leaves:
         _, node, a, s = heapq.heappop(heap)
         lo, hi = nodes.pop(node)
-        left = len(axis)
-        axis[node], split[node], child[node] = a, float(s), left
-        axis += [3, 3]
-        split += [0.0, 0.0]
-        child += [0, 0]
-        lhi = hi.copy()
-        lhi[a] = s
-        rlo = lo.copy()
-        rlo[a] = s
-        for nid, box in ((left, (lo, lhi)), (left + 1, (rlo, hi))):
+        left, lbox, rbox = split_node(axis, split, child, node, a, s, lo, hi)
+        for nid, box in ((left, lbox), (left + 1, rbox)):
             nodes[nid] = box
             g, ax, sp = best_split(*box)
             if ax is not None:

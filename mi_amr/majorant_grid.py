@@ -92,9 +92,9 @@ class MacrocellGrid:
         return self.vmin.nbytes + self.vmax.nbytes + self.level_bits.nbytes + 4 * self.vmin.size
 
 
-def _expand_boxes(i0: np.ndarray, i1: np.ndarray, res: np.ndarray):
-    """Flat macrocell indices (x fastest) of every box ``i0..i1`` (inclusive),
-    with the index of the box each entry came from."""
+def enumerate_boxes(i0: np.ndarray, i1: np.ndarray):
+    """Every integer point of the boxes ``i0..i1`` (inclusive, (B, 3)), x
+    fastest: ``(x, y, z, owner)`` with the index of the box of each point."""
     counts = i1 - i0 + 1
     total = counts.prod(axis=1)
     owner = np.repeat(np.arange(len(total)), total)
@@ -103,6 +103,13 @@ def _expand_boxes(i0: np.ndarray, i1: np.ndarray, res: np.ndarray):
     x = i0[owner, 0] + local % cx
     y = i0[owner, 1] + (local // cx) % cy
     z = i0[owner, 2] + local // (cx * cy)
+    return x, y, z, owner
+
+
+def _expand_boxes(i0: np.ndarray, i1: np.ndarray, res: np.ndarray):
+    """Flat macrocell indices (x fastest) of every box ``i0..i1`` (inclusive),
+    with the index of the box each entry came from."""
+    x, y, z, owner = enumerate_boxes(i0, i1)
     return x + res[0] * (y + res[1] * z), owner
 
 

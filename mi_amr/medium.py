@@ -330,6 +330,8 @@ class AMRMedium(mi.Medium):
         """Memory of every structure built so far (host arrays uploaded)."""
         total = 0
         for name, obj in self._structures.items():
+            if name == "device_bricks":          # the same arrays as "bricks"
+                continue
             host = getattr(obj, "host", obj)
             total += int(getattr(host, "nbytes", 0) or getattr(obj, "nbytes", 0))
         return total

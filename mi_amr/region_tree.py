@@ -91,20 +91,28 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
             lists.append(cand)
             continue
         a, s = best
-        left = len(axis)
-        axis[node], split[node], child[node] = a, float(s), left
-        axis += [3, 3]
-        split += [0.0, 0.0]
-        child += [0, 0]
-        lhi = hi.copy()
-        lhi[a] = s
-        rlo = lo.copy()
-        rlo[a] = s
+        left, (llo, lhi), (rlo, rhi) = split_node(axis, split, child, node, a, s, lo, hi)
         cl = cand[box_lo[cand, a] < s]
         cr = cand[box_hi[cand, a] > s]
-        stack.append((left + 1, rlo, hi, cr))
-        stack.append((left, lo, lhi, cl))
+        stack.append((left + 1, rlo, rhi, cr))
+        stack.append((left, llo, lhi, cl))
     return RegionTree(axis, split, child, leaf_lo, leaf_hi, lists)
+
+
+def split_node(axis: list, split: list, child: list, node: int, a: int, s, lo, hi):
+    """Turn leaf ``node`` into an inner node split at ``s`` on axis ``a``:
+    appends its two children (leaves for now) to the node lists and returns
+    ``(left_index, (left_lo, left_hi), (right_lo, right_hi))``."""
+    left = len(axis)
+    axis[node], split[node], child[node] = a, float(s), left
+    axis += [3, 3]
+    split += [0.0, 0.0]
+    child += [0, 0]
+    lhi = hi.copy()
+    lhi[a] = s
+    rlo = lo.copy()
+    rlo[a] = s
+    return left, (lo, lhi), (rlo, hi)
 
 
 def box_value_ranges(leaf_lo, leaf_hi, dom_lo, dom_hi, vmin, vmax, chunk: int = 512):
@@ -148,7 +156,7 @@ def exact_value_ranges(leaf_lo, leaf_hi, bricks, method: str = "tent", chunk: in
     the leaf's interior. Candidate bricks come from a conservative domain
     test; within each brick only the sub-box of cells that reach the leaf
     is visited (vectorised over all leaf-brick pairs)."""
-    from .majorant_grid import _expand_boxes
+    from .majorant_grid import enumerate_boxes
     n = len(leaf_lo)
     out_min = np.full(n, np.inf, dtype=np.float32)
     out_max = np.full(n, -np.inf, dtype=np.float32)
@@ -176,15 +184,7 @@ def exact_value_ranges(leaf_lo, leaf_hi, bricks, method: str = "tent", chunk: in
         li, b, i0, i1, dims = li[keep], b[keep], i0[keep], i1[keep], dims[keep]
         if not len(li):
             continue
-        # enumerate every (pair, cell) of the sub-boxes
-        counts = (i1 - i0 + 1)
-        total = counts.prod(axis=1)
-        owner = np.repeat(np.arange(len(li)), total)
-        local = np.arange(int(total.sum())) - np.repeat(np.cumsum(total) - total, total)
-        cx, cy = counts[owner, 0], counts[owner, 1]
-        x = i0[owner, 0] + local % cx
-        y = i0[owner, 1] + (local // cx) % cy
-        z = i0[owner, 2] + local // (cx * cy)
+        x, y, z, owner = enumerate_boxes(i0, i1)      # every (pair, cell) of the sub-boxes
         d = dims[owner]
         v = bricks.values[bricks.offset[b[owner]] + x + d[:, 0] * (y + d[:, 1] * z)]
         np.minimum.at(out_min, s + li[owner], v)

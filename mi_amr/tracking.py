@@ -1,9 +1,9 @@
-"""Ray traversal of the macrocell grid (Dr.Jit).
+"""The macrocell grid in Dr.Jit and ray/box helpers.
 
 Coordinates are the medium's *local* space: the AMR bounding box is the unit
 cube ``[0, 1]^3``. Rays are given by origin ``o`` and (not necessarily unit)
 direction ``d`` in that space, with the same ray parameter ``t`` as in world
-space.
+space. The grid walk itself is `mi_amr.traversal.GridSegments`.
 """
 
 from __future__ import annotations
@@ -60,50 +60,3 @@ class DeviceMacrocellGrid:
 
     def flat(self, c: mi.Vector3i) -> mi.UInt32:
         return mi.UInt32(c.x + self.res.x * (c.y + self.res.y * c.z))
-
-    @dr.syntax
-    def ray_majorant(self, o: mi.Vector3f, d: mi.Vector3f, t_start, t_end, active=True):
-        """Walk the grid along ``o + t d`` over ``[t_start, t_end]`` (3D DDA,
-        Amanatides-Woo) and return ``(found, t_first, t_last, mu_max)``: the
-        span from the entry of the first to the exit of the last macrocell
-        with a non-zero majorant, and the largest majorant met. At most
-        ``rx + ry + rz + 3`` steps (a ray crosses at most ``rx + ry + rz - 2``)."""
-        res_f = mi.Vector3f(self.res)
-        dg = d * res_f                               # direction in grid units
-        inv = safe_rcp(dg)
-        p = (o + d * t_start) * res_f
-        cell = dr.clip(mi.Vector3i(dr.floor(p)), 0, self.res - 1)
-        step = dr.select(dg >= 0, 1, -1)
-        edge = mi.Vector3f(cell) + dr.select(dg >= 0, 1.0, 0.0)
-        t_next = t_start + (edge - p) * inv
-        dt = dr.abs(inv)
-        t_cell = mi.Float(t_start)
-        found = mi.Bool(False)
-        t_first = mi.Float(t_end)
-        t_last = mi.Float(t_start)
-        mu_max = mi.Float(0.0)
-        i = mi.UInt32(0)
-        n_max = mi.UInt32(self.res.x + self.res.y + self.res.z + 3)
-        alive = mi.Bool(active) & (t_start < t_end)
-        while dr.hint(alive, label="amr_ray_majorant"):
-            t_exit = dr.minimum(dr.min(t_next), t_end)
-            mu = dr.gather(mi.Float, self.majorant, self.flat(cell), alive)
-            nonzero = mu > 0.0
-            t_first = dr.select(nonzero & ~found, t_cell, t_first)
-            t_last = dr.select(nonzero, t_exit, t_last)
-            mu_max = dr.maximum(mu_max, mu)
-            found |= nonzero
-            # step along the axis whose boundary comes first
-            ax_x = (t_next.x <= t_next.y) & (t_next.x <= t_next.z)
-            ax_y = ~ax_x & (t_next.y <= t_next.z)
-            ax_z = ~ax_x & ~ax_y
-            cell.x = dr.select(ax_x, cell.x + step.x, cell.x)
-            cell.y = dr.select(ax_y, cell.y + step.y, cell.y)
-            cell.z = dr.select(ax_z, cell.z + step.z, cell.z)
-            t_next.x = dr.select(ax_x, t_next.x + dt.x, t_next.x)
-            t_next.y = dr.select(ax_y, t_next.y + dt.y, t_next.y)
-            t_next.z = dr.select(ax_z, t_next.z + dt.z, t_next.z)
-            t_cell = t_exit
-            i += 1
-            alive &= (t_exit < t_end) & dr.all((cell >= 0) & (cell < self.res)) & (i < n_max)
-        return found, t_first, t_last, mu_max
