@@ -100,7 +100,21 @@ class AMRMedium(mi.Medium):
          maximum for the whole volume.
      * - grid_resolution
        - |int|
-       - Macrocells along the longest axis. Default: chosen from the data.
+       - Macrocells along the longest axis. Default: chosen by a cost model
+         of the data and the TF (`mi_amr.majorant_grid.auto_resolution`).
+     * - traversal
+       - |string|
+       - Segments and majorants for ``amrvolpath`` (and the ray-wise
+         majorant in ``volpath``): ``grid`` (default), ``abr``, ``brick``,
+         ``kdtree`` (pre-classified SAH kd-tree, rebuilt on a TF change).
+     * - sampling
+       - |string|
+       - Point location of density look-ups: ``hash`` (default), ``abr``
+         (the ABR's brick list), ``brick`` (bricks whose extended domain
+         contains the point).
+     * - brick_size, kdtree_leaves
+       - |int|
+       - Largest brick side in cells (8); leaf budget of the kd-tree (4096).
      * - overlap
        - |string|
        - ``error`` (default) rejects overlapping cells; ``finest`` keeps the
@@ -177,8 +191,6 @@ class AMRMedium(mi.Medium):
         self._ray_mu = None
         self._structures = {}
         self.build_seconds = {}
-        self.counters_enabled = False
-        self._counters = None
 
         # ---- Structures the chosen traversal and sampling use ----
         self._segments()
