@@ -21,7 +21,7 @@ from . import datasets  # noqa: E402
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",
            "read_exabricks", "write_exabricks", "read_npz", "write_npz", "register",
-           "set_transfer_function", "amr_media"]
+           "set_transfer_function", "amr_media", "from_yt", "world_transform"]
 
 
 def register(variant: str | None = None):
@@ -53,6 +53,18 @@ def _on_variant_change(old, new):
 
 mi.detail.add_variant_callback(_on_variant_change)
 register()
+
+
+def from_yt(ds, field, **kw):
+    """Leaf cells of a yt grid dataset (see `mi_amr.yt_import.from_yt`)."""
+    from .yt_import import from_yt as _from_yt
+    return _from_yt(ds, field, **kw)
+
+
+def world_transform(ds):
+    """``to_world`` for a yt dataset's domain (see `mi_amr.yt_import`)."""
+    from .yt_import import world_transform as _wt
+    return _wt(ds)
 
 
 def amr_media(scene_or_medium) -> list:

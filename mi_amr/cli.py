@@ -183,9 +183,18 @@ def cmd_convert(args):
                                  f"{nx} {ny} {nz} with {args.dtype} needs {expected}")
             vol = np.fromfile(src, dtype=args.dtype).reshape(nz, ny, nx)
         cells = dense_to_amr(vol, args.threshold, args.max_level, source=str(src))
+    elif args.field:
+        try:
+            import yt
+        except ImportError:
+            raise SystemExit("mi-amr convert: reading yt datasets needs yt (pip install mi-amr[yt])")
+        from .yt_import import from_yt
+        ds = yt.load(str(src))
+        field = tuple(args.field.split(",")) if "," in args.field else args.field
+        cells = from_yt(ds, field, overlap=args.overlap)
     else:
-        raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' "
-                         "(expected .cells, .npz, .npy or .raw)")
+        raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' (expected .cells, "
+                         ".npz, .npy or .raw, or a yt-loadable dataset with --field)")
     out = save_cells(cells, args.output)
     print(f"wrote {out}: {cells}")
 
@@ -271,7 +280,8 @@ def build_parser():
     i.add_argument("--json", action="store_true")
     i.set_defaults(func=cmd_info)
 
-    c = sub.add_parser("convert", help="convert between .npz and .cells, or a dense .npy/.raw volume to AMR")
+    c = sub.add_parser("convert", help="convert between .npz and .cells, a dense .npy/.raw volume "
+                                       "or a yt-loadable dataset (--field) to AMR")
     c.add_argument("input")
     c.add_argument("output")
     c.add_argument("--threshold", type=float, default=0.0, help="max value spread of merged blocks")
@@ -279,6 +289,7 @@ def build_parser():
     c.add_argument("--shape", type=int, nargs=3, metavar=("X", "Y", "Z"), help="dimensions of a .raw volume")
     c.add_argument("--dtype", default="float32", help="element type of a .raw volume")
     c.add_argument("--overlap", choices=("error", "finest"), default="error")
+    c.add_argument("--field", help="field of a yt-loadable dataset, e.g. density or gas,density")
     c.set_defaults(func=cmd_convert)
 
     m = sub.add_parser("compare", help="error statistics of A.exr against reference B.exr")

@@ -138,7 +138,8 @@ class TransferFunction(mi.Object):
             tf = cls(np.ones((n, 4)), domain)
         else:
             raise ValueError(f"unknown transfer function preset {name!r} "
-                             f"(choose from {', '.join(PRESETS)}, or a .json file)")
+                             f"(choose from {', '.join(PRESETS)}, a matplotlib colormap name, "
+                             "or a .json file)")
         return tf
 
     # ---- Files -------------------------------------------------------------
@@ -153,11 +154,15 @@ class TransferFunction(mi.Object):
 
     @classmethod
     def from_json(cls, path) -> "TransferFunction":
+        """Our format ``{"domain": [lo, hi], "rgba": [[r, g, b, a], ...]}``, or a
+        ParaView preset file (recognised by its ``RGBPoints``)."""
         path = Path(path)
         try:
             d = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"{path}: cannot read transfer function JSON ({e})") from e
+        if isinstance(d, list) or (isinstance(d, dict) and "RGBPoints" in d):
+            return cls.from_paraview(path)
         if not isinstance(d, dict) or "domain" not in d or "rgba" not in d:
             raise ValueError(f"{path}: expected an object with 'domain' and 'rgba'")
         try:
@@ -166,15 +171,76 @@ class TransferFunction(mi.Object):
             raise ValueError(f"{path}: {e}") from e
 
     @classmethod
+    def from_paraview(cls, path, name: str | None = None, n: int = 256) -> "TransferFunction":
+        """A ParaView colour-map / opacity preset (JSON exported from
+        ParaView's preset manager: a list of presets, or one preset object).
+
+        ``RGBPoints`` is a flat list of ``x, r, g, b`` quadruples and
+        ``Points`` (optional) of ``x, opacity, midpoint, sharpness``; the value
+        domain is the range of the x positions. Colours are interpolated
+        linearly in RGB and opacity piecewise linearly (ParaView's default
+        midpoint 0.5 / sharpness 0); without ``Points`` the opacity ramps
+        from 0 to 1 over the domain. ``name`` picks a preset from a list.
+        """
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"{path}: cannot read ParaView preset ({e})") from e
+        presets = d if isinstance(d, list) else [d]
+        if name is not None:
+            presets = [p for p in presets if isinstance(p, dict) and p.get("Name") == name]
+            if not presets:
+                raise ValueError(f"{path}: no preset named {name!r}")
+        preset = presets[0] if presets else None
+        if not isinstance(preset, dict) or "RGBPoints" not in preset:
+            raise ValueError(f"{path}: not a ParaView preset (no 'RGBPoints')")
+        rgb = np.asarray(preset["RGBPoints"], dtype=np.float64)
+        if rgb.size < 8 or rgb.size % 4 or not np.all(np.isfinite(rgb)):
+            raise ValueError(f"{path}: 'RGBPoints' must hold finite x, r, g, b quadruples (>= 2)")
+        rgb = rgb.reshape(-1, 4)
+        xs = [rgb[:, 0]]
+        pts = None
+        if preset.get("Points"):
+            pts = np.asarray(preset["Points"], dtype=np.float64)
+            if pts.size % 4 or not np.all(np.isfinite(pts)):
+                raise ValueError(f"{path}: 'Points' must hold x, opacity, midpoint, sharpness quadruples")
+            pts = pts.reshape(-1, 4)
+            xs.append(pts[:, 0])
+        lo = float(min(x.min() for x in xs))
+        hi = float(max(x.max() for x in xs))
+        if not hi > lo:
+            raise ValueError(f"{path}: the preset's points span an empty value range")
+        v = np.linspace(lo, hi, n)
+        o = np.argsort(rgb[:, 0], kind="stable")
+        table = np.empty((n, 4))
+        for c in range(3):
+            table[:, c] = np.interp(v, rgb[o, 0], rgb[o, c + 1])
+        if pts is not None:
+            o = np.argsort(pts[:, 0], kind="stable")
+            table[:, 3] = np.interp(v, pts[o, 0], pts[o, 1])
+        else:
+            table[:, 3] = (v - lo) / (hi - lo)
+        return cls(np.clip(table, 0.0, 1.0), (lo, hi))
+
+    @classmethod
     def load(cls, spec, domain=None) -> "TransferFunction":
-        """A TF from a preset name, a ``.json`` path or a TransferFunction.
-        ``domain`` applies to presets (default [0, 1])."""
+        """A TF from a preset name, a matplotlib colormap name (opacity ramp
+        0 -> 1), a ``.json`` path (ours or a ParaView preset) or a
+        TransferFunction. ``domain`` applies to presets and colormaps
+        (default [0, 1])."""
         if isinstance(spec, TransferFunction):
             return spec
         spec = str(spec)
         if spec.endswith(".json"):
             return cls.from_json(spec)
-        return cls.preset(spec, domain if domain is not None else (0.0, 1.0))
+        domain = domain if domain is not None else (0.0, 1.0)
+        if spec not in PRESETS:
+            import matplotlib
+            if spec in matplotlib.colormaps:
+                # a matplotlib colormap by name, with opacity rising linearly
+                return cls.from_colormap(spec, [(0.0, 0.0), (1.0, 1.0)], domain)
+        return cls.preset(spec, domain)
 
 
 PRESETS = ("spiky", "foggy", "ramp", "constant")

@@ -120,3 +120,42 @@ def test06_macrocell_ranges_contain_reconstructed_values(method):
     assert np.all(grid.vmax[flat[found]] >= val[found] - 1e-6)
     # and every level that contributes is in the macrocell's level mask
     assert np.all(grid.level_bits[flat] != 0)
+
+
+def test07_paraview_preset_loads_and_renders(variant, tmp_path):
+    """A preset in ParaView's documented JSON format (RGBPoints: x r g b,
+    Points: x opacity midpoint sharpness) loads and renders."""
+    preset = [{"Name": "Cool to Warm", "ColorSpace": "Diverging",
+               "RGBPoints": [0.0, 0.23, 0.299, 0.754, 0.5, 0.865, 0.865, 0.865, 1.0, 0.706, 0.016, 0.15]},
+              {"Name": "Blob", "RGBPoints": [-1.0, 0, 0, 1, 3.0, 1, 0, 0],
+               "Points": [-1.0, 0.0, 0.5, 0.0, 1.0, 0.8, 0.5, 0.0, 3.0, 0.1, 0.5, 0.0]}]
+    p = tmp_path / "presets.json"
+    p.write_text(json.dumps(preset))
+    cool = TransferFunction.from_paraview(p)
+    assert cool.domain == (0.0, 1.0)
+    np.testing.assert_allclose(cool(0.5)[:3], [0.865, 0.865, 0.865], atol=1e-2)
+    np.testing.assert_allclose(cool([0.0, 1.0])[:, 3], [0.0, 1.0], atol=1e-6)    # no Points: a ramp
+    blob = TransferFunction.from_paraview(p, name="Blob")
+    assert blob.domain == (-1.0, 3.0)
+    np.testing.assert_allclose(blob([1.0])[0, 3], 0.8, atol=1e-2)
+    with pytest.raises(ValueError, match="no preset named"):
+        TransferFunction.from_paraview(p, name="Nope")
+    single = tmp_path / "single.json"
+    single.write_text(json.dumps(preset[1]))
+    assert TransferFunction.from_json(single).domain == (-1.0, 3.0)   # recognised by RGBPoints
+    from conftest import random_amr, volume_scene
+    cells = random_amr(2)
+    scene = mi.load_dict(volume_scene({"type": "amr", "data": cells, "transfer_function": str(single),
+                                       "density_scale": 20.0}, res=16))
+    img = np.array(mi.render(scene, spp=4))
+    assert np.isfinite(img).all() and img[..., 0].std() > 0.005
+
+
+def test08_matplotlib_colormap_by_name():
+    tf = TransferFunction.load("magma", (2.0, 4.0))
+    assert tf.domain == (2.0, 4.0)
+    np.testing.assert_allclose(tf([2.0, 3.0, 4.0])[:, 3], [0.0, 0.5, 1.0], atol=1e-2)
+    import matplotlib
+    np.testing.assert_allclose(tf([4.0])[0, :3], matplotlib.colormaps["magma"](1.0)[:3], atol=1e-6)
+    with pytest.raises(ValueError, match="matplotlib colormap name"):
+        TransferFunction.load("not-a-colormap")

@@ -1,0 +1,74 @@
+"""yt grid hierarchies -> AMRCells (needs the optional yt extra)."""
+
+import numpy as np
+import pytest
+
+import mi_amr
+from mi_amr.reconstruct import HostReconstruction
+
+yt = pytest.importorskip("yt")
+
+
+def _check_against_yt(ds, field, cells, n_points=1500):
+    # no overlap (validated by AMRCells), full coverage of the domain
+    finest = np.asarray(ds.domain_dimensions) * 2 ** ds.index.max_level
+    lo, hi = cells.bounds
+    assert lo.tolist() == [0, 0, 0] and hi.tolist() == finest.tolist()
+    assert (cells.width ** 3).sum() == np.prod(finest)
+    # the nearest reconstruction at cell centres equals yt's own value there
+    # (every cell of small data, a random subset of large data: yt's point
+    # look-up is slow)
+    centres = cells.pos + 0.5 * cells.width[:, None]
+    if len(centres) > n_points:
+        centres = centres[np.random.default_rng(0).choice(len(centres), n_points, replace=False)]
+    val, found = HostReconstruction(cells)(centres, "nearest")
+    assert found.all()
+    dle = ds.domain_left_edge.d
+    dx = (ds.domain_right_edge.d - dle) / finest
+    pts = ds.arr(dle + centres * dx, "code_length")
+    ref = ds.find_field_values_at_points(field, pts)
+    np.testing.assert_allclose(val, np.asarray(ref), rtol=1e-6)
+
+
+def test01_fake_amr_ds():
+    from yt.testing import fake_amr_ds
+    ds = fake_amr_ds(fields=("Density",), units=("g/cm**3",))
+    cells = mi_amr.from_yt(ds, ("stream", "Density"))
+    # cells per level: each grid's uncovered cells, levels inverted
+    expected = {}
+    for g in ds.index.grids:
+        L = ds.index.max_level - int(g.Level)
+        expected[L] = expected.get(L, 0) + int(g.child_mask.sum())
+    got = {int(L): int((cells.level == L).sum()) for L in cells.levels}
+    assert got == {k: v for k, v in expected.items() if v}
+    _check_against_yt(ds, ("stream", "Density"), cells)
+
+
+def test02_hand_checkable_load_amr_grids(llvm):
+    """Level 0: 8^3 cells on [0,1]^3; level 1: 8^3 cells on [0.25,0.75]^3."""
+    x = np.arange(8)
+    coarse = np.broadcast_to(x[:, None, None] + 10 * x[None, :, None] + 100 * x[None, None, :], (8, 8, 8)).astype(float)
+    fine = 1000.0 + np.arange(512, dtype=float).reshape(8, 8, 8)
+    grids = [dict(left_edge=[0.0] * 3, right_edge=[1.0] * 3, level=0, dimensions=[8, 8, 8], density=coarse),
+             dict(left_edge=[0.25] * 3, right_edge=[0.75] * 3, level=1, dimensions=[8, 8, 8], density=fine)]
+    ds = yt.load_amr_grids(grids, [8, 8, 8])
+    cells = mi_amr.from_yt(ds, ("stream", "density"))
+    assert int((cells.level == 1).sum()) == 512 - 64      # coarse cells outside the refined box
+    assert int((cells.level == 0).sum()) == 512
+    assert cells.bounds[1].tolist() == [16, 16, 16]
+    # a coarse corner cell and a fine cell, by hand
+    i = np.nonzero(np.all(cells.pos == [2, 0, 0], axis=1) & (cells.level == 1))[0][0]
+    assert cells.value[i] == 1.0                            # coarse (1, 0, 0) -> 1 + 0 + 0
+    j = np.nonzero(np.all(cells.pos == [4, 4, 5], axis=1))[0][0]
+    assert cells.value[j] == 1000.0 + fine.shape[1] * fine.shape[2] * 0 + 1
+    _check_against_yt(ds, ("stream", "density"), cells)
+    tw = mi_amr.world_transform(ds)
+    assert np.allclose(np.array(tw.matrix)[:3, 3], 0.0)
+
+
+def test03_refine_by_other_than_two_is_refused():
+    from yt.testing import fake_amr_ds
+    ds = fake_amr_ds(fields=("Density",), units=("g/cm**3",))
+    ds.refine_by = 4
+    with pytest.raises(ValueError, match="refine_by = 4"):
+        mi_amr.from_yt(ds, ("stream", "Density"))
