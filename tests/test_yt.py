@@ -72,3 +72,19 @@ def test03_refine_by_other_than_two_is_refused():
     ds.refine_by = 4
     with pytest.raises(ValueError, match="refine_by = 4"):
         mi_amr.from_yt(ds, ("stream", "Density"))
+
+
+def test04_convert_cli_reads_yt_datasets(tmp_path, monkeypatch):
+    """`mi-amr convert FILE out.cells --field ...` goes through yt.load (here a
+    stand-in returning yt's fake AMR dataset) and writes ExaBricks files."""
+    from yt.testing import fake_amr_ds
+
+    from mi_amr.cli import main
+    ds = fake_amr_ds(fields=("Density",), units=("g/cm**3",))
+    monkeypatch.setattr(yt, "load", lambda path: ds)
+    out = tmp_path / "sim.cells"
+    assert main(["convert", str(tmp_path / "plt00100"), str(out), "--field", "stream,Density"]) == 0
+    back = mi_amr.load_cells(out)
+    ref = mi_amr.from_yt(ds, ("stream", "Density"))
+    np.testing.assert_array_equal(back.pos, ref.pos)
+    np.testing.assert_array_equal(back.value, ref.value)
