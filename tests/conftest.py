@@ -7,6 +7,16 @@ import mi_amr  # noqa: F401  (sets DRJIT_LIBLLVM_PATH before mitsuba starts LLVM
 import mitsuba as mi
 
 
+def pytest_addoption(parser):
+    parser.addoption("--stress-size", default="small", choices=("small", "large"),
+                     help="size of the stress tests (marker 'stress')")
+
+
+@pytest.fixture
+def stress_size(request):
+    return request.config.getoption("--stress-size")
+
+
 def _jit_rgb_variants():
     out = []
     for v in ("llvm_ad_rgb", "cuda_ad_rgb"):
