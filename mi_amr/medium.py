@@ -148,8 +148,8 @@ class AMRMedium(mi.Medium):
 
         tf = props.get("transfer_function", "foggy")
         vlo, vhi = self.cells.value_range
-        if vhi <= vlo:
-            vhi = vlo + 1.0
+        if vhi <= vlo:                 # constant data: centre the value in the TF domain
+            vlo, vhi = vlo - 0.5, vhi + 0.5
         domain = (float(props.get("tf_min", vlo)), float(props.get("tf_max", vhi)))
         if isinstance(tf, TransferFunction):
             self.tf = tf

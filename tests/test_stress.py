@@ -114,3 +114,29 @@ def test04_fuzzed_cells_files_give_clear_errors(tmp_path, seed):
         assert "f.cells" in str(e) or "f.scalars" in str(e)
         return
     assert np.isfinite(c.value).all() and (c.level >= 0).all()
+
+
+def test05_single_cell_and_huge_beside_tiny_cells(llvm):
+    """One cell; a level-8 cell beside 512 level-0 cells; data offset by 2^24."""
+    from conftest import volume_scene
+    one = mi_amr.AMRCells([[0, 0, 0]], [0], [1.0])
+    fine = np.stack(np.meshgrid(*[np.arange(256, 264)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    huge = mi_amr.AMRCells(np.concatenate([[[0, 0, 0]], fine]), np.r_[8, np.zeros(len(fine), int)],
+                           np.r_[1.0, np.linspace(0, 1, len(fine))])
+    c = mi_amr.dense_to_amr(np.random.default_rng(0).random((8, 8, 8)), 0.0, 2)
+    far = mi_amr.AMRCells(c.pos + (1 << 24), c.level, c.value)
+    for cells in (one, huge, far):
+        for integrator in ("volpath", "amrvolpath"):
+            scene = mi.load_dict(volume_scene({"type": "amr", "data": cells, "transfer_function": "ramp",
+                                               "density_scale": 5.0}, res=12, integrator=integrator,
+                                              emitters="env"))
+            img = np.array(mi.render(scene, spp=4))
+            assert np.isfinite(img).all()
+            # the medium absorbs/scatters something: not the bare background everywhere
+            assert np.abs(img - np.array([0.6, 0.7, 0.8])).max() > 1e-3
+
+
+def test06_domain_too_large_for_the_hash_is_a_clear_error(llvm):
+    cells = mi_amr.AMRCells([[0, 0, 0], [1 << 22, 0, 0]], [0, 0], [1.0, 2.0])
+    with pytest.raises(Exception, match="at most 2097152 are supported"):
+        mi.load_dict({"type": "amr", "data": cells})
