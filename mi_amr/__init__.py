@@ -69,15 +69,10 @@ def world_transform(ds):
 
 def amr_media(scene_or_medium) -> list:
     """The `amr` media of a scene (or the medium itself, in a list)."""
-    from .medium import AMRMedium
+    from .medium import AMRMedium, scene_media
     if isinstance(scene_or_medium, AMRMedium):
         return [scene_or_medium]
-    found = []
-    for shape in scene_or_medium.shapes():
-        for m in (shape.interior_medium(), shape.exterior_medium()):
-            if isinstance(m, AMRMedium) and all(m is not f for f in found):
-                found.append(m)
-    return found
+    return [m for m in scene_media(scene_or_medium) if isinstance(m, AMRMedium)]
 
 
 def set_transfer_function(scene_or_medium, tf=None, density_scale=None):

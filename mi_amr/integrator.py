@@ -100,28 +100,10 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
     @staticmethod
     def _media(scene):
         """(amr media, whether any other medium exists) in the scene."""
-        from .medium import AMRMedium
-        amr, other = [], False
-        seen = set()
-        objs = [s for s in scene.shapes()]
-        for shape in objs:
-            for m in (shape.interior_medium(), shape.exterior_medium()):
-                if m is None or id(m) in seen:
-                    continue
-                seen.add(id(m))
-                if isinstance(m, AMRMedium):
-                    amr.append(m)
-                else:
-                    other = True
-        for sensor in scene.sensors():
-            m = sensor.medium() if hasattr(sensor, "medium") else None
-            if m is not None and id(m) not in seen:
-                seen.add(id(m))
-                if isinstance(m, AMRMedium):
-                    amr.append(m)
-                else:
-                    other = True
-        return amr, other
+        from .medium import AMRMedium, scene_media
+        media = scene_media(scene)
+        return ([m for m in media if isinstance(m, AMRMedium)],
+                any(not isinstance(m, AMRMedium) for m in media))
 
     # ---- Radiance ------------------------------------------------------------
     @dr.syntax

@@ -21,6 +21,13 @@ import numpy as np
 from .cells import AMRCells
 
 
+def axis_resolution(longest: int, extent) -> np.ndarray:
+    """Per-axis cell counts of a grid over a box of ``extent`` (x, y, z) with
+    ``longest`` cells along its longest axis, the others in proportion."""
+    ext = np.asarray(extent, dtype=np.float64)
+    return np.maximum(1, np.round(longest * ext / ext.max())).astype(np.int64)
+
+
 def default_resolution(cells: AMRCells) -> np.ndarray:
     """Grid resolution chosen from the data: about 8 cells per macrocell on
     average, a power of two along the longest axis between 8 and 128, never
@@ -30,7 +37,7 @@ def default_resolution(cells: AMRCells) -> np.ndarray:
     ext = (hi - lo).astype(np.float64)
     longest = 2 ** round(np.log2(max(len(cells) / 8.0, 1.0)) / 3)
     longest = int(np.clip(longest, 8, 128))
-    res = np.maximum(1, np.round(longest * ext / ext.max())).astype(np.int64)
+    res = axis_resolution(longest, ext)
     return np.minimum(res, np.maximum(1, ext.astype(np.int64)))
 
 
@@ -58,7 +65,7 @@ class MacrocellGrid:
             r = int(resolution)
             if r < 1:
                 raise ValueError(f"grid_resolution must be >= 1, got {r}")
-            res = np.maximum(1, np.round(r * ext / ext.max())).astype(np.int64)
+            res = axis_resolution(r, ext)
         else:
             res = np.asarray(resolution, dtype=np.int64)
             if res.shape != (3,) or np.any(res < 1):

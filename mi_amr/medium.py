@@ -16,7 +16,7 @@ from .bricks import Bricks
 from .cell_hash import key_origin
 from .kdtree_sah import build_sah_kdtree
 from .local_tracking import span_majorant, track_segments
-from .majorant_grid import MacrocellGrid, auto_resolution, range_majorants_host
+from .majorant_grid import MacrocellGrid, auto_resolution, axis_resolution, range_majorants_host
 from .reconstruct import DeviceReconstruction, check_method
 from .region_tree import build_region_tree, exact_value_ranges
 from .tracking import DeviceMacrocellGrid, intersect_unit_cube, safe_rcp
@@ -44,6 +44,18 @@ def as_transform4f(t) -> "mi.ScalarTransform4f":
         return t
     m = getattr(t, "matrix", t)
     return mi.ScalarTransform4f(np.ascontiguousarray(np.array(m, dtype=np.float32)))
+
+
+def scene_media(scene) -> list:
+    """Every medium of a scene (shape interiors and exteriors, sensors), each
+    once as far as object identity tells."""
+    found = []
+    candidates = [m for shape in scene.shapes() for m in (shape.interior_medium(), shape.exterior_medium())]
+    candidates += [s.medium() for s in scene.sensors() if hasattr(s, "medium")]
+    for m in candidates:
+        if m is not None and all(m is not f for f in found):
+            found.append(m)
+    return found
 
 
 def require_jit_rgb_variant(what: str = "mi_amr"):
@@ -518,8 +530,7 @@ def _list_grid_resolution(cells):
     at most 128 along the longest axis."""
     lo, hi = cells.bounds
     ext = (hi - lo).astype(np.float64)
-    longest = int(np.clip(ext.max() / 2, 1, 128))
-    return np.maximum(1, np.round(longest * ext / ext.max())).astype(np.int64)
+    return axis_resolution(int(np.clip(ext.max() / 2, 1, 128)), ext)
 
 
 def _positive_float(props, name, default):
