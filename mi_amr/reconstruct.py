@@ -21,7 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .cell_hash import KEY_BITS, CellHash, StencilHash, hash_u32, pack_key
+from .cell_hash import CellHash, StencilHash, hash_u32, pack_key
 from .cells import AMRCells
 
 METHODS = ("tent", "nearest")
@@ -118,6 +118,8 @@ class DeviceReconstruction:
         self.hash = StencilHash(cells) if method == "tent" else CellHash(cells)
         self.origin = self.hash.origin
         self.keys = mi.UInt64(self.hash.keys)
+        self.keys_z = mi.UInt32(self.hash.keys_z)
+        self.wide = self.hash.wide
         self.offset = mi.UInt32(self.hash.offset)
         self.mask = mi.UInt32(self.hash.mask)
         self.max_probe = mi.UInt32(self.hash.max_probe)
@@ -127,7 +129,7 @@ class DeviceReconstruction:
         else:
             self.payload = mi.Float(self.hash.payload)
             self.values = mi.Float(0.0)
-        dr.make_opaque(self.keys, self.payload, self.values, self.offset, self.mask, self.max_probe)
+        dr.make_opaque(self.keys, self.keys_z, self.payload, self.values, self.offset, self.mask, self.max_probe)
 
     @property
     def nbytes(self) -> int:
@@ -150,25 +152,37 @@ class DeviceReconstruction:
         while dr.hint(remaining != 0, label="amr_reconstruct"):
             # ---- Key of the current level: the stencil base, or the cell ----
             L = dr.tzcnt(remaining)
+            # x / 2^L is exact; fractions stay small numbers so that no
+            # sub-cell offset is rounded away near 2^24 (float32 spacing 1)
             xl = x * dr.rcp(mi.Float(mi.UInt32(1) << L))
-            q = dr.floor(xl - 0.5) + 1.0 if dr.hint(tent, mode="scalar") else dr.floor(xl)
-            in_range = dr.all((q >= 0.0) & (q < float(1 << KEY_BITS)))
+            fl = dr.floor(xl)
+            frac = xl - fl
+            if dr.hint(tent, mode="scalar"):
+                upper = frac >= 0.5
+                q = fl + dr.select(upper, 1.0, 0.0)           # stencil key s = b + 1
+                t1 = dr.select(upper, frac - 0.5, frac + 0.5)  # offset from corner 0's centre
+            else:
+                q = fl
+            in_range = dr.all((q >= 0.0) & (q < float(self.hash.coord_limit)))
             qi = mi.Vector3u(dr.select(in_range, q, 0.0))
 
             # ---- One linear-probing step in the level's table ----
-            key = pack_key(mi.UInt64(qi.x), mi.UInt64(qi.y), mi.UInt64(qi.z))
+            key = pack_key(mi.UInt64(qi.x), mi.UInt64(qi.y), mi.UInt64(qi.z), self.wide)
             h = hash_u32(qi.x, qi.y, qi.z)
             slot = dr.gather(mi.UInt32, self.offset, L) + ((h + probe) & dr.gather(mi.UInt32, self.mask, L))
             k = dr.gather(mi.UInt64, self.keys, slot, in_range)
             hit = in_range & (k == key)
+            if dr.hint(self.wide, mode="scalar"):
+                hit &= dr.gather(mi.UInt32, self.keys_z, slot, hit) == qi.z
             if dr.hint(tent, mode="scalar"):
                 # Tent weights of the 8 stencil cells (Eq. phi_i, DESIGN.md section 3)
-                base = (q - 1.0) + 0.5                        # centre of corner 0, level units
                 idx = dr.gather(mi.UInt32, self.payload, slot, hit) * 8
+                t0 = 1.0 - t1
                 for c in range(8):
-                    off = mi.Vector3f(c & 1, (c >> 1) & 1, (c >> 2) & 1)
-                    d = dr.abs(xl - (base + off))
-                    w = dr.maximum(0.0, 1.0 - d.x) * dr.maximum(0.0, 1.0 - d.y) * dr.maximum(0.0, 1.0 - d.z)
+                    wx = t1.x if c & 1 else t0.x
+                    wy = t1.y if (c >> 1) & 1 else t0.y
+                    wz = t1.z if (c >> 2) & 1 else t0.z
+                    w = wx * wy * wz
                     v = dr.gather(mi.Float, self.values, idx + c, hit & (w > 0.0))
                     ok = hit & (w > 0.0) & ~dr.isnan(v)
                     sum_w += dr.select(ok, w, 0.0)
