@@ -19,6 +19,10 @@ import numpy as np
 
 from .bricks import Bricks
 from .majorant_grid import _expand_boxes
+from .memory import BYTES_PER_MACROCELL, require
+
+#: Peak build bytes per (list cell, brick) entry: expansion and sort.
+BYTES_PER_LIST_ENTRY = 120
 from .reconstruct import WEIGHT_EPS
 
 
@@ -66,12 +70,15 @@ class DeviceBricks:
 class BrickListGrid:
     """Per-macrocell lists of the bricks whose extended domain overlaps it."""
 
-    def __init__(self, bricks: Bricks, lo, extent, res):
+    def __init__(self, bricks: Bricks, lo, extent, res, memory_limit: float | None = None):
         res = np.asarray(res, dtype=np.int64)
         dlo, dhi = bricks.domains()
         scale = res / np.asarray(extent, dtype=np.float64)
         i0 = np.clip(np.floor((dlo - lo) * scale), 0, res - 1).astype(np.int64)
         i1 = np.clip(np.floor((dhi - lo) * scale), 0, res - 1).astype(np.int64)
+        entries = float((i1 - i0 + 1).prod(axis=1).sum())
+        require(BYTES_PER_LIST_ENTRY * entries + BYTES_PER_MACROCELL * float(np.prod(res)),
+                f"brick lists with {entries:.3g} entries", memory_limit)
         idx, owner = _expand_boxes(i0, i1, res)
         order = np.argsort(idx, kind="stable")
         idx, owner = idx[order], owner[order]

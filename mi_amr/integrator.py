@@ -16,9 +16,12 @@ import drjit as dr
 import mitsuba as mi
 
 from .local_tracking import TrackingCounts
+from .params import ParameterError, check_known, get_bool, get_int
 
 #: Free-flight look-ups, null and real collisions, traversal steps, loops
 #: stopped by the iteration bound; then the same for shadow rays.
+#: Bound on the surfaces and media one shadow ray crosses (blocked beyond).
+MAX_SHADOW_CROSSINGS = 4096
 COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped",
                  "shadow_lookups", "shadow_steps", "shadow_capped")
 
@@ -61,19 +64,14 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        known = {"max_depth", "rr_depth", "hide_emitters", "counters"}
-        for k in props.keys():
-            if k not in known:
-                raise ValueError(f"amrvolpath: unknown parameter {k!r} (known: {', '.join(sorted(known))})")
-        md = int(props.get("max_depth", -1))
+        check_known(props, "amrvolpath", {"max_depth", "rr_depth", "hide_emitters", "counters"})
+        md = get_int(props, "amrvolpath", "max_depth", -1)
         if md < -1:
-            raise ValueError("amrvolpath: max_depth must be -1 (infinite) or >= 0")
+            raise ParameterError(f"amrvolpath: max_depth must be -1 (infinite) or >= 0, got {md}")
         self.max_depth = 0xFFFFFFFF if md == -1 else md
-        self.rr_depth = int(props.get("rr_depth", 5))
-        if self.rr_depth <= 0:
-            raise ValueError("amrvolpath: rr_depth must be > 0")
-        self.hide_emitters = bool(props.get("hide_emitters", False))
-        self.counters_enabled = bool(props.get("counters", False))
+        self.rr_depth = get_int(props, "amrvolpath", "rr_depth", 5, minimum=1)
+        self.hide_emitters = get_bool(props, "amrvolpath", "hide_emitters", False)
+        self.counters_enabled = get_bool(props, "amrvolpath", "counters", False)
         self._counter_array = dr.zeros(mi.UInt64, len(COUNTER_NAMES))
 
     # ---- Counters ------------------------------------------------------------
@@ -324,5 +322,10 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
             medium[at_surface & si.is_medium_transition()] = si.target_medium(ray.d)
             active &= (at_surface | moved) & dr.any(T != 0.0)
             it += 1
-            active &= it < 4096
+            # bound on the surfaces and media crossed: a shadow ray cut short
+            # there counts as blocked (never leaks light) and is reported
+            cut = active & (it >= MAX_SHADOW_CROSSINGS)
+            T[cut] = 0.0
+            counts.capped += dr.select(cut, 1, 0)
+            active &= ~cut
         return emitter_val * T, ds, counts

@@ -10,11 +10,14 @@
 from __future__ import annotations
 
 import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 from .cells import AMRCells
+from .memory import require, structure_bytes
 
 CELL_DTYPE = np.dtype([("x", "<i4"), ("y", "<i4"), ("z", "<i4"), ("level", "<i4")])
 
@@ -49,6 +52,8 @@ def read_exabricks(cells_path, scalars_path=None, *, overlap: str = "error") -> 
         raise ValueError(f"{cells_path} has {nc_bytes // 16} cells but {scalars_path} has "
                          f"{ns_bytes // 4} values: the files do not belong together or one "
                          "is truncated")
+    require(structure_bytes("cells", nc_bytes // 16), f"{cells_path} ({nc_bytes // 16} cells)",
+            hint="raise the limit to load it")
     rec = np.fromfile(cells_path, dtype=CELL_DTYPE)
     val = np.fromfile(scalars_path, dtype="<f4")
     pos = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
@@ -77,17 +82,30 @@ def read_npz(path, *, overlap: str = "error") -> AMRCells:
             missing = {"pos", "level", "value"} - set(z.files)
             if missing:
                 raise ValueError(f"{path}: missing arrays {sorted(missing)}")
+            n = max(int(np.prod(_npy_shape(z, name), dtype=np.float64)) for name in ("pos", "level", "value"))
+            require(structure_bytes("cells", n), f"{path} ({n} values per array)",
+                    hint="raise the limit to load it")
             pos, level, value = z["pos"], z["level"], z["value"]
     except ValueError as e:
         if str(path) in str(e):
             raise
         raise ValueError(f"{path}: not a valid AMR .npz archive ({e})") from e
-    except (OSError, EOFError) as e:
-        raise ValueError(f"{path}: cannot read .npz archive ({e})") from e
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        raise ValueError(f"{path}: cannot read .npz archive ({type(e).__name__}: {e})") from e
     for name, arr in (("pos", pos), ("level", level)):
         if not np.issubdtype(arr.dtype, np.integer):
             raise ValueError(f"{path}: array '{name}' must be integer, got {arr.dtype}")
     return AMRCells(pos, level, value, overlap=overlap, source=str(path))
+
+
+def _npy_shape(archive, name: str) -> tuple:
+    """Shape of array ``name`` of an open ``.npz`` from its header alone
+    (before the data are read: a damaged header must not allocate)."""
+    with archive.zip.open(f"{name}.npy") as f:
+        version = np.lib.format.read_magic(f)
+        shape, _, _ = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0(f))
+    return shape
 
 
 def write_npz(cells: AMRCells, path) -> Path:

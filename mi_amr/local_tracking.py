@@ -35,14 +35,15 @@ class TrackingCounts:
 
 @dr.syntax
 def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: bool,
-                   max_iterations):
+                   max_iterations, length_scale=1.0):
     """Track along the local ray ``o + t d`` over ``[t_lo, t_hi]``.
 
-    ``density(u, active) -> (albedo, sigma_t)``. Returns ``(collided, t,
-    albedo, sigma_t_or_T, counts)``: for delta tracking the first real
-    collision (``collided``, its ``t``, albedo and sigma_t); for ratio
-    tracking ``T`` in the 4th slot. The loop stops after ``max_iterations``
-    iterations (counted in ``counts.capped``).
+    ``density(u, active) -> (albedo, sigma_t)``; majorants and sigma_t are
+    per world length, and ``length_scale`` is local ``t`` per world length.
+    Returns ``(collided, t, albedo, sigma_t_or_T, counts)`` (``t`` local):
+    for delta tracking the first real collision (``collided``, its ``t``,
+    albedo and sigma_t); for ratio tracking ``T`` in the 4th slot. The loop
+    stops after ``max_iterations`` iterations (counted in ``counts.capped``).
     """
     state = segments.begin(o, d, t_lo, t_hi, active)
     t = mi.Float(t_lo)
@@ -70,7 +71,7 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
         # ---- Tentative collision in the segment (none if mu == 0) ----
         go = alive & (mu > 0.0)
         xi = sampler.next_1d(go)
-        t_c = t - dr.log(1.0 - xi) * dr.rcp(dr.select(go, mu, 1.0))
+        t_c = t - dr.log(1.0 - xi) * dr.rcp(dr.select(go, mu, 1.0)) * length_scale
         inside = go & (t_c < seg_end)
         t = dr.select(inside, t_c, dr.select(alive, seg_end, t))
         rgb, sigma_t = density(o + d * t, inside)
@@ -97,25 +98,40 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
 
 
 @dr.syntax
-def span_majorant(segments, o, d, t_lo, t_hi, active, max_steps):
+def span_majorant(segments, o, d, t_lo, t_hi, active, max_steps, global_mu):
     """Walk all segments over ``[t_lo, t_hi]`` and return ``(found, t_first,
-    t_last, mu_max)``: the span from the start of the first to the end of
-    the last segment with a non-zero majorant, and the largest majorant met
-    (the "ray-wise" majorant for Mitsuba's stock volpath, DESIGN.md section 6)."""
+    t_last, mu_max, capped)``: the span from the start of the first to the
+    end of the last segment with a non-zero majorant, and the largest
+    majorant met (the "ray-wise" majorant for Mitsuba's stock volpath,
+    DESIGN.md section 6).
+
+    At most ``max_steps`` segments are visited. A walk cut short there
+    (``capped``) falls back to a conservative answer: the span runs on to
+    ``t_hi`` with the global majorant ``global_mu``.
+    """
     state = segments.begin(o, d, t_lo, t_hi, active)
     found = mi.Bool(False)
     t_first = mi.Float(t_hi)
     t_last = mi.Float(t_lo)
+    t_seen = mi.Float(t_lo)
     mu_max = mi.Float(0.0)
     it = mi.UInt32(0)
+    capped = mi.Bool(False)
     alive = mi.Bool(active) & (t_lo < t_hi)
     while dr.hint(alive, label="amr_span_majorant"):
         state, s0, s1, mu, valid = segments.advance(o, d, state, t_hi, alive)
         nonzero = valid & (mu > 0.0)
         t_first = dr.select(nonzero & ~found, s0, t_first)
         t_last = dr.select(nonzero, s1, t_last)
+        t_seen = dr.select(valid, s1, t_seen)
         mu_max = dr.select(valid, dr.maximum(mu_max, mu), mu_max)
         found |= nonzero
         it += 1
-        alive &= valid & (s1 < t_hi) & (it < max_steps)
-    return found, t_first, t_last, mu_max
+        alive &= valid & (s1 < t_hi)
+        capped |= alive & (it >= max_steps)
+        alive &= ~capped
+    t_first = dr.select(capped & ~found, t_seen, t_first)
+    t_last = dr.select(capped, t_hi, t_last)
+    mu_max = dr.select(capped, dr.maximum(mu_max, global_mu), mu_max)
+    found |= capped & (global_mu > 0.0)
+    return found, t_first, t_last, mu_max, capped

@@ -19,6 +19,10 @@ from __future__ import annotations
 import numpy as np
 
 from .cells import AMRCells
+from .memory import BYTES_PER_MACROCELL, require
+
+#: Boxes of more macrocells than this are written as array slices.
+LARGE_BOX = 4096
 
 
 def axis_resolution(longest: int, extent) -> np.ndarray:
@@ -53,10 +57,15 @@ class MacrocellGrid:
     support : {"tent", "nearest"}
         ``tent`` splats each cell's tent support ``[c - w, c + w]``;
         ``nearest`` only the cell itself.
+    chunk : int
+        Macrocell entries expanded at once (bounds the build's temporaries).
+    memory_limit : float, optional
+        Bytes; a grid that would need more raises `MemoryLimitError` before
+        anything is allocated.
     """
 
     def __init__(self, cells: AMRCells, resolution=None, support: str = "tent",
-                 chunk: int = 1 << 20):
+                 chunk: int = 1 << 20, memory_limit: float | None = None):
         lo, hi = cells.bounds
         ext = (hi - lo).astype(np.float64)
         if resolution is None:
@@ -70,28 +79,50 @@ class MacrocellGrid:
             res = np.asarray(resolution, dtype=np.int64)
             if res.shape != (3,) or np.any(res < 1):
                 raise ValueError(f"grid_resolution must be 3 positive ints, got {resolution}")
-        if int(np.prod(res)) > 2**27:
-            raise ValueError(f"grid resolution {res.tolist()} has too many macrocells")
+        require(BYTES_PER_MACROCELL * float(np.prod(res)),
+                f"a macrocell grid of {'x'.join(str(int(r)) for r in res)} cells", memory_limit,
+                "choose a smaller grid_resolution")
         self.res = res
         self.lo, self.extent = lo, ext
         n = int(np.prod(res))
         vmin = np.full(n, np.inf, dtype=np.float32)
         vmax = np.full(n, -np.inf, dtype=np.float32)
         bits = np.zeros(n, dtype=np.uint32)
+        # the macrocell box of each cell's support
         scale = res / ext
-        for s in range(0, len(cells), chunk):
-            pos = cells.pos[s:s + chunk].astype(np.float64) - lo
-            w = cells.width[s:s + chunk].astype(np.float64)[:, None]
-            if support == "tent":
-                a, b = pos - 0.5 * w, pos + 1.5 * w
-            else:
-                a, b = pos, pos + w
-            i0 = np.clip(np.floor(a * scale), 0, res - 1).astype(np.int64)
-            i1 = np.clip(np.floor(b * scale), 0, res - 1).astype(np.int64)
-            idx, owner = _expand_boxes(i0, i1, res)
-            np.minimum.at(vmin, idx, cells.value[s:s + chunk][owner])
-            np.maximum.at(vmax, idx, cells.value[s:s + chunk][owner])
-            np.bitwise_or.at(bits, idx, (np.uint32(1) << cells.level[s:s + chunk][owner].astype(np.uint32)))
+        pos = cells.pos.astype(np.float64) - lo
+        w = cells.width.astype(np.float64)[:, None]
+        a, b = (pos - 0.5 * w, pos + 1.5 * w) if support == "tent" else (pos, pos + w)
+        i0 = np.clip(np.floor(a * scale), 0, res - 1).astype(np.int64)
+        i1 = np.clip(np.floor(b * scale), 0, res - 1).astype(np.int64)
+        del pos, w, a, b
+        volume = (i1 - i0 + 1).prod(axis=1)
+        value = cells.value
+        level_bit = np.uint32(1) << cells.level.astype(np.uint32)
+        # Large boxes (coarse cells over many macrocells) are written as
+        # slices of the 3D arrays; they are few, since each level's cells
+        # are disjoint. The rest are expanded in chunks of bounded size.
+        large = np.nonzero(volume > LARGE_BOX)[0]
+        shape = (int(res[2]), int(res[1]), int(res[0]))
+        vmin3, vmax3, bits3 = vmin.reshape(shape), vmax.reshape(shape), bits.reshape(shape)
+        for i in large:
+            sl = (slice(i0[i, 2], i1[i, 2] + 1), slice(i0[i, 1], i1[i, 1] + 1), slice(i0[i, 0], i1[i, 0] + 1))
+            np.minimum(vmin3[sl], value[i], out=vmin3[sl])
+            np.maximum(vmax3[sl], value[i], out=vmax3[sl])
+            np.bitwise_or(bits3[sl], level_bit[i], out=bits3[sl])
+        small = np.nonzero(volume <= LARGE_BOX)[0]
+        ends = np.cumsum(volume[small])
+        start = 0
+        while start < len(small):
+            stop = max(start + 1, int(np.searchsorted(ends, ends[start] - volume[small[start]] + chunk,
+                                                      side="right")))
+            sel = small[start:stop]
+            idx, owner = _expand_boxes(i0[sel], i1[sel], res)
+            owner = sel[owner]
+            np.minimum.at(vmin, idx, value[owner])
+            np.maximum.at(vmax, idx, value[owner])
+            np.bitwise_or.at(bits, idx, level_bit[owner])
+            start = stop
         self.vmin, self.vmax, self.level_bits = vmin, vmax, bits
 
     @property

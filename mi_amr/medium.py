@@ -17,9 +17,11 @@ from .cell_hash import key_origin
 from .kdtree_sah import build_sah_kdtree
 from .local_tracking import span_majorant, track_segments
 from .majorant_grid import MacrocellGrid, auto_resolution, axis_resolution, range_majorants_host
-from .reconstruct import DeviceReconstruction, check_method
+from .memory import default_memory_limit, require, structure_bytes
+from .params import ParameterError, check_known, get_float, get_int, get_string
+from .reconstruct import METHODS, DeviceReconstruction
 from .region_tree import build_region_tree, exact_value_ranges
-from .tracking import DeviceMacrocellGrid, intersect_unit_cube, safe_rcp
+from .tracking import DeviceMacrocellGrid, flush_tiny, intersect_unit_cube, safe_rcp
 from .traversal import DeviceTree, GridSegments, TreeSegments
 from .transfer import TransferFunction
 from .transfer_jit import DeviceTransferFunction
@@ -30,10 +32,12 @@ SAMPLINGS = ("hash", "abr", "brick")
 #: Bound on the iterations of one tracking loop (reported by the counters).
 MAX_TRACKING_ITERATIONS = 1 << 20
 OVERLAPS = ("error", "finest")
+#: Largest condition number of to_world's linear part (float32 precision).
+MAX_CONDITION = 1e7
 _KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
           "density_scale", "reconstruction", "majorant", "grid_resolution",
           "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
-          "kdtree_leaves"}
+          "kdtree_leaves", "max_iterations", "memory_limit"}
 
 
 def as_transform4f(t) -> "mi.ScalarTransform4f":
@@ -42,8 +46,11 @@ def as_transform4f(t) -> "mi.ScalarTransform4f":
         return mi.ScalarTransform4f()
     if isinstance(t, mi.ScalarTransform4f):
         return t
-    m = getattr(t, "matrix", t)
-    return mi.ScalarTransform4f(np.ascontiguousarray(np.array(m, dtype=np.float32)))
+    m = np.array(getattr(t, "matrix", t), dtype=np.float64)
+    # the inverse in float64: a float32 inversion under- or overflows for
+    # scales far from 1 (1e-20: the determinant is 1e-60)
+    inv_t = np.linalg.inv(m).T
+    return mi.ScalarTransform4f(mi.ScalarMatrix4f(m.astype(np.float32)), mi.ScalarMatrix4f(inv_t.astype(np.float32)))
 
 
 def scene_media(scene) -> list:
@@ -140,6 +147,14 @@ class AMRMedium(mi.Medium):
      * - sample_emitters
        - |bool|
        - Next-event estimation in the medium. Default: true.
+     * - max_iterations
+       - |int|
+       - Bound on the iterations of one tracking loop (2^20); a ray that
+         reaches it stops and is counted as ``capped``.
+     * - memory_limit
+       - |float|
+       - Bytes a structure may need (``MI_AMR_MEMORY_LIMIT`` or half the
+         physical memory); larger ones are refused before they are built.
     """
 
     def __init__(self, props: mi.Properties):
@@ -147,22 +162,22 @@ class AMRMedium(mi.Medium):
         mi.Medium.__init__(self, props)
         self.m_is_homogeneous = False
         self.m_has_spectral_extinction = False
-        self._check_unknown(props)
+        check_known(props, "amr", _KNOWN, allow=lambda k, v: isinstance(v, mi.PhaseFunction))
 
         # ---- Data ----
         self.cells = self._load_data(props)
-        self.reconstruction = check_method(str(props.get("reconstruction", "tent")))
-        self.majorant_mode = str(props.get("majorant", "ray"))
-        if self.majorant_mode not in MAJORANTS:
-            raise ValueError(f"amr: unknown majorant {self.majorant_mode!r} "
-                             f"(choose from {', '.join(MAJORANTS)})")
-        self.density_scale = _positive_float(props, "density_scale", 1.0)
+        self.reconstruction = get_string(props, "amr", "reconstruction", "tent", METHODS)
+        self.majorant_mode = get_string(props, "amr", "majorant", "ray", MAJORANTS)
+        self.density_scale = get_float(props, "amr", "density_scale", 1.0, minimum=0.0)
 
         tf = props.get("transfer_function", "foggy")
         vlo, vhi = self.cells.value_range
         if vhi <= vlo:                 # constant data: centre the value in the TF domain
-            vlo, vhi = vlo - 0.5, vhi + 0.5
-        domain = (float(props.get("tf_min", vlo)), float(props.get("tf_max", vhi)))
+            pad = max(0.5, 1e-3 * abs(vlo))
+            vlo, vhi = vlo - pad, vhi + pad
+        domain = (get_float(props, "amr", "tf_min", vlo), get_float(props, "amr", "tf_max", vhi))
+        if domain[1] <= domain[0]:
+            raise ParameterError(f"amr: tf_min must be below tf_max, got {domain[0]} and {domain[1]}")
         if isinstance(tf, TransferFunction):
             self.tf = tf
         elif isinstance(tf, str):
@@ -171,21 +186,18 @@ class AMRMedium(mi.Medium):
                 tf_path = str(mi.file_resolver().resolve(tf))
             self.tf = TransferFunction.load(tf_path, domain)
         else:
-            raise ValueError(f"amr: transfer_function must be a preset name, a .json path "
-                             f"or a TransferFunction, got {type(tf).__name__}")
+            raise ParameterError(f"amr: transfer_function must be a preset name, a .json path "
+                                 f"or a TransferFunction, got {type(tf).__name__}")
 
-        grid_res = props.get("grid_resolution", None)
-        if grid_res is not None and int(grid_res) < 1:
-            raise ValueError(f"amr: grid_resolution must be >= 1, got {grid_res}")
-        self.grid_resolution = None if grid_res is None else int(grid_res)
-        self.traversal = _choice(props, "traversal", "grid", TRAVERSALS)
-        self.sampling = _choice(props, "sampling", "hash", SAMPLINGS)
-        self.brick_size = int(props.get("brick_size", 8))
-        self.kdtree_leaves = int(props.get("kdtree_leaves", 4096))
-        if self.brick_size < 1 or self.kdtree_leaves < 1:
-            raise ValueError("amr: brick_size and kdtree_leaves must be >= 1")
-
-        self.to_world_scalar = as_transform4f(props.get("to_world", None))
+        self.grid_resolution = get_int(props, "amr", "grid_resolution", None, minimum=1)
+        self.traversal = get_string(props, "amr", "traversal", "grid", TRAVERSALS)
+        self.sampling = get_string(props, "amr", "sampling", "hash", SAMPLINGS)
+        self.brick_size = get_int(props, "amr", "brick_size", 8, minimum=1, maximum=1024)
+        self.kdtree_leaves = get_int(props, "amr", "kdtree_leaves", 4096, minimum=1)
+        self.max_iterations = get_int(props, "amr", "max_iterations", MAX_TRACKING_ITERATIONS,
+                                      minimum=1, maximum=2**31)
+        self.memory_limit = get_float(props, "amr", "memory_limit", default_memory_limit(), positive=True)
+        self.to_world_scalar = _to_world(props)
 
         # ---- Common device data ----
         lo, hi = self.cells.bounds
@@ -194,7 +206,7 @@ class AMRMedium(mi.Medium):
         self._extent = mi.Vector3f(*[float(c) for c in hi - lo])
         self._to_local = mi.Transform4f(self.to_world_scalar.inverse())
         self._scale = mi.Float(self.density_scale)
-        self._max_iterations = mi.UInt32(MAX_TRACKING_ITERATIONS)
+        self._max_iterations = mi.UInt32(self.max_iterations)
         dr.make_opaque(self._offset, self._extent, self._to_local, self._scale, self._max_iterations)
         self._tf = DeviceTransferFunction(self.tf)
         self._tf_rgba = mi.Float(self.tf.rgba.ravel())
@@ -211,20 +223,8 @@ class AMRMedium(mi.Medium):
 
     # ---- Construction helpers ---------------------------------------------
     @staticmethod
-    def _check_unknown(props):
-        for k in props.keys():
-            if k in _KNOWN:
-                continue
-            if props.type(k) == mi.Properties.Type.Object and isinstance(props[k], mi.PhaseFunction):
-                continue
-            raise ValueError(f"amr: unknown parameter {k!r} (known: {', '.join(sorted(_KNOWN))}, "
-                             "and a nested phase function)")
-
-    @staticmethod
     def _load_data(props) -> AMRCells:
-        overlap = str(props.get("overlap", "error"))
-        if overlap not in OVERLAPS:
-            raise ValueError(f"amr: overlap must be one of {OVERLAPS}, got {overlap!r}")
+        overlap = get_string(props, "amr", "overlap", "error", OVERLAPS)
         has_file, has_data = "filename" in props.keys(), "data" in props.keys()
         if has_file == has_data:
             raise ValueError("amr: give exactly one of 'filename' (a .cells or .npz file) "
@@ -232,20 +232,24 @@ class AMRMedium(mi.Medium):
         if has_data:
             data = props["data"]
             if not isinstance(data, AMRCells):
-                raise ValueError(f"amr: 'data' must be an mi_amr.AMRCells, got {type(data).__name__}")
+                raise ParameterError(f"amr: 'data' must be an mi_amr.AMRCells, got {type(data).__name__}")
             return data
         resolver = mi.file_resolver()
-        path = Path(str(resolver.resolve(str(props["filename"]))))
-        scalars = props.get("scalars", None)
+        path = Path(str(resolver.resolve(get_string(props, "amr", "filename", None))))
+        scalars = get_string(props, "amr", "scalars", None)
         if scalars is not None:
-            scalars = str(resolver.resolve(str(scalars)))
+            scalars = str(resolver.resolve(scalars))
         return load_cells(path, scalars, overlap=overlap)
 
     # ---- Structures (built on first use) ------------------------------------
-    def _build(self, name, make):
+    def _build(self, name, make, need: float = 0.0):
+        """Build structure ``name`` once; ``need``: its estimated peak bytes,
+        checked against ``memory_limit`` first."""
         if name not in self._structures:
             if dr.flag(dr.JitFlag.SymbolicScope):
                 raise RuntimeError(f"amr: structure '{name}' must be built before rendering")
+            require(need, f"amr: the {name} structure of {self.cells.source} ({len(self.cells)} cells)",
+                    self.memory_limit, "use fewer cells or raise the limit")
             t0 = time.perf_counter()
             self._structures[name] = make()
             self.build_seconds[name] = time.perf_counter() - t0
@@ -264,7 +268,8 @@ class AMRMedium(mi.Medium):
             if res is None:                 # cost model of the data and the TF
                 res, _ = auto_resolution(self.cells, self.tf, self.density_scale,
                                          self.world_scale, self.reconstruction)
-            return DeviceMacrocellGrid(MacrocellGrid(self.cells, res, support=self.reconstruction))
+            return DeviceMacrocellGrid(MacrocellGrid(self.cells, res, support=self.reconstruction,
+                                                     memory_limit=self.memory_limit))
         return self._build("grid", make)
 
     @property
@@ -285,7 +290,8 @@ class AMRMedium(mi.Medium):
     @property
     def bricks(self) -> Bricks:
         return self._build("bricks", lambda: self._host_cached(
-            ("bricks", self.brick_size), lambda: Bricks(self.cells, self.brick_size)))
+            ("bricks", self.brick_size), lambda: Bricks(self.cells, self.brick_size)),
+            need=structure_bytes("bricks", len(self.cells)))
 
     def _brick_tree(self, kind: str) -> DeviceTree:
         """kd-tree over brick domains (``abr``) or brick bounds (``brick``)."""
@@ -315,7 +321,8 @@ class AMRMedium(mi.Medium):
             from .majorant_grid import default_resolution
             res = int(min(128, 4 * default_resolution(self.cells).max()))
             g = self._host_cached(("kd_grid", res, self.reconstruction),
-                                  lambda: MacrocellGrid(self.cells, res, support=self.reconstruction))
+                                  lambda: MacrocellGrid(self.cells, res, support=self.reconstruction,
+                                                        memory_limit=self.memory_limit))
             r = g.res
             shape = (r[2], r[1], r[0])
             maj = self._tf_host_majorants(g.vmin, g.vmax).reshape(shape).transpose(2, 1, 0)
@@ -340,13 +347,15 @@ class AMRMedium(mi.Medium):
     def _point_sampler(self):
         if self.sampling == "hash":
             self._grid                      # its level masks limit the levels visited
-            return self._build("hash", lambda: DeviceReconstruction(self.cells, self.reconstruction))
+            return self._build("hash", lambda: DeviceReconstruction(self.cells, self.reconstruction),
+                               need=structure_bytes(f"hash_{self.reconstruction}", len(self.cells)))
         dev_bricks = self._build("device_bricks", lambda: DeviceBricks(self.bricks, self.origin))
         if self.sampling == "abr":
             return BrickSampler(dev_bricks, self.reconstruction, "abr", abr_tree=self._brick_tree("abr"))
         lo, hi = self.cells.bounds
         res = _list_grid_resolution(self.cells)
-        lists = self._build("brick_lists", lambda: BrickListGrid(self.bricks, lo, hi - lo, res))
+        lists = self._build("brick_lists", lambda: BrickListGrid(self.bricks, lo, hi - lo, res,
+                                                                 memory_limit=self.memory_limit))
         return BrickSampler(dev_bricks, self.reconstruction, "brick", list_grid=lists)
 
     @property
@@ -366,7 +375,9 @@ class AMRMedium(mi.Medium):
         ranges, the TF and the density scale (one Dr.Jit kernel each), and
         the global maximum."""
         self._majorants_ready = True
-        mus = []
+        dr.eval()        # pending work of others stays out of the majorant kernels,
+        mus = []         # so that they are the same code at load time and after
+
         for name in ("grid", "abr_tree", "brick_tree", "kdtree"):
             if name in self._structures:
                 self._structures[name].update_majorants(self._tf, self._scale)
@@ -406,7 +417,17 @@ class AMRMedium(mi.Medium):
 
     # ---- Local-majorant tracking (used by the amrvolpath integrator) ---------
     def local_ray(self, ray: mi.Ray3f):
-        return self._to_local @ ray.o, self._to_local @ ray.d
+        """``(o, d, s)``: the ray in the unit cube with a unit direction ``d``
+        (negligible components flushed to 0, `flush_tiny`) and ``s``, local
+        length per world ``t``: the point at world ``t`` is ``o + (s t) d``.
+        Unit directions keep the traversal's float maths in range for any
+        ``to_world`` scale (1e-20 to 1e20)."""
+        o = self._to_local @ ray.o
+        d = self._to_local @ ray.d
+        m = dr.max(dr.abs(d))
+        m = dr.select(m > 0.0, m, 1.0)
+        s = m * dr.norm(d * dr.rcp(m))
+        return o, flush_tiny(d * dr.rcp(s)), s
 
     def free_flight(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active):
         """Delta tracking through local-majorant segments along ``ray`` up to
@@ -420,29 +441,32 @@ class AMRMedium(mi.Medium):
         return T, counts
 
     def _track(self, ray, t_max, sampler, active, ratio):
-        o, d = self.local_ray(ray)
+        o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
         t_lo = dr.maximum(t0, 0.0)
-        t_hi = dr.minimum(t1, t_max)
-        active = mi.Bool(active) & hit & (t_lo < t_hi) & (self._global_mu > 0.0)
-        return track_segments(self._segments(), self.eval_local, o, d, t_lo, t_hi, sampler,
-                              active, ratio, self._max_iterations)
+        t_hi = dr.minimum(t1, t_max * s)
+        active = mi.Bool(active) & hit & (s > 0.0) & (t_lo < t_hi) & (self._global_mu > 0.0)
+        collided, t, albedo, result, counts = track_segments(
+            self._segments(), self.eval_local, o, d, t_lo, t_hi, sampler, active, ratio,
+            self._max_iterations, s)
+        return collided, t * dr.rcp(dr.select(s > 0.0, s, 1.0)), albedo, result, counts
 
     # ---- Mitsuba medium interface -------------------------------------------
     def intersect_aabb(self, ray: mi.Ray3f):
-        o = self._to_local @ ray.o
-        d = self._to_local @ ray.d
+        o, d, s = self.local_ray(ray)
+        inv_s = dr.rcp(dr.select(s > 0.0, s, 1.0))
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
+        hit &= s > 0.0
         if self.majorant_mode == "global":
             self._ray_mu = None
-            return hit & (self._global_mu > 0.0), t0, t1
+            return hit & (self._global_mu > 0.0), t0 * inv_s, t1 * inv_s
         t_start = dr.maximum(t0, 0.0)
-        t_end = dr.minimum(t1, ray.maxt)
+        t_end = dr.minimum(t1, ray.maxt * s)
         segments = self._segments()
-        found, t_first, t_last, mu = span_majorant(segments, o, d, t_start, t_end, hit,
-                                                   segments.max_steps())
+        found, t_first, t_last, mu, _ = span_majorant(segments, o, d, t_start, t_end, hit,
+                                                      segments.max_steps(), self._global_mu)
         self._ray_mu = mu
-        return found, t_first, t_last
+        return found, t_first * inv_s, t_last * inv_s
 
     def get_majorant(self, mei: mi.MediumInteraction3f, active=True):
         mu = self._current_majorant()
@@ -518,13 +542,6 @@ class AMRMedium(mi.Medium):
                 f"  density_scale = {self.density_scale},\n  transfer_function = {self.tf}\n]")
 
 
-def _choice(props, name, default, choices):
-    v = str(props.get(name, default))
-    if v not in choices:
-        raise ValueError(f"amr: unknown {name} {v!r} (choose from {', '.join(choices)})")
-    return v
-
-
 def _list_grid_resolution(cells):
     """Brick-list grid: about two finest cells per list cell (short lists),
     at most 128 along the longest axis."""
@@ -533,8 +550,19 @@ def _list_grid_resolution(cells):
     return axis_resolution(int(np.clip(ext.max() / 2, 1, 128)), ext)
 
 
-def _positive_float(props, name, default):
-    v = float(props.get(name, default))
-    if not np.isfinite(v) or v < 0:
-        raise ValueError(f"amr: {name} must be a finite non-negative number, got {v}")
-    return v
+def _to_world(props) -> "mi.ScalarTransform4f":
+    """``to_world`` as a finite, invertible ScalarTransform4f."""
+    if "to_world" not in props.keys():
+        return mi.ScalarTransform4f()
+    t = props["to_world"]
+    if not hasattr(t, "matrix"):
+        raise ParameterError(f"amr: to_world must be a transform, got {t!r} ({type(t).__name__})")
+    m = np.array(t.matrix, dtype=np.float64)
+    if not np.all(np.isfinite(m)):
+        raise ParameterError("amr: to_world has non-finite entries")
+    a = m[:3, :3]
+    cond = np.linalg.cond(a)
+    if not np.isfinite(cond) or cond > MAX_CONDITION:
+        raise ParameterError(f"amr: to_world is singular or too ill-conditioned for float32 "
+                             f"(condition number {cond:.3g} > {MAX_CONDITION:.0e})")
+    return as_transform4f(t)

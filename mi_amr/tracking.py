@@ -23,6 +23,23 @@ def safe_rcp(d: mi.Vector3f) -> mi.Vector3f:
     return dr.rcp(d)
 
 
+#: Direction components below this fraction of the largest one are flushed to 0.
+FLUSH_REL = 1e-12
+
+
+def flush_tiny(d: mi.Vector3f) -> mi.Vector3f:
+    """``d`` with components below `FLUSH_REL` times its largest one set to
+    exactly 0.
+
+    Such a component moves the point by less than 1e-12 of the unit cube
+    while the ray crosses it, which float32 cannot resolve away from 0: the
+    look-ups would stay on a face the traversal has already left. Treated
+    as parallel, the ray's traversal, majorants and density look-ups agree
+    on which side of a face it runs (the upper one, as cells are ``[lo, hi)``).
+    """
+    return dr.select(dr.abs(d) < FLUSH_REL * dr.max(dr.abs(d)), 0.0, d)
+
+
 def intersect_unit_cube(o: mi.Vector3f, inv_d: mi.Vector3f):
     """Slab test against ``[0, 1]^3``: ``(hit, t0, t1)``."""
     ta = (0.0 - o) * inv_d

@@ -44,6 +44,12 @@ class TransferFunction(mi.Object):
         lo, hi = (float(d) for d in domain)
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise ValueError(f"transfer function domain must be finite with lo < hi, got {domain}")
+        with np.errstate(over="ignore", divide="ignore"):
+            lo32, hi32 = np.float32(lo), np.float32(hi)
+            inv32 = np.float32(1.0) / (hi32 - lo32) if hi32 > lo32 else np.float32(np.inf)
+        if not (np.isfinite(lo32) and np.isfinite(hi32) and np.isfinite(inv32)):
+            raise ValueError(f"transfer function domain {domain} cannot be used in float32 "
+                             "(bounds out of range, or too narrow to tell apart)")
         self.rgba = rgba.astype(np.float32)
         self.domain = (lo, hi)
 

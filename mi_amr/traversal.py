@@ -111,7 +111,9 @@ class DeviceTree:
 
     @dr.syntax
     def locate(self, p: mi.Vector3f, d: mi.Vector3f, active=True):
-        """Leaf containing ``p``; on a split plane, the side ``d`` points to."""
+        """Leaf containing ``p``; on a split plane, the side ``d`` points to
+        (the upper side when ``d`` lies in the plane, as cells are half-open
+        ``[lo, hi)`` and the point look-up takes that side too)."""
         node = mi.UInt32(0)
         axis = dr.gather(mi.UInt32, self.axis, node, active)
         i = mi.UInt32(0)
@@ -119,7 +121,7 @@ class DeviceTree:
             s = dr.gather(mi.Float, self.split, node)
             pa = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
             da = dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
-            right = (pa > s) | ((pa == s) & (da > 0))
+            right = (pa > s) | ((pa == s) & (da >= 0))
             node = dr.gather(mi.UInt32, self.child, node) + dr.select(right, 1, 0)
             axis = dr.gather(mi.UInt32, self.axis, node)
             i += 1

@@ -1,0 +1,78 @@
+"""Memory budget: estimates of what a structure will need, checked before the
+allocation, so that data too large for this machine give a clear error
+instead of a crash in the middle of a build.
+
+The limit is ``MI_AMR_MEMORY_LIMIT`` (bytes, or with a K/M/G/T suffix) when
+set, else half of the physical memory. Estimates are peak host bytes per
+item, measured with ``tracemalloc`` on 2e5-cell data sets (with margin).
+"""
+
+from __future__ import annotations
+
+import os
+
+ENV_VAR = "MI_AMR_MEMORY_LIMIT"
+
+#: Peak build bytes per cell of each structure (measured, rounded up).
+BYTES_PER_CELL = {
+    "cells": 160,          # AMRCells validation (keys, sorting): 80 measured
+    "hash_nearest": 350,   # CellHash: keys, payload, build temporaries: 173
+    "hash_tent": 1000,     # StencilHash: 8 stencils per cell, unique/sort: 456
+    "bricks": 200,         # Bricks: per-level grouping rounds: 75
+}
+#: Bytes per macrocell: host ranges and level mask, device copies, majorants.
+BYTES_PER_MACROCELL = 48
+
+
+class MemoryLimitError(MemoryError):
+    """A structure would need more memory than the limit allows."""
+
+
+def physical_memory() -> int:
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 8 << 30
+
+
+def parse_bytes(text: str) -> float:
+    """``"512M"``, ``"2G"``, ``"1e9"`` -> bytes."""
+    t = str(text).strip().upper().removesuffix("B").removesuffix("I")
+    mult = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+    if t and t[-1] in mult:
+        return float(t[:-1]) * mult[t[-1]]
+    return float(t)
+
+
+def default_memory_limit() -> float:
+    if os.environ.get(ENV_VAR):
+        try:
+            v = parse_bytes(os.environ[ENV_VAR])
+        except ValueError:
+            raise ValueError(f"{ENV_VAR}={os.environ[ENV_VAR]!r} is not a number of bytes "
+                             "(e.g. 2G, 512M, 1e9)") from None
+        if not v > 0:
+            raise ValueError(f"{ENV_VAR} must be > 0, got {os.environ[ENV_VAR]!r}")
+        return v
+    return physical_memory() / 2
+
+
+def format_bytes(n: float) -> str:
+    for unit, size in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}"
+    return f"{int(n)} B"
+
+
+def require(nbytes: float, what: str, limit: float | None = None, hint: str = ""):
+    """Raise `MemoryLimitError` when ``what`` needs more than ``limit`` bytes."""
+    limit = default_memory_limit() if limit is None else limit
+    if nbytes > limit:
+        raise MemoryLimitError(
+            f"{what} needs about {format_bytes(nbytes)}, more than the memory limit of "
+            f"{format_bytes(limit)} ({ENV_VAR} or the medium's memory_limit)"
+            + (f"; {hint}" if hint else ""))
+
+
+def structure_bytes(kind: str, n_cells: int) -> float:
+    return BYTES_PER_CELL[kind] * float(n_cells)
