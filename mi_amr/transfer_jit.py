@@ -39,10 +39,15 @@ class DeviceTransferFunction:
         x = self._u(v) * mi.Float(n1)
         i = dr.minimum(mi.UInt32(dr.floor(x)), n1 - 1)
         f = x - mi.Float(i)
-        a = dr.gather(mi.Vector4f, self.rgba, i, active)
-        b = dr.gather(mi.Vector4f, self.rgba, i + 1, active)
-        c = dr.fma(f, b - a, a)
-        return mi.Color3f(c.x, c.y, c.z), c.w
+        # one gather per channel, not a 4-wide packet gather: Dr.Jit's packet
+        # gathers compile to one of two codes at random (measured with
+        # dr.JitFlag.KernelHistory), which would cost a compile now and then
+        c = []
+        for k in range(4):
+            a = dr.gather(mi.Float, self.rgba, 4 * i + k, active)
+            b = dr.gather(mi.Float, self.rgba, 4 * i + 4 + k, active)
+            c.append(dr.fma(f, b - a, a))
+        return mi.Color3f(c[0], c[1], c[2]), c[3]
 
     def range_max_alpha(self, vmin, vmax, active=True):
         """Maximum table alpha over entries ``floor(u_min (N-1)) ..
