@@ -196,7 +196,7 @@ def auto_resolution(cells: AMRCells, tf, density_scale: float, world_scale: floa
     for c in reversed(cands):
         f = max(1, finest // c)
         pmin, pmax = _pool(vmin, f, np.minimum, np.inf), _pool(vmax, f, np.maximum, -np.inf)
-        mu = range_majorants_host(tf, pmin.ravel(), pmax.ravel(), density_scale) * world_scale
+        mu = range_majorants_host(tf, pmin.ravel(), pmax.ravel(), density_scale).astype(np.float64) * world_scale
         m1 = float(mu.mean())
         m2 = float((mu * mu).mean()) / m1 if m1 > 0 else 0.0
         costs[c] = STEP_COST * 1.5 * c + 0.5 * (m1 + m2)

@@ -32,6 +32,9 @@ SAMPLINGS = ("hash", "abr", "brick")
 #: Bound on the iterations of one tracking loop (reported by the counters).
 MAX_TRACKING_ITERATIONS = 1 << 20
 OVERLAPS = ("error", "finest")
+#: Largest density_scale: majorants and their reciprocals stay normal float32
+#: numbers (at 1e38 the reciprocal flushes to 0 and a medium turns clear).
+MAX_DENSITY_SCALE = 1e30
 #: Largest condition number of to_world's linear part (float32 precision).
 MAX_CONDITION = 1e7
 _KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
@@ -168,7 +171,8 @@ class AMRMedium(mi.Medium):
         self.cells = self._load_data(props)
         self.reconstruction = get_string(props, "amr", "reconstruction", "tent", METHODS)
         self.majorant_mode = get_string(props, "amr", "majorant", "ray", MAJORANTS)
-        self.density_scale = get_float(props, "amr", "density_scale", 1.0, minimum=0.0)
+        self.density_scale = get_float(props, "amr", "density_scale", 1.0, minimum=0.0,
+                                       maximum=MAX_DENSITY_SCALE)
 
         tf = props.get("transfer_function", "foggy")
         vlo, vhi = self.cells.value_range
@@ -490,19 +494,27 @@ class AMRMedium(mi.Medium):
         callback.put("tf_domain", self._tf_domain, mi.ParamFlags.NonDifferentiable)
 
     def parameters_changed(self, keys=None):
+        """Validate the updated parameters (a bad value raises and the last
+        valid ones are put back), then use them."""
         keys = set(keys or [])
-        if keys & {"tf_rgba", "tf_domain"}:
-            rgba = np.asarray(self._tf_rgba.numpy(), dtype=np.float64)
-            dom = self._tf_domain.numpy()
-            if rgba.size % 4:
-                raise ValueError(f"amr: transfer_function.rgba must hold N x 4 values, got {rgba.size}")
-            self.set_transfer_function(TransferFunction(rgba.reshape(-1, 4), (float(dom[0]), float(dom[1]))),
-                                       update=False)
-        if "density_scale" in keys:
-            v = float(self._scale.numpy()[0])
-            if not np.isfinite(v) or v < 0:
-                raise ValueError(f"amr: density_scale must be a finite non-negative number, got {v}")
-            self.density_scale = v
+        tf, scale = None, None
+        try:
+            if keys & {"tf_rgba", "tf_domain"}:
+                rgba = np.asarray(self._tf_rgba.numpy(), dtype=np.float64)
+                dom = self._tf_domain.numpy()
+                if rgba.size % 4 or dom.size != 2:
+                    raise ParameterError(f"amr: tf_rgba must hold N x 4 values and tf_domain 2, "
+                                         f"got {rgba.size} and {dom.size}")
+                tf = TransferFunction(rgba.reshape(-1, 4), (float(dom[0]), float(dom[1])))
+            if "density_scale" in keys:
+                scale = _check_density_scale(float(self._scale.numpy()[0]))
+        except ValueError:
+            self.set_transfer_function(self.tf, self.density_scale, update=False)
+            raise
+        if tf is not None:
+            self.set_transfer_function(tf, update=False)
+        if scale is not None:
+            self.density_scale = scale
         self.update_majorants()
 
     def set_transfer_function(self, tf: TransferFunction, density_scale=None, update: bool = True):
@@ -518,9 +530,7 @@ class AMRMedium(mi.Medium):
         mi.set_property(self._tf_rgba, mi.Float(tf.rgba.ravel()))
         mi.set_property(self._tf_domain, mi.Float(tf.domain))
         if density_scale is not None:
-            if not np.isfinite(density_scale) or density_scale < 0:
-                raise ValueError(f"amr: density_scale must be a finite non-negative number, got {density_scale}")
-            self.density_scale = float(density_scale)
+            self.density_scale = _check_density_scale(density_scale)
             mi.set_property(self._scale, mi.Float(self.density_scale))
         dr.make_opaque(self._tf_rgba, self._tf_domain, self._scale)
         if "kdtree" in self._structures:
@@ -548,6 +558,13 @@ def _list_grid_resolution(cells):
     lo, hi = cells.bounds
     ext = (hi - lo).astype(np.float64)
     return axis_resolution(int(np.clip(ext.max() / 2, 1, 128)), ext)
+
+
+def _check_density_scale(v) -> float:
+    v = float(v)
+    if not (np.isfinite(v) and 0 <= v <= MAX_DENSITY_SCALE):
+        raise ParameterError(f"amr: density_scale must be a finite number in [0, {MAX_DENSITY_SCALE:g}], got {v:g}")
+    return v
 
 
 def _to_world(props) -> "mi.ScalarTransform4f":

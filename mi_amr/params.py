@@ -20,7 +20,7 @@ def _describe(v) -> str:
     return f"{v!r} ({type(v).__name__})"
 
 
-def get_float(props, plugin: str, name: str, default, *, minimum=None, positive=False):
+def get_float(props, plugin: str, name: str, default, *, minimum=None, maximum=None, positive=False):
     """A finite real number (int or float; not bool, not a string)."""
     if name not in props.keys():
         return default
@@ -32,6 +32,8 @@ def get_float(props, plugin: str, name: str, default, *, minimum=None, positive=
         raise ParameterError(f"{plugin}: {name} must be finite, got {v}")
     if minimum is not None and v < minimum:
         raise ParameterError(f"{plugin}: {name} must be >= {minimum}, got {v}")
+    if maximum is not None and v > maximum:
+        raise ParameterError(f"{plugin}: {name} must be <= {maximum:g}, got {v:g}")
     if positive and v <= 0:
         raise ParameterError(f"{plugin}: {name} must be > 0, got {v}")
     return v

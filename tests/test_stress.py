@@ -76,7 +76,7 @@ def assert_transmittance(T, expected, z_max=5.0, floor=2e-3):
 
 
 @pytest.mark.parametrize("traversal", ["grid", "brick"])
-@pytest.mark.parametrize("tau", [1e-6, 1e-2, 1.0, 5.0, 30.0])
+@pytest.mark.parametrize("tau", [1e-6, 1e-2, 1.0, 5.0, 30.0, 1e3])
 def test01_ratio_tracking_matches_beer_lambert(llvm, tau, traversal, stress_size):
     """Transmittance through a constant medium along axis-parallel, diagonal
     and degenerate-direction rays equals exp(-sigma d) within 4 standard errors."""
@@ -195,15 +195,17 @@ def test05_single_cell_and_huge_beside_tiny_cells(llvm):
 
 
 
-def test06_extinction_up_to_1e6_stays_bounded(llvm):
-    """tau = 1e6 through a constant medium: T = 0 after one look-up per ray
-    (tight majorant), free-flight distances follow Exp(sigma) (mean 1/sigma),
-    and a rendered image is finite and black where the medium blocks the
-    background."""
+@pytest.mark.parametrize("alpha,scale", [(1.0, 1e6), (1e-6, 1e12)])
+def test06_extinction_up_to_1e6_stays_bounded(llvm, alpha, scale):
+    """tau = 1e6 through a constant medium (opacity 1 x density 1e6, or
+    opacity 1e-6 x density 1e12): T = 0 after one look-up per ray (tight
+    majorant), free-flight distances follow Exp(sigma) (mean 1/sigma), and
+    images are finite and obey the white furnace."""
     from conftest import volume_scene
-    tau = 1e6
-    med = mi.load_dict({"type": "amr", "data": constant_cells(), "transfer_function": "constant",
-                        "density_scale": tau})
+    tau = alpha * scale
+    tf = mi_amr.TransferFunction([[1, 1, 1, alpha]] * 2, (0.0, 2.0))
+    med = mi.load_dict({"type": "amr", "data": constant_cells(), "transfer_function": tf,
+                        "density_scale": scale})
     n = 4096
     rng = np.random.default_rng(2)
     o = np.column_stack([rng.random(n), rng.random(n), np.full(n, -1.0)])
@@ -221,8 +223,8 @@ def test06_extinction_up_to_1e6_stays_bounded(llvm):
     # (spacing 1.2e-7), so allow that rounding on top
     assert abs(depth.mean() - 1 / tau) < 4 / (tau * np.sqrt(n)) + 1.2e-7, depth.mean()
     for integrator in ("volpath", "amrvolpath"):
-        scene = mi.load_dict(volume_scene({"type": "amr", "data": constant_cells(), "transfer_function": "constant",
-                                           "density_scale": tau}, res=16, integrator=integrator, emitters="env"))
+        scene = mi.load_dict(volume_scene({"type": "amr", "data": constant_cells(), "transfer_function": tf,
+                                           "density_scale": scale}, res=16, integrator=integrator, emitters="env"))
         img = np.array(mi.render(scene, spp=4))
         assert np.isfinite(img).all()
         # white furnace: albedo 1 and a constant environment, so each path
@@ -759,3 +761,25 @@ def test09b_shadow_ray_bound_blocks_and_reports(llvm, monkeypatch):
         assert (capped > 0) == (bound == 1)
     # sun light reaches the medium only through shadow rays: blocked -> black
     assert means[0] > 1e-3 and means[1] == 0.0
+
+
+def test15c_bad_updates_are_refused_and_undone(llvm):
+    """density_scale of NaN or 1e38 (whose float32 reciprocal flushes to 0
+    and would make the medium clear) and NaN TF entries through
+    mi.traverse: a clear error, and the medium keeps rendering its last
+    valid state."""
+    from conftest import volume_scene
+    with pytest.raises(Exception, match=r"density_scale must be <= 1e\+30"):
+        mi.load_dict({"type": "amr", "data": constant_cells(2), "density_scale": 1e38})
+    scene = mi.load_dict(volume_scene({"type": "amr", "data": constant_cells(2), "transfer_function": "ramp",
+                                       "density_scale": 3.0}, res=8, integrator="amrvolpath"))
+    before = np.array(mi.render(scene, spp=4, seed=0))
+    params = mi.traverse(scene)
+    k_scale = [k for k in params.keys() if k.endswith("density_scale")][0]
+    k_rgba = [k for k in params.keys() if k.endswith("tf_rgba")][0]
+    for key, bad in ((k_scale, float("nan")), (k_scale, 1e38), (k_rgba, mi.Float([np.nan] * 8))):
+        params[key] = bad
+        with pytest.raises(ValueError, match="density_scale|NaN"):
+            params.update()
+        after = np.array(mi.render(scene, spp=4, seed=0))
+        np.testing.assert_array_equal(after, before)
