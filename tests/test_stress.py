@@ -783,3 +783,23 @@ def test15c_bad_updates_are_refused_and_undone(llvm):
             params.update()
         after = np.array(mi.render(scene, spp=4, seed=0))
         np.testing.assert_array_equal(after, before)
+
+
+@pytest.mark.parametrize("traversal", ["grid", "kdtree"])
+def test18_all_zero_tf_costs_nothing_and_shows_the_background(llvm, traversal):
+    """Opacity 0 everywhere: no density look-up and no traversal step in
+    amrvolpath, and both integrators return exactly the background."""
+    from conftest import random_amr, volume_scene
+    tf = mi_amr.TransferFunction(np.column_stack([np.ones((8, 3)), np.zeros(8)]), (0.0, 1.0))
+    for integrator in ("volpath", "amrvolpath"):
+        d = volume_scene({"type": "amr", "data": random_amr(seed=3), "transfer_function": tf,
+                          "density_scale": 1e6, "traversal": traversal},
+                         res=12, integrator=integrator, emitters="env")
+        if integrator == "amrvolpath":
+            d["integrator"]["counters"] = True
+        scene = mi.load_dict(d)
+        img = np.array(mi.render(scene, spp=4))
+        np.testing.assert_array_equal(img, np.broadcast_to(np.float32([0.6, 0.7, 0.8]), img.shape))
+        if integrator == "amrvolpath":
+            c = scene.integrator().counters()
+            assert c["lookups"] == 0 and c["steps"] == 0 and c["shadow_lookups"] == 0
