@@ -66,6 +66,12 @@ def ratio_tracking(med, o, d, replicas, seed=0):
     return T.numpy().reshape(len(o), replicas), counts
 
 
+def grid_majorant_at(med, u):
+    """Majorant of the macrocell holding each local point ``u`` ((M, 3))."""
+    g = med._grid
+    return dr.gather(mi.Float, g.majorant, g.flat(g.cell_of(mi.Vector3f(np.ascontiguousarray(u.T))))).numpy()
+
+
 def assert_transmittance(T, expected, z_max=5.0, floor=2e-3):
     """Each ray's mean estimate equals its expected transmittance within
     ``z_max`` standard errors (estimated from the replicas, floored)."""
@@ -91,15 +97,9 @@ def test01_ratio_tracking_matches_beer_lambert(llvm, tau, traversal, stress_size
     d[: n // 4] = [1e-30, -1e-30, 1.0]                                    # tiny components
     d[n // 2:] = [0.3, -0.2, 1.0]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    ray = mi.Ray3f(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
-    sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(3, n)
-    T, counts = med.transmittance(ray, mi.Float(np.inf), sampler, mi.Bool(True))
-    T = T.numpy()
-    # exact path length inside the unit cube
-    t0 = np.max(np.minimum((0 - o) / np.where(d == 0, 1e-30, d), (1 - o) / np.where(d == 0, 1e-30, d)), axis=1)
-    t1 = np.min(np.maximum((0 - o) / np.where(d == 0, 1e-30, d), (1 - o) / np.where(d == 0, 1e-30, d)), axis=1)
-    length = np.clip(t1 - np.maximum(t0, 0), 0, None)
+    T, counts = ratio_tracking(med, o, d, 1, seed=3)
+    T = T[:, 0]
+    length = box_lengths(o, d, np.zeros((1, 3)), np.ones((1, 3)))[:, 0]   # inside the unit cube
     expected = np.exp(-tau * length)
     assert np.isfinite(T).all() and (T >= 0).all() and (T <= 1 + 1e-6).all()
     diff = T - expected
@@ -431,8 +431,7 @@ def test11_single_entry_tf_peak(llvm, traversal):
     assert s.max() > 3.0                             # the peak is met somewhere
     seg = tent._segments()
     if traversal == "grid":
-        g = seg.grid
-        mu = dr.gather(mi.Float, g.majorant, g.flat(g.cell_of(mi.Vector3f(u.T.copy())))).numpy()
+        mu = grid_majorant_at(tent, u)
     else:
         leaf = seg.tree.locate(mi.Vector3f(u.T.copy()), mi.Vector3f(1, 1, 1))
         mu = dr.gather(mi.Float, seg.tree.majorant, leaf).numpy()
@@ -482,8 +481,7 @@ def test12_level_jumps_between_neighbours(llvm, jump):
     ref, found = brute_force(cells, lo + u.astype(np.float64) * ext, "tent")
     expected = np.where(found, 3.0 * tent.tf(ref)[:, 3], 0.0)
     np.testing.assert_allclose(s.numpy(), expected, rtol=1e-4, atol=1e-5)
-    g = tent._segments().grid
-    mu = dr.gather(mi.Float, g.majorant, g.flat(g.cell_of(mi.Vector3f(u.T.copy())))).numpy()
+    mu = grid_majorant_at(tent, u)
     assert (s.numpy() <= mu * (1 + 1e-6)).all()
 
 
