@@ -16,9 +16,9 @@ GALLERY := cloud shell stadium
 
 demo: setup
 	@mkdir -p out/gallery
-	$(RUN) -m mi_amr.cli render scenes/demo.xml -o out/demo.exr --spp $(SPP)
+	$(RUN) -m mi_amr.tools.cli render scenes/demo.xml -o out/demo.exr --spp $(SPP)
 	@for s in $(GALLERY); do \
-	    $(RUN) -m mi_amr.cli render scenes/$$s.xml -o out/gallery/$$s.exr --spp 32 -D res=192 -q || exit 1; \
+	    $(RUN) -m mi_amr.tools.cli render scenes/$$s.xml -o out/gallery/$$s.exr --spp 32 -D res=192 -q || exit 1; \
 	    echo "wrote out/gallery/$$s.png"; \
 	done
 

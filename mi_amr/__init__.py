@@ -12,11 +12,11 @@ ensure_llvm_path()
 
 import mitsuba as mi  # noqa: E402
 
-from .cells import AMRCells  # noqa: E402
-from .convert import dense_to_amr
-from .io import load_cells, read_exabricks, read_npz, save_cells, write_exabricks, write_npz
-from .transfer import TransferFunction
-from . import datasets  # noqa: E402
+from .data.cells import AMRCells  # noqa: E402
+from .data.convert import dense_to_amr
+from .data.io import load_cells, read_exabricks, read_npz, save_cells, write_exabricks, write_npz
+from .transfer.function import TransferFunction
+from .data import datasets  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",
@@ -26,23 +26,25 @@ __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_c
 
 def register(variant: str | None = None):
     """Register the mi-amr plugins for the active variant (called on import
-    and on every variant change)."""
+    and on every variant change). The plugin classes are made for the
+    variant that is active when a scene instantiates them."""
     if mi.variant() is None:
         return
-    from .medium import AMRMedium, require_jit_rgb_variant
+    from .device.structs import refresh
+    from .plugins.integrator import integrator_class
+    from .plugins.medium import medium_class, require_jit_rgb_variant
+
+    refresh()
 
     def make_medium(props):
         require_jit_rgb_variant("the 'amr' medium")
-        return AMRMedium(props)
-
-    mi.register_medium("amr", make_medium)
-
-    from .integrator import AMRVolpathIntegrator
+        return medium_class()(props)
 
     def make_integrator(props):
         require_jit_rgb_variant("the 'amrvolpath' integrator")
-        return AMRVolpathIntegrator(props)
+        return integrator_class()(props)
 
+    mi.register_medium("amr", make_medium)
     mi.register_integrator("amrvolpath", make_integrator)
 
 
@@ -56,20 +58,20 @@ register()
 
 
 def from_yt(ds, field, **kw):
-    """Leaf cells of a yt grid dataset (see `mi_amr.yt_import.from_yt`)."""
-    from .yt_import import from_yt as _from_yt
+    """Leaf cells of a yt grid dataset (see `mi_amr.data.yt_import.from_yt`)."""
+    from .data.yt_import import from_yt as _from_yt
     return _from_yt(ds, field, **kw)
 
 
 def world_transform(ds):
-    """``to_world`` for a yt dataset's domain (see `mi_amr.yt_import`)."""
-    from .yt_import import world_transform as _wt
+    """``to_world`` for a yt dataset's domain (see `mi_amr.data.yt_import`)."""
+    from .data.yt_import import world_transform as _wt
     return _wt(ds)
 
 
 def amr_media(scene_or_medium) -> list:
     """The `amr` media of a scene (or the medium itself, in a list)."""
-    from .medium import AMRMedium, scene_media
+    from .plugins.medium import AMRMedium, scene_media
     if isinstance(scene_or_medium, AMRMedium):
         return [scene_or_medium]
     return [m for m in scene_media(scene_or_medium) if isinstance(m, AMRMedium)]

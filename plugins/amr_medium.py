@@ -7,6 +7,6 @@ Equivalent to ``import mi_amr``.
 """
 
 import mi_amr  # noqa: F401  (importing registers the plugins)
-from mi_amr.medium import AMRMedium  # noqa: F401
+from mi_amr.plugins.medium import AMRMedium  # noqa: F401
 
 __all__ = ["AMRMedium"]

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.datasets import make_dataset
-from mi_amr.reference import block_z_scores, render_passes
+from mi_amr.data.datasets import make_dataset
+from mi_amr.testing import block_z_scores, render_passes
 
 from conftest import volume_scene
 

@@ -3,7 +3,7 @@
 import json
 import math
 
-from mi_amr.bench import all_configs, main
+from mi_amr.tools.bench import all_configs, main
 
 
 def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.io import read_exabricks, read_npz, write_exabricks, write_npz
+from mi_amr.data.io import read_exabricks, read_npz, write_exabricks, write_npz
 
 from conftest import random_amr
 

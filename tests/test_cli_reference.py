@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.cli import main
-from mi_amr.images import read_exr, write_exr
-from mi_amr.io import write_exabricks
-from mi_amr.reference import block_z_scores, reference_medium, render_passes, resample_dense
+from mi_amr.tools.cli import main
+from mi_amr.tools.images import read_exr, write_exr
+from mi_amr.data.io import write_exabricks
+from mi_amr.testing import block_z_scores, render_passes
+from mi_amr.tools.reference import reference_medium, resample_dense
 
 from conftest import random_amr, volume_scene
 
@@ -72,7 +73,7 @@ def test04_render_writes_exr_and_png(tmp_path):
     write_exabricks(c, tmp_path / "d.cells")
     scene = (ROOT / "scenes" / "cloud.xml").read_text().replace("data/cloud.cells", "d.cells")
     (tmp_path / "s.xml").write_text(scene)
-    r = subprocess.run([sys.executable, "-m", "mi_amr.cli", "render", str(tmp_path / "s.xml"),
+    r = subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "render", str(tmp_path / "s.xml"),
                         "-o", str(tmp_path / "o.exr"), "--spp", "4", "-q", "-D", "res=24"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -106,7 +107,7 @@ def test07_block_test_detects_a_real_difference(llvm):
 def test08_reference_scene_from_xml_matches_amr(llvm, tmp_path):
     """`reference_scene` swaps the amr medium for heterogeneous + gridvolume
     in an XML scene; with nearest reconstruction both agree in expectation."""
-    from mi_amr.scene_xml import reference_scene, with_amr_parameters
+    from mi_amr.tools.scene_xml import reference_scene, with_amr_parameters
     c = random_amr(5, levels=3, quantize=5)
     write_exabricks(c, tmp_path / "cloud.cells")
     scene = (ROOT / "scenes" / "cloud.xml").read_text()
@@ -131,7 +132,7 @@ def test09_frametime_reports_three_configurations(tmp_path):
     (tmp_path / "data").mkdir()
     write_exabricks(c, tmp_path / "data" / "cloud.cells")
     (tmp_path / "s.xml").write_text((ROOT / "scenes" / "cloud.xml").read_text())
-    r = subprocess.run([sys.executable, "-m", "mi_amr.cli", "frametime", str(tmp_path / "s.xml"),
+    r = subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "frametime", str(tmp_path / "s.xml"),
                         "--spp", "2", "--repeats", "1", "-D", "res=16", "--json", str(tmp_path / "t.json")],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr

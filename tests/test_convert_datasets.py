@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.datasets import NAMES, make_dataset
-from mi_amr.reference import resample_dense
+from mi_amr.data.datasets import NAMES, make_dataset
+from mi_amr.tools.reference import resample_dense
 
 
 def test01_dense_to_amr_is_exact_with_zero_threshold():

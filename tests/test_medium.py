@@ -2,7 +2,7 @@
 
 Statistical tests compare per-block image means of two estimators over
 independent passes: |z| < 4 for every block, z from the passes' standard
-errors (see `mi_amr.reference.block_z_scores`).
+errors (see `mi_amr.tools.reference.block_z_scores`).
 """
 
 import drjit as dr
@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.io import write_exabricks
-from mi_amr.reference import block_z_scores, reference_medium, render_passes
+from mi_amr.data.io import write_exabricks
+from mi_amr.testing import block_z_scores, render_passes
+from mi_amr.tools.reference import reference_medium
 
 from conftest import random_amr, volume_scene
 

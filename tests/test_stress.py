@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.io import read_exabricks
-from mi_amr.reconstruct import brute_force
+from mi_amr.data.io import read_exabricks
+from mi_amr.testing import brute_force
 
 pytestmark = pytest.mark.stress
 
@@ -68,7 +68,7 @@ def ratio_tracking(med, o, d, replicas, seed=0):
 
 def grid_majorant_at(med, u):
     """Majorant of the macrocell holding each local point ``u`` ((M, 3))."""
-    g = med._grid
+    g = med.structures.grid
     return dr.gather(mi.Float, g.majorant, g.flat(g.cell_of(mi.Vector3f(np.ascontiguousarray(u.T))))).numpy()
 
 
@@ -114,7 +114,7 @@ def test01_ratio_tracking_matches_beer_lambert(llvm, tau, traversal, stress_size
 
 
 def test02_same_seed_gives_bit_identical_images(llvm):
-    cells = mi_amr.datasets.make_dataset("cloud", cells=2000, seed=3)
+    cells = mi_amr.data.datasets.make_dataset("cloud", cells=2000, seed=3)
     from conftest import volume_scene
     for integrator in ("volpath", "amrvolpath"):
         scene = mi.load_dict(volume_scene({"type": "amr", "data": cells, "transfer_function": "spiky",
@@ -333,8 +333,8 @@ def test09_loop_bounds_trigger_finite_and_reported(llvm):
     longest probe, kd descent by the tree depth, brick lists by the longest
     list, the shadow walk by 4096 surfaces."""
     from conftest import volume_scene
-    from mi_amr.local_tracking import span_majorant
-    from mi_amr.tracking import intersect_unit_cube, safe_rcp
+    from mi_amr.device.tracking import span_majorant
+    from mi_amr.device.ray import intersect_unit_cube, safe_rcp
     cells = constant_cells(16)
     med = mi.load_dict({"type": "amr", "data": cells, "transfer_function": "constant", "density_scale": 0.5,
                         "grid_resolution": 16, "max_iterations": 4})
@@ -351,7 +351,7 @@ def test09_loop_bounds_trigger_finite_and_reported(llvm):
     ray_o = mi.Vector3f(o.T.astype(np.float32))
     ray_d = mi.Vector3f(d.T.astype(np.float32))
     hit, t0, t1 = intersect_unit_cube(ray_o, safe_rcp(ray_d))
-    seg = med._segments()
+    seg = med.structures.segments()
     found, t_first, t_last, mu, cap = span_majorant(seg, ray_o, ray_d, dr.maximum(t0, 0.0), t1, hit, 2,
                                                     mi.Float(med.global_majorant))
     assert cap.numpy().all() and found.numpy().all()
@@ -429,7 +429,7 @@ def test11_single_entry_tf_peak(llvm, traversal):
     _, s = tent.eval_local(mi.Vector3f(u.T.copy()), True)
     s = s.numpy()
     assert s.max() > 3.0                             # the peak is met somewhere
-    seg = tent._segments()
+    seg = tent.structures.segments()
     if traversal == "grid":
         mu = grid_majorant_at(tent, u)
     else:
@@ -716,7 +716,7 @@ def test17b_fuzz_structured_records(tmp_path_factory, rec, vals, cut, overlap):
     c = _check_loaded_or_clear_error(lambda: read_exabricks(d / "f.cells", overlap=overlap),
                                      ["f.cells", "f.scalars"])
     if c is not None:
-        from mi_amr.cell_hash import CellHash
+        from mi_amr.structures.cell_hash import CellHash
         h = CellHash(c)                               # point location accepts every valid data set
         lo, hi = c.bounds
         assert (hi - lo).max() < 2**31
@@ -744,7 +744,7 @@ def test09b_shadow_ray_bound_blocks_and_reports(llvm, monkeypatch):
     """A shadow ray that would cross more surfaces than the bound counts as
     blocked (no light leaks) and is reported in the counters; here a bound
     of 1 stops every shadow ray at the medium's boundary."""
-    import mi_amr.integrator as integ
+    import mi_amr.plugins.integrator as integ
     from conftest import random_amr, volume_scene
     cells = random_amr(seed=1)
     means = []

@@ -6,14 +6,15 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.brick_sampling import BrickListGrid, BrickSampler, DeviceBricks
-from mi_amr.bricks import Bricks
-from mi_amr.cell_hash import key_origin
-from mi_amr.datasets import make_dataset
-from mi_amr.kdtree_sah import build_sah_kdtree
-from mi_amr.reconstruct import brute_force
-from mi_amr.region_tree import box_value_ranges, build_region_tree, exact_value_ranges
-from mi_amr.traversal import DeviceTree
+from mi_amr.structures.brick_lists import BrickLists
+from mi_amr.device.bricks import BrickSampler, DeviceBrickLists, DeviceBricks
+from mi_amr.structures.bricks import Bricks
+from mi_amr.structures.cell_hash import key_origin
+from mi_amr.data.datasets import make_dataset
+from mi_amr.structures.kdtree_sah import build_sah_kdtree
+from mi_amr.testing import brute_force
+from mi_amr.structures.region_tree import box_value_ranges, build_region_tree, exact_value_ranges
+from mi_amr.device.tree import DeviceTree
 
 from conftest import random_amr
 
@@ -90,19 +91,20 @@ def test04_brick_sampling_matches_brute_force(variant, data, mode, method):
     origin = key_origin(data)
     lo, hi = data.bounds
     dev = DeviceBricks(b, origin)
+    frame = (mi.Vector3f(*[float(c) for c in lo - origin]), mi.Vector3f(*[float(c) for c in hi - lo]))
     if mode == "abr":
         dlo, dhi = b.domains()
         tree = build_region_tree(np.round(2 * dlo).astype(np.int64), np.round(2 * dhi).astype(np.int64), 2 * lo, 2 * hi)
-        sampler = BrickSampler(dev, method, "abr",
+        sampler = BrickSampler(dev, method, *frame,
                                abr_tree=DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), np.zeros(tree.n_leaves), np.zeros(tree.n_leaves)))
     else:
-        sampler = BrickSampler(dev, method, "brick", list_grid=BrickListGrid(b, lo, hi - lo, [7, 5, 6]))
+        sampler = BrickSampler(dev, method, *frame, lists=DeviceBrickLists(BrickLists(b, lo, hi - lo, [7, 5, 6])))
     rng = np.random.default_rng(3)
     x = lo + rng.random((4000, 3)) * (hi - lo)
     x[:400] = np.round(x[:400] * 2) / 2                  # cell faces and centres
     ref, ref_found = brute_force(data, x, method)
     u = (x - lo) / (hi - lo)
-    val, found = sampler.eval(mi.Vector3f((x - origin).T.astype(np.float32)), mi.Vector3f(u.T.astype(np.float32)))
+    val, found = sampler.eval_at(mi.Vector3f((x - origin).T.astype(np.float32)), mi.Vector3f(u.T.astype(np.float32)))
     np.testing.assert_array_equal(found.numpy(), ref_found)
     np.testing.assert_allclose(val.numpy(), ref, atol=2e-6)
 
@@ -134,10 +136,10 @@ def test05_sah_kdtree_partitions_the_grid_within_budget():
 def test06_medium_structures_are_built_only_when_used(llvm):
     c = random_amr(5)
     m = mi.load_dict({"type": "amr", "data": c, "traversal": "grid", "sampling": "hash"})
-    assert sorted(m._structures) == ["grid", "hash"]
+    assert sorted(m.structures.built) == ["grid", "hash"]
     m = mi.load_dict({"type": "amr", "data": c, "traversal": "abr", "sampling": "brick"})
-    assert "grid" not in m._structures and "hash" not in m._structures
-    assert {"abr_tree", "bricks", "brick_lists"} <= set(m._structures)
+    assert "grid" not in m.structures.built and "hash" not in m.structures.built
+    assert {"abr_tree", "bricks", "brick_lists"} <= set(m.structures.built)
     with pytest.raises(Exception, match="unknown traversal 'octree'"):
         mi.load_dict({"type": "amr", "data": c, "traversal": "octree"})
     with pytest.raises(Exception, match="unknown sampling"):

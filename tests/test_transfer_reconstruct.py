@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.majorant_grid import MacrocellGrid
-from mi_amr.reconstruct import DeviceReconstruction, HostReconstruction, brute_force
-from mi_amr.transfer import PRESETS, TransferFunction
-from mi_amr.transfer_jit import DeviceTransferFunction
+from mi_amr.structures.macrocell_grid import MacrocellGrid
+from mi_amr.device.hash_sampler import DeviceReconstruction
+from mi_amr.structures.host_reconstruction import HostReconstruction
+from mi_amr.testing import brute_force
+from mi_amr.transfer.function import PRESETS, TransferFunction
+from mi_amr.transfer.device import DeviceTransferFunction
 
 from conftest import random_amr
 

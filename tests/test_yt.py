@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.reconstruct import HostReconstruction
+from mi_amr.structures.host_reconstruction import HostReconstruction
 
 yt = pytest.importorskip("yt")
 
@@ -79,7 +79,7 @@ def test04_convert_cli_reads_yt_datasets(tmp_path, monkeypatch):
     stand-in returning yt's fake AMR dataset) and writes ExaBricks files."""
     from yt.testing import fake_amr_ds
 
-    from mi_amr.cli import main
+    from mi_amr.tools.cli import main
     ds = fake_amr_ds(fields=("Density",), units=("g/cm**3",))
     monkeypatch.setattr(yt, "load", lambda path: ds)
     out = tmp_path / "sim.cells"

@@ -75,7 +75,7 @@ class TransferFunction(mi.Object):
 
     def range_entries(self, vmin, vmax) -> tuple[np.ndarray, np.ndarray]:
         """Table entries ``lo..hi`` (inclusive) covering value ranges
-        ``[vmin, vmax]`` under linear interpolation (DESIGN.md section 4)."""
+        ``[vmin, vmax]`` under linear interpolation (docs/design.md section 4)."""
         n1 = len(self) - 1
         lo = np.floor(self.normalize(vmin) * n1).astype(np.int64)
         hi = np.minimum(np.floor(self.normalize(vmax) * n1).astype(np.int64) + 1, n1)
@@ -250,3 +250,14 @@ class TransferFunction(mi.Object):
 
 
 PRESETS = ("spiky", "foggy", "ramp", "constant")
+
+
+def range_majorants_host(tf, vmin, vmax, density_scale: float) -> np.ndarray:
+    """``density_scale * max alpha`` over the TF entries covering each value
+    range (numpy; 0 for empty ranges). Same rule as the Dr.Jit kernel."""
+    finite = vmin <= vmax
+    lo, hi = tf.range_entries(np.where(finite, vmin, 0.0), np.where(finite, vmax, 0.0))
+    st = tf.sparse_table()
+    k = np.floor(np.log2(hi - lo + 1)).astype(np.int64)
+    m = np.maximum(st[k, lo], st[k, hi + 1 - (np.int64(1) << k)])
+    return np.where(finite, density_scale * m, 0.0)

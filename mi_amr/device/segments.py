@@ -4,8 +4,8 @@ All structures live in the medium's local space (the data bounds are the
 unit cube). A *segment iterator* has two methods used inside symbolic loops:
 
 * ``begin(o, d, t_lo, t_hi, active) -> state`` (a tuple of Dr.Jit arrays)
-* ``advance(o, d, state, t_hi, active) -> (state, t0, t1, mu, valid)``: the
-  next segment along ``o + t d`` after the previous one; ``valid`` is false
+* ``advance(o, d, state, t_hi, active) -> (state, Segment)``: the next
+  segment along ``o + t d`` after the previous one; its ``valid`` is false
   once the ray has left ``[t_lo, t_hi]``.
 
 `GridSegments` walks the macrocell grid with a 3D DDA (Amanatides-Woo);
@@ -17,9 +17,18 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
+from .ray import safe_rcp
+from .structs import jit_struct
+from .tree import DeviceTree
 
-from .tracking import safe_rcp
+
+@jit_struct(t0="Float", t1="Float", mu="Float", valid="Bool")
+class Segment:
+    """One piece ``[t0, t1]`` (local ray parameter) of a ray with majorant
+    ``mu`` (inverse world units); ``valid`` is false past the ray's end."""
+
+    def __init__(self, t0=None, t1=None, mu=None, valid=None):
+        self.t0, self.t1, self.mu, self.valid = t0, t1, mu, valid
 
 
 class GridSegments:
@@ -64,68 +73,7 @@ class GridSegments:
                              dr.select(mv & ax_y, t_next.y + dt.y, t_next.y),
                              dr.select(mv & ax_z, t_next.z + dt.z, t_next.z))
         t_cell = dr.select(mv, t1, t_cell)
-        return (cell, t_next, t_cell), t0, t1, mu, valid
-
-
-class DeviceTree:
-    """A `RegionTree` (or SAH kd-tree) in Dr.Jit, in local coordinates.
-
-    ``to_local(x) = (x - lo) * scale`` maps the tree's host units to the unit
-    cube. Leaves carry value ranges (``vmin``/``vmax``) and majorants.
-    """
-
-    def __init__(self, tree, lo, scale, vmin, vmax, majorant=None):
-        lo = np.asarray(lo, dtype=np.float64)
-        scale = np.asarray(scale, dtype=np.float64)
-        self.host = tree
-        ax = tree.axis.astype(np.int64)
-        inner = ax < 3
-        split_local = np.zeros(len(ax))
-        split_local[inner] = (tree.split[inner] - lo[ax[inner]]) * scale[ax[inner]]
-        self.axis = mi.UInt32(tree.axis)
-        self.split = mi.Float(split_local.astype(np.float32))
-        self.child = mi.UInt32(tree.child)
-        llo = ((tree.leaf_lo - lo) * scale).astype(np.float32)
-        lhi = ((tree.leaf_hi - lo) * scale).astype(np.float32)
-        self.leaf_lo = mi.Vector3f(llo.T.copy())
-        self.leaf_hi = mi.Vector3f(lhi.T.copy())
-        self.vmin = mi.Float(np.asarray(vmin, dtype=np.float32))
-        self.vmax = mi.Float(np.asarray(vmax, dtype=np.float32))
-        self.list_offset = mi.UInt32(tree.list_offset)
-        self.list_count = mi.UInt32(tree.list_count)
-        self.items = mi.UInt32(tree.items if len(tree.items) else np.zeros(1, np.uint32))
-        self.depth = mi.UInt32(tree.depth + 1)
-        self.majorant = mi.Float(np.zeros(tree.n_leaves, np.float32) if majorant is None
-                                 else np.asarray(majorant, dtype=np.float32))
-        dr.make_opaque(self.axis, self.split, self.child, self.leaf_lo, self.leaf_hi,
-                       self.vmin, self.vmax, self.list_offset, self.list_count, self.items,
-                       self.depth, self.majorant)
-
-    @property
-    def n_leaves(self) -> int:
-        return self.host.n_leaves
-
-    def update_majorants(self, tf, density_scale):
-        self.majorant = density_scale * tf.range_max_alpha(self.vmin, self.vmax)
-        dr.make_opaque(self.majorant)
-
-    @dr.syntax
-    def locate(self, p: mi.Vector3f, d: mi.Vector3f, active=True):
-        """Leaf containing ``p``; on a split plane, the side ``d`` points to
-        (the upper side when ``d`` lies in the plane, as cells are half-open
-        ``[lo, hi)`` and the point look-up takes that side too)."""
-        node = mi.UInt32(0)
-        axis = dr.gather(mi.UInt32, self.axis, node, active)
-        i = mi.UInt32(0)
-        while dr.hint(mi.Bool(active) & (axis < 3) & (i < self.depth), label="amr_kd_locate"):
-            s = dr.gather(mi.Float, self.split, node)
-            pa = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
-            da = dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))
-            right = (pa > s) | ((pa == s) & (da >= 0))
-            node = dr.gather(mi.UInt32, self.child, node) + dr.select(right, 1, 0)
-            axis = dr.gather(mi.UInt32, self.axis, node)
-            i += 1
-        return dr.gather(mi.UInt32, self.child, node, active)
+        return (cell, t_next, t_cell), Segment(t0, t1, mu, valid)
 
 
 class TreeSegments:
@@ -157,4 +105,4 @@ class TreeSegments:
         mu = dr.gather(mi.Float, tree.majorant, leaf, valid)
         t0 = t_cell
         t_cell = dr.select(valid, t1, t_cell)
-        return (t_cell,), t0, t1, mu, valid
+        return (t_cell,), Segment(t0, t1, mu, valid)

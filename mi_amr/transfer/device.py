@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
+from ..device.structs import jit_struct
+from .function import TransferFunction
 
-from .transfer import TransferFunction
 
-
+@jit_struct(rgba="Float", sparse="Float", n="UInt32", lo="Float", inv_width="Float")
 class DeviceTransferFunction:
     """A `TransferFunction` uploaded for use in Dr.Jit kernels."""
 

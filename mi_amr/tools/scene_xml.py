@@ -80,7 +80,7 @@ def reference_scene(scene_path, work_dir, resolution=None, memory_limit=None, **
     ``heterogeneous`` + ``gridvolume`` equivalent. Grids are written as
     ``.vol`` files into ``work_dir``. Returns ``(scene, media)`` where
     ``media`` lists the AMR media that were replaced."""
-    from .medium import AMRMedium
+    from ..plugins.medium import AMRMedium
     from .reference import DEFAULT_MEMORY_LIMIT, reference_medium
 
     work_dir = Path(work_dir)
@@ -101,7 +101,7 @@ def reference_scene(scene_path, work_dir, resolution=None, memory_limit=None, **
             raise ValueError(f"{scene_path}: could not instantiate amr medium #{k}")
         media.append(amr)
         ref = reference_medium(amr.cells, amr.tf, amr.density_scale, amr.reconstruction,
-                               amr.to_world_scalar, resolution,
+                               amr.options.to_world, resolution,
                                memory_limit or DEFAULT_MEMORY_LIMIT)
         new = ET.Element("medium", type="heterogeneous")
         if med.get("id"):
@@ -115,7 +115,7 @@ def reference_scene(scene_path, work_dir, resolution=None, memory_limit=None, **
             vol = ET.SubElement(new, "volume", type="gridvolume", name=channel)
             ET.SubElement(vol, "string", name="filename", value=str(path.resolve()))
             ET.SubElement(vol, "string", name="filter_type", value=ref[channel]["filter_type"])
-            m = np.array(amr.to_world_scalar.matrix, dtype=np.float64).ravel()
+            m = np.array(amr.options.to_world.matrix, dtype=np.float64).ravel()
             tr = ET.SubElement(vol, "transform", name="to_world")
             ET.SubElement(tr, "matrix", value=" ".join(repr(float(x)) for x in m))
         ET.SubElement(new, "float", name="scale", value=repr(ref["scale"]))

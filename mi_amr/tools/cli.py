@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from ._llvm import ensure_llvm_path
+from .._llvm import ensure_llvm_path
 
 
 def _set_variant(variant: str):
@@ -20,7 +20,7 @@ def _set_variant(variant: str):
                          f"(available: {', '.join(mi.variants())})")
     mi.set_variant(variant)
     import mi_amr  # noqa: F401  (registers the plugins for this variant)
-    from .medium import require_jit_rgb_variant
+    from ..plugins.medium import require_jit_rgb_variant
     try:
         require_jit_rgb_variant("mi-amr render")
     except RuntimeError as e:
@@ -111,7 +111,7 @@ def cmd_frametime(args):
 
     import numpy as np
 
-    from .reference import compare_images
+    from .images import compare_images
     from .scene_xml import reference_scene, with_amr_parameters
     params = _scene_params(args)
     rows = []
@@ -149,7 +149,7 @@ def cmd_frametime(args):
 # ---- info ------------------------------------------------------------------
 def cmd_info(args):
     ensure_llvm_path()
-    from .io import load_cells
+    from ..data.io import load_cells
     cells = load_cells(args.file, args.scalars)
     print(cells.summary())
     if args.json:
@@ -164,8 +164,8 @@ def cmd_convert(args):
     ensure_llvm_path()
     import numpy as np
 
-    from .convert import dense_to_amr
-    from .io import load_cells, save_cells
+    from ..data.convert import dense_to_amr
+    from ..data.io import load_cells, save_cells
     src = Path(args.input)
     if src.suffix in (".cells", ".npz"):
         cells = load_cells(src, overlap=args.overlap)
@@ -188,7 +188,7 @@ def cmd_convert(args):
             import yt
         except ImportError:
             raise SystemExit("mi-amr convert: reading yt datasets needs yt (pip install mi-amr[yt])")
-        from .yt_import import from_yt
+        from ..data.yt_import import from_yt
         ds = yt.load(str(src))
         field = tuple(args.field.split(",")) if "," in args.field else args.field
         cells = from_yt(ds, field, overlap=args.overlap)
@@ -204,7 +204,7 @@ def cmd_compare(args):
     import numpy as np
 
     from .images import read_exr, write_exr
-    from .reference import compare_images
+    from .images import compare_images
     a, b = read_exr(args.a), read_exr(args.b)
     try:
         stats = compare_images(a, b)
@@ -231,8 +231,8 @@ def cmd_compare(args):
 # ---- dataset ---------------------------------------------------------------
 def cmd_dataset(args):
     ensure_llvm_path()
-    from .datasets import make_dataset
-    from .io import save_cells
+    from ..data.datasets import make_dataset
+    from ..data.io import save_cells
     cells = make_dataset(args.name, args.cells, args.levels, args.seed)
     out = save_cells(cells, args.output)
     print(f"wrote {out}: {cells}")

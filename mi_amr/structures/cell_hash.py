@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cells import AMRCells, cell_keys
+from ..data.cells import AMRCells, cell_keys
 
 #: Bits per axis in a packed ("narrow") 64-bit key. Levels whose coordinates
 #: reach 2**KEY_BITS use "wide" keys: ``qx | qy << 32`` in 64 bits plus ``qz``

@@ -1,5 +1,5 @@
-"""Delta and ratio tracking through local-majorant segments (DESIGN.md
-section 5, the paper's Algorithm 1), in one Dr.Jit symbolic loop.
+"""Delta and ratio tracking through local-majorant segments
+(docs/design.md section 5), in one Dr.Jit symbolic loop.
 
 Per segment ``[t0, t1]`` with majorant ``mu``: skip it if ``mu == 0`` (no
 density look-up); otherwise ``t -= ln(1 - xi) / mu`` from ``max(t, t0)``;
@@ -13,12 +13,12 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .structs import jit_struct
 
+
+@jit_struct(lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32", capped="UInt32")
 class TrackingCounts:
     """Per-lane event counts of one tracking call."""
-
-    DRJIT_STRUCT = {"lookups": mi.UInt32, "null": mi.UInt32, "real": mi.UInt32,
-                    "steps": mi.UInt32, "capped": mi.UInt32}
 
     def __init__(self, lookups=None, null=None, real=None, steps=None, capped=None):
         self.lookups = mi.UInt32(0) if lookups is None else lookups
@@ -38,6 +38,7 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
                    max_iterations, length_scale=1.0):
     """Track along the local ray ``o + t d`` over ``[t_lo, t_hi]``.
 
+    ``segments``: a segment walker (`mi_amr.device.segments`);
     ``density(u, active) -> (albedo, sigma_t)``; majorants and sigma_t are
     per world length, and ``length_scale`` is local ``t`` per world length.
     Returns ``(collided, t, albedo, sigma_t_or_T, counts)`` (``t`` local):
@@ -61,12 +62,12 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
     while dr.hint(alive, label="amr_track"):
         # ---- Next segment once the current one is used up ----
         need = alive & (t >= seg_end)
-        state, s0, s1, m, valid = segments.advance(o, d, state, t_hi, need)
-        seg_end = dr.select(need, s1, seg_end)
-        mu = dr.select(need, m, mu)
-        t = dr.select(need, dr.maximum(t, s0), t)
-        steps += dr.select(need & valid, 1, 0)
-        alive &= ~need | valid
+        state, seg = segments.advance(o, d, state, t_hi, need)
+        seg_end = dr.select(need, seg.t1, seg_end)
+        mu = dr.select(need, seg.mu, mu)
+        t = dr.select(need, dr.maximum(t, seg.t0), t)
+        steps += dr.select(need & seg.valid, 1, 0)
+        alive &= ~need | seg.valid
 
         # ---- Tentative collision in the segment (none if mu == 0) ----
         go = alive & (mu > 0.0)
@@ -103,7 +104,7 @@ def span_majorant(segments, o, d, t_lo, t_hi, active, max_steps, global_mu):
     t_last, mu_max, capped)``: the span from the start of the first to the
     end of the last segment with a non-zero majorant, and the largest
     majorant met (the "ray-wise" majorant for Mitsuba's stock volpath,
-    DESIGN.md section 6).
+    docs/design.md section 6).
 
     At most ``max_steps`` segments are visited. A walk cut short there
     (``capped``) falls back to a conservative answer: the span runs on to
@@ -119,15 +120,15 @@ def span_majorant(segments, o, d, t_lo, t_hi, active, max_steps, global_mu):
     capped = mi.Bool(False)
     alive = mi.Bool(active) & (t_lo < t_hi)
     while dr.hint(alive, label="amr_span_majorant"):
-        state, s0, s1, mu, valid = segments.advance(o, d, state, t_hi, alive)
-        nonzero = valid & (mu > 0.0)
-        t_first = dr.select(nonzero & ~found, s0, t_first)
-        t_last = dr.select(nonzero, s1, t_last)
-        t_seen = dr.select(valid, s1, t_seen)
-        mu_max = dr.select(valid, dr.maximum(mu_max, mu), mu_max)
+        state, seg = segments.advance(o, d, state, t_hi, alive)
+        nonzero = seg.valid & (seg.mu > 0.0)
+        t_first = dr.select(nonzero & ~found, seg.t0, t_first)
+        t_last = dr.select(nonzero, seg.t1, t_last)
+        t_seen = dr.select(seg.valid, seg.t1, t_seen)
+        mu_max = dr.select(seg.valid, dr.maximum(mu_max, seg.mu), mu_max)
         found |= nonzero
         it += 1
-        alive &= valid & (s1 < t_hi)
+        alive &= seg.valid & (seg.t1 < t_hi)
         capped |= alive & (it >= max_steps)
         alive &= ~capped
     t_first = dr.select(capped & ~found, t_seen, t_first)

@@ -49,3 +49,27 @@ def write_png(path, image) -> Path:
     bmp = mi.Bitmap(np.ascontiguousarray(img), mi.Bitmap.PixelFormat.RGB)
     bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True).write(str(path))
     return Path(path)
+
+
+def compare_images(a, b) -> dict:
+    """Error statistics of image ``a`` against reference ``b`` (H, W, C)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"images differ in shape: {a.shape} vs {b.shape}")
+    d = a - b
+    out = {"rmse": float(np.sqrt(np.mean(d * d))),
+           "mae": float(np.mean(np.abs(d))),
+           "max_abs": float(np.max(np.abs(d))),
+           "relative_rmse": float(np.sqrt(np.mean(d * d)) / max(np.sqrt(np.mean(b * b)), 1e-30)),
+           "mean_a": float(a.mean()), "mean_b": float(b.mean()),
+           "nonfinite_a": int((~np.isfinite(a)).sum()), "nonfinite_b": int((~np.isfinite(b)).sum()),
+           "channels": []}
+    if a.ndim == 3:
+        for c in range(a.shape[2]):
+            dc = d[..., c]
+            out["channels"].append({"rmse": float(np.sqrt(np.mean(dc * dc))),
+                                    "mean_a": float(a[..., c].mean()),
+                                    "mean_b": float(b[..., c].mean()),
+                                    "max_abs": float(np.abs(dc).max())})
+    return out

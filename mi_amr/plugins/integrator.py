@@ -15,8 +15,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .local_tracking import TrackingCounts
-from .params import ParameterError, check_known, get_bool, get_int
+from ..device.tracking import TrackingCounts
+from ..params import ParameterError, check_known, get_bool, get_int
+from .medium import AMRMedium, require_jit_rgb_variant, scene_media
+from .variant_class import VariantPlugin
 
 #: Free-flight look-ups, null and real collisions, traversal steps, loops
 #: stopped by the iteration bound; then the same for shadow rays.
@@ -26,18 +28,15 @@ COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped",
                  "shadow_lookups", "shadow_steps", "shadow_capped")
 
 
-def _mis(pdf_a, pdf_b):
-    """Power heuristic; 0 where it is undefined (both pdfs 0, or infinite)."""
-    a2 = dr.square(pdf_a)
-    w = a2 / (a2 + dr.square(pdf_b))
-    return dr.detach(dr.select(dr.isfinite(w), w, 0.0))
+def _mitsuba_helpers():
+    """Mitsuba's power-heuristic MIS weight and RGB channel indexing (the
+    ones its own Python volume integrators use), for the active variant."""
+    from mitsuba.ad.integrators.common import mis_weight
+    from mitsuba.ad.integrators.prbvolpath import index_spectrum
+    return mis_weight, index_spectrum
 
 
-def _channel(spec, channel):
-    return dr.select(channel == 0, spec[0], dr.select(channel == 1, spec[1], spec[2]))
-
-
-class AMRVolpathIntegrator(mi.SamplingIntegrator):
+class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
     r"""
     AMR volumetric path tracer (:monosp:`amrvolpath`)
     -------------------------------------------------
@@ -63,7 +62,8 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
     """
 
     def __init__(self, props: mi.Properties):
-        super().__init__(props)
+        require_jit_rgb_variant("the 'amrvolpath' integrator")
+        type(self).__base__.__init__(self, props)
         check_known(props, "amrvolpath", {"max_depth", "rr_depth", "hide_emitters", "counters"})
         md = get_int(props, "amrvolpath", "max_depth", -1)
         if md < -1:
@@ -98,7 +98,6 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
     @staticmethod
     def _media(scene):
         """(amr media, whether any other medium exists) in the scene."""
-        from .medium import AMRMedium, scene_media
         media = scene_media(scene)
         return ([m for m in media if isinstance(m, AMRMedium)],
                 any(not isinstance(m, AMRMedium) for m in media))
@@ -106,6 +105,7 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
     # ---- Radiance ------------------------------------------------------------
     @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
+        mis_weight, index_spectrum = _mitsuba_helpers()
         amr_media, has_other = self._media(scene)
         amr_ptrs = [mi.MediumPtr(m) for m in amr_media]
 
@@ -162,10 +162,10 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
                 m_other = medium.sample_interaction(ray, sampler.next_1d(is_other), channel, is_other)
                 m_other.t[is_other & (si.t < m_other.t)] = dr.inf
                 tr, ff_pdf = medium.transmittance_eval_pdf(m_other, si, is_other)
-                tr_pdf = _channel(ff_pdf, channel)
+                tr_pdf = index_spectrum(ff_pdf, channel)
                 throughput[is_other] *= dr.select(tr_pdf > 0.0, tr / tr_pdf, 0.0)
                 valid_o = is_other & m_other.is_valid()
-                p_real = _channel(m_other.sigma_t, channel) / _channel(m_other.combined_extinction, channel)
+                p_real = index_spectrum(m_other.sigma_t, channel) / index_spectrum(m_other.combined_extinction, channel)
                 null_o = valid_o & (sampler.next_1d(valid_o) >= p_real)
                 real_o = valid_o & ~null_o
                 throughput[null_o] *= m_other.sigma_n / (1.0 - p_real)
@@ -196,7 +196,7 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
                                                       nee_m, amr_media, amr_ptrs, has_other)
                 shadow_counts = shadow_counts + c
                 phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
-                L[nee_m] += throughput * phase_val * _mis(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf)) * emitted
+                L[nee_m] += throughput * phase_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf)) * emitted
 
             wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, sampler.next_1d(act_scatter),
                                                        sampler.next_2d(act_scatter), act_scatter)
@@ -216,7 +216,7 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
             ds = mi.DirectionSample3f(scene, si, last_event)
             em_pdf = scene.pdf_emitter_direction(last_event, ds, active_e & ~specular_chain)
             count_direct = (depth == 0) | specular_chain
-            mis = dr.select(count_direct, 1.0, _mis(last_pdf, em_pdf))
+            mis = dr.select(count_direct, 1.0, mis_weight(last_pdf, em_pdf))
             L[active_e] += throughput * emitter.eval(si, active_e) * mis
 
             active_surface &= si.is_valid()
@@ -229,7 +229,7 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
                 shadow_counts = shadow_counts + c
                 wo_l = si.to_local(ds.d)
                 bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo_l, nee_s)
-                L[nee_s] += throughput * bsdf_val * _mis(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
+                L[nee_s] += throughput * bsdf_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
 
             bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active_surface),
                                           sampler.next_2d(active_surface), active_surface)
@@ -272,6 +272,7 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
                         amr_media, amr_ptrs, has_other):
         """Next-event estimation: an emitter sample and its transmittance
         through media (ratio tracking) and index-matched surfaces."""
+        _, index_spectrum = _mitsuba_helpers()
         active = mi.Bool(active)
         ds, emitter_val = scene.sample_emitter_direction(ref, sampler.next_2d(active), False, active)
         active &= ds.pdf != 0.0
@@ -307,7 +308,7 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
                 spectral = is_other & medium.has_spectral_extinction()
                 t_end = dr.select(hit_o, m_o.t, seg)
                 tr = dr.exp(-(t_end - dr.maximum(m_o.mint, 0.0)) * m_o.combined_extinction)
-                tr_pdf = dr.select(hit_o, _channel(tr * m_o.combined_extinction, channel), _channel(tr, channel))
+                tr_pdf = dr.select(hit_o, index_spectrum(tr * m_o.combined_extinction, channel), index_spectrum(tr, channel))
                 T[spectral & (dr.isfinite(m_o.mint))] *= dr.select(tr_pdf > 0.0, tr / tr_pdf, 0.0)
                 T[hit_o] *= dr.select(spectral, m_o.sigma_n, m_o.sigma_n / m_o.combined_extinction)
                 ray.o[hit_o] = m_o.p
@@ -329,3 +330,8 @@ class AMRVolpathIntegrator(mi.SamplingIntegrator):
             counts.capped += dr.select(cut, 1, 0)
             active &= ~cut
         return emitter_val * T, ds, counts
+
+
+def integrator_class():
+    """The ``amrvolpath`` integrator class of the active variant."""
+    return AMRVolpathIntegrator.variant_class()

@@ -156,7 +156,7 @@ def exact_value_ranges(leaf_lo, leaf_hi, bricks, method: str = "tent", chunk: in
     the leaf's interior. Candidate bricks come from a conservative domain
     test; within each brick only the sub-box of cells that reach the leaf
     is visited (vectorised over all leaf-brick pairs)."""
-    from .majorant_grid import enumerate_boxes
+    from .boxes import enumerate_boxes
     n = len(leaf_lo)
     out_min = np.full(n, np.inf, dtype=np.float32)
     out_max = np.full(n, -np.inf, dtype=np.float32)

@@ -12,13 +12,13 @@ exact too.
 
 from __future__ import annotations
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .cells import AMRCells
-from .reconstruct import HostReconstruction, check_method
-from .transfer import TransferFunction
+from ..data.cells import AMRCells
+from ..structures.host_reconstruction import HostReconstruction
+from ..data.reconstruction import check_method
+from ..transfer.function import TransferFunction
 
 #: Default memory limit of the dense reference (sigma_t + albedo), bytes.
 DEFAULT_MEMORY_LIMIT = 4 << 30
@@ -59,7 +59,7 @@ def resample_dense(cells: AMRCells, method: str = "tent", resolution=None,
     if device is None:
         device = mi.variant() is not None and not mi.variant().startswith("scalar")
     if device:
-        from .reconstruct import DeviceReconstruction
+        from ..device.hash_sampler import DeviceReconstruction
         dev = DeviceReconstruction(cells, method)
         bits = mi.UInt32(dev.hash.level_bits)
 
@@ -93,7 +93,7 @@ def reference_medium(cells: AMRCells, tf: TransferFunction, density_scale: float
     rgba = tf(value)
     rgba[~found] = 0.0
     filter_type = "nearest" if method == "nearest" else "trilinear"
-    from .medium import as_transform4f
+    from ..plugins.options import as_transform4f
     to_world = as_transform4f(to_world)
 
     def grid(channels):
@@ -107,61 +107,3 @@ def reference_medium(cells: AMRCells, tf: TransferFunction, density_scale: float
 
 
 # ---- Image statistics ----------------------------------------------------
-def compare_images(a, b) -> dict:
-    """Error statistics of image ``a`` against reference ``b`` (H, W, C)."""
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    if a.shape != b.shape:
-        raise ValueError(f"images differ in shape: {a.shape} vs {b.shape}")
-    d = a - b
-    out = {"rmse": float(np.sqrt(np.mean(d * d))),
-           "mae": float(np.mean(np.abs(d))),
-           "max_abs": float(np.max(np.abs(d))),
-           "relative_rmse": float(np.sqrt(np.mean(d * d)) / max(np.sqrt(np.mean(b * b)), 1e-30)),
-           "mean_a": float(a.mean()), "mean_b": float(b.mean()),
-           "nonfinite_a": int((~np.isfinite(a)).sum()), "nonfinite_b": int((~np.isfinite(b)).sum()),
-           "channels": []}
-    if a.ndim == 3:
-        for c in range(a.shape[2]):
-            dc = d[..., c]
-            out["channels"].append({"rmse": float(np.sqrt(np.mean(dc * dc))),
-                                    "mean_a": float(a[..., c].mean()),
-                                    "mean_b": float(b[..., c].mean()),
-                                    "max_abs": float(np.abs(dc).max())})
-    return out
-
-
-def render_passes(scene, passes: int, spp: int, seed0: int = 0, sensor=0) -> np.ndarray:
-    """``passes`` independent renders (seeds ``seed0 ..``), shape (P, H, W, C)."""
-    imgs = []
-    for i in range(passes):
-        img = mi.render(scene, spp=spp, seed=seed0 + i, sensor=sensor)
-        imgs.append(np.array(img, dtype=np.float64))
-    return np.stack(imgs)
-
-
-def block_z_scores(passes_a: np.ndarray, passes_b: np.ndarray, block: int = 8,
-                   rel_floor: float = 1e-5) -> np.ndarray:
-    """z-scores of the difference of per-block image means of two estimators.
-
-    Each input holds independent passes (P, H, W, C). Per block (``block``
-    pixels square, channels averaged) the mean over passes and its standard
-    error (sample std / sqrt(P)) are formed; the result is
-    ``(mean_a - mean_b) / sqrt(se_a^2 + se_b^2 + (rel_floor * mean)^2)``
-    per block. The floor stands for float32 rounding: an estimator with zero
-    variance (a block that sees only the background) still carries rounding
-    noise of order 1e-7 relative per path vertex.
-    """
-    def block_means(p):
-        P, H, W = p.shape[:3]
-        hb, wb = H // block, W // block
-        q = p[:, :hb * block, :wb * block].reshape(P, hb, block, wb, block, -1)
-        return q.mean(axis=(2, 4, 5))
-
-    ma, mb = block_means(passes_a), block_means(passes_b)
-    mean_a, mean_b = ma.mean(axis=0), mb.mean(axis=0)
-    se2 = ma.var(axis=0, ddof=1) / len(ma) + mb.var(axis=0, ddof=1) / len(mb)
-    se2 = se2 + (rel_floor * 0.5 * (np.abs(mean_a) + np.abs(mean_b))) ** 2
-    diff = mean_a - mean_b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(se2 > 0, diff / np.sqrt(se2), np.where(diff == 0, 0.0, np.inf))

@@ -2,7 +2,7 @@
 
 Coordinates are integers in *finest-level cell units*: a cell of ``level`` L
 has width ``w = 2**L`` and covers ``[pos, pos + w)`` on each axis. Level 0 is
-the finest level (DESIGN.md section 2).
+the finest level (docs/design.md section 1).
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .cells import AMRCells
-from .memory import require, structure_bytes
+from ..memory import require, structure_bytes
 
 CELL_DTYPE = np.dtype([("x", "<i4"), ("y", "<i4"), ("z", "<i4"), ("level", "<i4")])
 

@@ -7,8 +7,8 @@
 
 Within a brick, ``tent`` is trilinear interpolation over the 2x2x2 cells
 around the point with the weights of cells outside the brick dropped; the
-weights of all visited bricks are summed and normalised (DESIGN.md section
-3). ``nearest`` takes the finest brick whose bounds contain the point.
+weights of all visited bricks are summed and normalised (docs/design.md
+section 3). ``nearest`` takes the finest brick whose bounds contain the point.
 """
 
 from __future__ import annotations
@@ -17,15 +17,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .bricks import Bricks
-from .majorant_grid import _expand_boxes
-from .memory import BYTES_PER_MACROCELL, require
-
-#: Peak build bytes per (list cell, brick) entry: expansion and sort.
-BYTES_PER_LIST_ENTRY = 120
-from .reconstruct import WEIGHT_EPS
+from ..structures.bricks import Bricks
+from ..data.reconstruction import WEIGHT_EPS
+from ..structures.brick_lists import BrickLists
+from .ray import in_unit_cube
+from .structs import jit_struct
 
 
+@jit_struct(lo="Vector3f", dims="Vector3i", width="Float", offset="UInt32", values="Float")
 class DeviceBricks:
     """Bricks in Dr.Jit; positions in finest units relative to ``origin``."""
 
@@ -67,62 +66,55 @@ class DeviceBricks:
         return sum_w, sum_wv, inside
 
 
-class BrickListGrid:
-    """Per-macrocell lists of the bricks whose extended domain overlaps it."""
+@jit_struct(res="Vector3i", count="UInt32", offset="UInt32", items="UInt32")
+class DeviceBrickLists:
+    """`BrickLists` in Dr.Jit: a uniform grid over the local unit cube."""
 
-    def __init__(self, bricks: Bricks, lo, extent, res, memory_limit: float | None = None):
-        res = np.asarray(res, dtype=np.int64)
-        dlo, dhi = bricks.domains()
-        scale = res / np.asarray(extent, dtype=np.float64)
-        i0 = np.clip(np.floor((dlo - lo) * scale), 0, res - 1).astype(np.int64)
-        i1 = np.clip(np.floor((dhi - lo) * scale), 0, res - 1).astype(np.int64)
-        entries = float((i1 - i0 + 1).prod(axis=1).sum())
-        require(BYTES_PER_LIST_ENTRY * entries + BYTES_PER_MACROCELL * float(np.prod(res)),
-                f"brick lists with {entries:.3g} entries", memory_limit)
-        idx, owner = _expand_boxes(i0, i1, res)
-        order = np.argsort(idx, kind="stable")
-        idx, owner = idx[order], owner[order]
-        n = int(np.prod(res))
-        count = np.bincount(idx, minlength=n).astype(np.uint32)
-        offset = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.uint32)
-        self.res_host = res
-        self.max_list = int(count.max())
-        self.res = mi.Vector3i(*[int(r) for r in res])
-        self.count = mi.UInt32(count)
-        self.offset = mi.UInt32(offset)
-        self.items = mi.UInt32(owner.astype(np.uint32))
-        self.nbytes = count.nbytes * 2 + owner.size * 4
+    def __init__(self, lists: BrickLists):
+        self.host = lists
+        self.res = mi.Vector3i(*[int(r) for r in lists.res])
+        self.count = mi.UInt32(lists.count)
+        self.offset = mi.UInt32(lists.offset)
+        self.items = mi.UInt32(lists.items)
         dr.make_opaque(self.res, self.count, self.offset, self.items)
 
     def cell(self, u):
+        """Flat index of the list cell containing local point ``u``."""
         c = dr.clip(mi.Vector3i(dr.floor(u * mi.Vector3f(self.res))), 0, self.res - 1)
         return mi.UInt32(c.x + self.res.x * (c.y + self.res.y * c.z))
 
 
 class BrickSampler:
-    """Reconstruction through bricks, with ABR or brick-domain point location."""
+    """Reconstruction through bricks, with ABR (``abr_tree``) or brick-domain
+    (``lists``) point location. A view over device structs: it owns no
+    Dr.Jit arrays of its own."""
 
-    def __init__(self, bricks: DeviceBricks, method: str, mode: str, abr_tree=None, list_grid=None):
+    def __init__(self, bricks: DeviceBricks, method: str, offset, extent, abr_tree=None, lists=None):
         self.bricks = bricks
         self.tent = method == "tent"
-        self.mode = mode
+        self.offset, self.extent = offset, extent
         self.abr = abr_tree
-        self.grid = list_grid
+        self.lists = lists
+
+    def eval(self, u: mi.Vector3f, active=True):
+        """``(value, found)`` at local points ``u``; nothing outside the unit cube."""
+        active = mi.Bool(active) & in_unit_cube(u)
+        return self.eval_at(self.offset + u * self.extent, u, active)
 
     @dr.syntax
-    def eval(self, x: mi.Vector3f, u: mi.Vector3f, active=True):
+    def eval_at(self, x: mi.Vector3f, u: mi.Vector3f, active=True):
         """Value and found mask at ``x`` (finest units rel. to the brick
         origin), ``u`` the same point in the unit cube."""
-        if dr.hint(self.mode == "abr", mode="scalar"):
+        if dr.hint(self.abr is not None, mode="scalar"):
             leaf = self.abr.locate(u, mi.Vector3f(1.0), active)
             start = dr.gather(mi.UInt32, self.abr.list_offset, leaf, active)
             count = dr.gather(mi.UInt32, self.abr.list_count, leaf, active)
             items = self.abr.items
         else:
-            cell = self.grid.cell(u)
-            start = dr.gather(mi.UInt32, self.grid.offset, cell, active)
-            count = dr.gather(mi.UInt32, self.grid.count, cell, active)
-            items = self.grid.items
+            cell = self.lists.cell(u)
+            start = dr.gather(mi.UInt32, self.lists.offset, cell, active)
+            count = dr.gather(mi.UInt32, self.lists.count, cell, active)
+            items = self.lists.items
         count = dr.select(active, count, 0)
         i = mi.UInt32(0)
         sum_w = mi.Float(0.0)

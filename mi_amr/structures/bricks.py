@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cells import AMRCells
+from ..data.cells import AMRCells
 
 
 class Bricks:

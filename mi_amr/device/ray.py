@@ -1,9 +1,9 @@
-"""The macrocell grid in Dr.Jit and ray/box helpers.
+"""Ray helpers in Dr.Jit: safe reciprocals, tiny-component flushing, unit-cube slab test.
 
 Coordinates are the medium's *local* space: the AMR bounding box is the unit
 cube ``[0, 1]^3``. Rays are given by origin ``o`` and (not necessarily unit)
 direction ``d`` in that space, with the same ray parameter ``t`` as in world
-space. The grid walk itself is `mi_amr.traversal.GridSegments`.
+space. The grid walk itself is `mi_amr.device.segments.GridSegments`.
 """
 
 from __future__ import annotations
@@ -49,31 +49,6 @@ def intersect_unit_cube(o: mi.Vector3f, inv_d: mi.Vector3f):
     return (t0 <= t1) & dr.isfinite(t0) & dr.isfinite(t1), t0, t1
 
 
-class DeviceMacrocellGrid:
-    """A `MacrocellGrid` in Dr.Jit: ranges, level masks and majorants."""
-
-    def __init__(self, grid):
-        self.host = grid
-        self.res = mi.Vector3i(*[int(r) for r in grid.res])
-        self.vmin = mi.Float(grid.vmin)
-        self.vmax = mi.Float(grid.vmax)
-        self.level_bits = mi.UInt32(grid.level_bits)
-        self.majorant = dr.zeros(mi.Float, grid.vmin.size)
-        dr.make_opaque(self.res, self.vmin, self.vmax, self.level_bits)
-
-    @property
-    def size(self) -> int:
-        return self.host.vmin.size
-
-    def update_majorants(self, tf, density_scale):
-        """Per-macrocell majorant ``density_scale * max alpha`` over the
-        table entries covering the macrocell's value range (one kernel)."""
-        self.majorant = density_scale * tf.range_max_alpha(self.vmin, self.vmax)
-        dr.make_opaque(self.majorant)
-
-    def cell_of(self, u: mi.Vector3f) -> mi.Vector3i:
-        """Macrocell containing local point ``u`` (clamped to the grid)."""
-        return dr.clip(mi.Vector3i(dr.floor(u * mi.Vector3f(self.res))), 0, self.res - 1)
-
-    def flat(self, c: mi.Vector3i) -> mi.UInt32:
-        return mi.UInt32(c.x + self.res.x * (c.y + self.res.y * c.z))
+def in_unit_cube(u: mi.Vector3f) -> mi.Bool:
+    """Whether local points ``u`` lie in the closed unit cube (the data bounds)."""
+    return dr.all((u >= 0.0) & (u <= 1.0))

@@ -1,0 +1,1 @@
+"""Data and I/O: AMR cells, file formats, conversion, synthetic data sets, yt import."""

@@ -1,0 +1,1 @@
+"""Mitsuba plugins: the ``amr`` medium and the ``amrvolpath`` integrator."""

@@ -1,0 +1,395 @@
+"""The ``amr`` medium: cell-centric AMR data as a Mitsuba participating medium.
+
+A thin plugin: `parse_medium_options` validates the properties once,
+`Structures` builds what the chosen traversal and sampling need, and the
+tracking kernels of `mi_amr.device` do the per-ray work. The class is
+built for the Mitsuba variant that is active when it is instantiated
+(`mi_amr.plugins.variant_class`).
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
+from ..device.tracking import span_majorant, track_segments
+from ..params import ParameterError
+from ..pipeline import Structures
+from ..transfer.device import DeviceTransferFunction
+from ..transfer.function import TransferFunction
+from .options import check_density_scale, parse_medium_options
+from .variant_class import VariantPlugin
+
+
+def scene_media(scene) -> list:
+    """Every medium of a scene (shape interiors and exteriors, sensors), each
+    once as far as object identity tells."""
+    found = []
+    candidates = [m for shape in scene.shapes() for m in (shape.interior_medium(), shape.exterior_medium())]
+    candidates += [s.medium() for s in scene.sensors() if hasattr(s, "medium")]
+    for m in candidates:
+        if m is not None and all(m is not f for f in found):
+            found.append(m)
+    return found
+
+
+def require_jit_rgb_variant(what: str = "mi_amr"):
+    """Raise a clear error unless the active Mitsuba variant is a JIT rgb one."""
+    v = mi.variant()
+    if v is None or not (v.startswith("llvm_") or v.startswith("cuda_")) or not v.endswith("_rgb"):
+        raise RuntimeError(
+            f"{what} needs a JIT rgb Mitsuba variant such as 'llvm_ad_rgb' or "
+            f"'cuda_ad_rgb'; the active variant is {v!r}. Call "
+            "mi.set_variant('llvm_ad_rgb') before loading the scene.")
+
+
+class _RayMajorant:
+    """The ray-wise majorant of the ray last passed to ``intersect_aabb``.
+
+    A plain object on purpose: it holds variables of the kernel being
+    traced, which ``dr.freeze`` must not see as inputs. ``key`` holds the
+    variables of ``-ray.d``; Mitsuba's ``sample_interaction`` sets
+    ``mei.wi = -ray.d`` before it calls ``intersect_aabb``, so (Dr.Jit
+    reuses identical expressions) only an interaction of that very ray has
+    ``wi`` made of the same variables.
+    """
+
+    def __init__(self):
+        self.key, self.mu = None, None
+
+    def key_of(self, ray):
+        """The variables of ``-ray.d``; call before any symbolic loop (a loop
+        opens a new scope, and Dr.Jit reuses expressions only within one)."""
+        wi = -ray.d
+        return (wi.x, wi.y, wi.z)
+
+    def store(self, key, mu):
+        self.key, self.mu = key, mu
+
+    def lookup(self, mei):
+        """The stored majorant if ``mei`` belongs to the stored ray, else None."""
+        if self.key is None:
+            return None
+        if any(a.index != b.index or a.index == 0 for a, b in zip(self.key, (mei.wi.x, mei.wi.y, mei.wi.z))):
+            return None
+        return self.mu
+
+    def clear(self):
+        self.key, self.mu = None, None
+
+
+class AMRMedium(metaclass=VariantPlugin, base="Medium"):
+    r"""
+    AMR medium (:monosp:`amr`)
+    --------------------------
+
+    Cell-centric adaptive-mesh-refinement data, coloured by an RGBA transfer
+    function: ``sigma_t(x) = density_scale * alpha(f(x))`` (inverse world
+    units) and albedo ``rgb(f(x))``. The AMR bounding box fills the unit cube
+    and ``to_world`` places it, as with ``gridvolume``. Enclose it in a shape
+    (usually a ``cube`` with the same ``to_world``) whose ``interior`` is this
+    medium.
+
+    .. pluginparameters::
+
+     * - filename
+       - |string|
+       - ExaBricks ``.cells`` file (or ``.npz``); the scalars are the
+         sibling ``.scalars`` file unless ``scalars`` names another.
+     * - scalars
+       - |string|
+       - Scalars file for ``filename`` (optional).
+     * - data
+       - ``AMRCells``
+       - The cells themselves (Python scene dictionaries only).
+     * - transfer_function
+       - |string| or ``TransferFunction``
+       - Preset name (``spiky``, ``foggy``, ``ramp``, ``constant``) or a
+         ``.json`` file. Default: ``foggy``.
+     * - tf_min, tf_max
+       - |float|
+       - Value domain of a preset TF. Default: the data's value range.
+     * - density_scale
+       - |float|
+       - Extinction of opacity 1, in inverse world units. Default: 1.
+     * - reconstruction
+       - |string|
+       - ``tent`` (default; continuous) or ``nearest`` (finest cell).
+     * - majorant
+       - |string|
+       - ``ray`` (default): walk the traversal structure along each ray, trim
+         empty space at both ends, use the maximum over the rest (only for
+         the interaction of the ray last passed to ``intersect_aabb``; any
+         other caller gets the global majorant); ``global``: one maximum for
+         the whole volume.
+     * - grid_resolution
+       - |int|
+       - Macrocells along the longest axis. Default: chosen by a cost model
+         of the data and the TF (`mi_amr.structures.macrocell_grid.auto_resolution`).
+     * - traversal
+       - |string|
+       - Segments and majorants for ``amrvolpath`` (and the ray-wise
+         majorant in ``volpath``): ``grid`` (default), ``abr``, ``brick``,
+         ``kdtree`` (pre-classified SAH kd-tree, rebuilt on a TF change).
+     * - sampling
+       - |string|
+       - Point location of density look-ups: ``hash`` (default), ``abr``
+         (the ABR's brick list), ``brick`` (bricks whose extended domain
+         contains the point).
+     * - brick_size, kdtree_leaves
+       - |int|
+       - Largest brick side in cells (8); leaf budget of the kd-tree (4096).
+     * - overlap
+       - |string|
+       - ``error`` (default) rejects overlapping cells; ``finest`` keeps the
+         finer ones.
+     * - to_world
+       - |transform|
+       - Placement of the unit cube in the scene.
+     * - (nested phase function)
+       - |phase|
+       - Any phase function except microflake ones (``sggx``), which are
+         refused: their projected area would scale the extinction beyond
+         the majorants. Default: isotropic. Its parameters appear in
+         ``mi.traverse`` under ``phase_function.*``.
+     * - sample_emitters
+       - |bool|
+       - Next-event estimation in the medium. Default: true.
+     * - max_iterations
+       - |int|
+       - Bound on the iterations of one tracking loop (2^20); a ray that
+         reaches it stops and is counted as ``capped``.
+     * - memory_limit
+       - |float|
+       - Bytes a structure may need (``MI_AMR_MEMORY_LIMIT`` or half the
+         physical memory); larger ones are refused before they are built.
+    """
+
+    def __init__(self, props: mi.Properties):
+        require_jit_rgb_variant("the 'amr' medium")
+        type(self).__base__.__init__(self, props)
+        self.m_is_homogeneous = False
+        self.m_has_spectral_extinction = False
+        if mi.has_flag(self.phase_function().flags(), mi.PhaseFunctionFlags.Microflake):
+            raise ParameterError(
+                "amr: microflake phase functions (such as sggx) are not supported: their projected area scales the extinction beyond the majorants; "
+                "use an isotropic, hg, rayleigh, tabphase or blendphase phase function")
+        options = parse_medium_options(props)
+        self.options = options
+        self.cells = options.cells
+        self.tf = options.tf
+        self.density_scale = options.density_scale
+        self.majorant_mode = options.majorant
+
+        # ---- Dr.Jit state (direct attributes and structs: dr.freeze sees them) ----
+        self._to_local = mi.Transform4f(options.to_world.inverse())
+        self._scale = mi.Float(self.density_scale)
+        self._max_iterations = mi.UInt32(options.max_iterations)
+        self._tf_rgba = mi.Float(self.tf.rgba.ravel())
+        self._tf_domain = mi.Float(self.tf.domain)
+        dr.make_opaque(self._to_local, self._scale, self._max_iterations, self._tf_rgba, self._tf_domain)
+        self.tf_device = DeviceTransferFunction(self.tf)
+        self.structures = Structures(self.cells, options.structures, self.tf, self.density_scale,
+                                     options.world_scale)
+        self._ray_majorant = _RayMajorant()
+        self.update_majorants()
+
+    # ---- Read-only views --------------------------------------------------------
+    @property
+    def reconstruction(self) -> str:
+        return self.options.structures.reconstruction
+
+    @property
+    def traversal(self) -> str:
+        return self.options.structures.traversal
+
+    @property
+    def sampling(self) -> str:
+        return self.options.structures.sampling
+
+    @property
+    def world_scale(self) -> float:
+        return self.options.world_scale
+
+    @property
+    def grid(self):
+        """The host `MacrocellGrid` of the traversal/sampling grid."""
+        return self.structures.grid.host
+
+    @property
+    def build_seconds(self) -> dict:
+        return self.structures.build_seconds
+
+    @property
+    def structure_bytes(self) -> int:
+        """Memory of every structure built so far (host arrays uploaded)."""
+        return self.structures.nbytes
+
+    @property
+    def global_majorant(self) -> float:
+        return float(self.structures.global_majorant[0])
+
+    @property
+    def majorant_grid(self) -> np.ndarray:
+        """Macrocell majorants as a numpy array indexed ``[z, y, x]``."""
+        r = self.grid.res
+        return self.structures.grid.majorant.numpy().reshape(r[2], r[1], r[0])
+
+    def update_majorants(self):
+        """Recompute every majorant from the value ranges, TF and scale."""
+        self.structures.update_majorants(self.tf_device, self._scale)
+
+    # ---- Density ----------------------------------------------------------------
+    def eval_local(self, u: mi.Vector3f, active=True):
+        """``(albedo, sigma_t)`` at local point ``u`` (unit cube); sigma_t in
+        inverse world units, 0 outside the data or where no value exists."""
+        value, found = self.structures.sampler().eval(u, active)
+        rgb, alpha = self.tf_device.eval(value, found)
+        return rgb, dr.select(found, self._scale * alpha, 0.0)
+
+    # ---- Local-majorant tracking (used by the amrvolpath integrator) ---------
+    def local_ray(self, ray: mi.Ray3f):
+        """``(o, d, s)``: the ray in the unit cube with a unit direction ``d``
+        (negligible components flushed to 0, `flush_tiny`) and ``s``, local
+        length per world ``t``: the point at world ``t`` is ``o + (s t) d``.
+        Unit directions keep the traversal's float maths in range for any
+        ``to_world`` scale (1e-20 to 1e20)."""
+        o = self._to_local @ ray.o
+        d = self._to_local @ ray.d
+        m = dr.max(dr.abs(d))
+        m = dr.select(m > 0.0, m, 1.0)
+        s = m * dr.norm(d * dr.rcp(m))
+        return o, flush_tiny(d * dr.rcp(s)), s
+
+    def free_flight(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active):
+        """Delta tracking through local-majorant segments along ``ray`` up to
+        ``t_max``. Returns ``(collided, t, albedo, sigma_t, counts)``."""
+        return self._track(ray, t_max, sampler, active, ratio=False)
+
+    def transmittance(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active):
+        """Ratio-tracking estimate of transmittance along ``ray`` over
+        ``[0, t_max]``. Returns ``(T, counts)``."""
+        _, _, _, T, counts = self._track(ray, t_max, sampler, active, ratio=True)
+        return T, counts
+
+    def _track(self, ray, t_max, sampler, active, ratio):
+        o, d, s = self.local_ray(ray)
+        hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
+        t_lo = dr.maximum(t0, 0.0)
+        t_hi = dr.minimum(t1, t_max * s)
+        active = mi.Bool(active) & hit & (s > 0.0) & (t_lo < t_hi) & (self.structures.global_majorant > 0.0)
+        collided, t, albedo, result, counts = track_segments(
+            self.structures.segments(), self.eval_local, o, d, t_lo, t_hi, sampler, active, ratio,
+            self._max_iterations, s)
+        return collided, t * dr.rcp(dr.select(s > 0.0, s, 1.0)), albedo, result, counts
+
+    # ---- Mitsuba medium interface -------------------------------------------
+    def intersect_aabb(self, ray: mi.Ray3f):
+        key = self._ray_majorant.key_of(ray)
+        o, d, s = self.local_ray(ray)
+        inv_s = dr.rcp(dr.select(s > 0.0, s, 1.0))
+        hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
+        hit &= s > 0.0
+        global_mu = self.structures.global_majorant
+        if self.majorant_mode == "global":
+            return hit & (global_mu > 0.0), t0 * inv_s, t1 * inv_s
+        t_start = dr.maximum(t0, 0.0)
+        t_end = dr.minimum(t1, ray.maxt * s)
+        segments = self.structures.segments()
+        found, t_first, t_last, mu, _ = span_majorant(segments, o, d, t_start, t_end, hit,
+                                                      segments.max_steps(), global_mu)
+        self._ray_majorant.store(key, mu)
+        return found, t_first * inv_s, t_last * inv_s
+
+    def _majorant_for(self, mei):
+        """The ray-wise majorant where ``mei`` belongs to the ray last passed
+        to ``intersect_aabb`` (Mitsuba's sample_interaction), else the global
+        one: never below sigma_t on the caller's ray."""
+        mu = self._ray_majorant.lookup(mei)
+        return self.structures.global_majorant if mu is None else mu
+
+    def get_majorant(self, mei: mi.MediumInteraction3f, active=True):
+        mu = self._majorant_for(mei)
+        return mi.Color3f(dr.select(mu > 0.0, mu, 1.0))
+
+    def get_scattering_coefficients(self, mei: mi.MediumInteraction3f, active=True):
+        mu = self._majorant_for(mei)
+        self._ray_majorant.clear()       # sample_interaction calls this last
+        rgb, sigma_t = self.eval_local(self._to_local @ mei.p, active)
+        sigma_s = rgb * sigma_t
+        sigma_n = dr.maximum(mu - sigma_t, 0.0)
+        return mi.Color3f(sigma_s), mi.Color3f(sigma_n), mi.Color3f(sigma_t)
+
+    # ---- Scene parameters (mi.traverse) ------------------------------------------
+    def traverse(self, callback):
+        """Expose ``density_scale``, the TF table ``tf_rgba`` (flat float
+        array, N x 4, row major), ``tf_domain`` ([lo, hi]) and the nested
+        phase function; ``params.update()`` then recomputes the majorants."""
+        callback.put("density_scale", self._scale, mi.ParamFlags.NonDifferentiable)
+        callback.put("tf_rgba", self._tf_rgba, mi.ParamFlags.NonDifferentiable)
+        callback.put("tf_domain", self._tf_domain, mi.ParamFlags.NonDifferentiable)
+        callback.put("phase_function", self.phase_function(), mi.ParamFlags.Differentiable)
+
+    def parameters_changed(self, keys=None):
+        """Validate the updated parameters (a bad value raises and the last
+        valid ones are put back), then use them."""
+        keys = set(keys or [])
+        if not keys & {"tf_rgba", "tf_domain", "density_scale"} and keys:
+            return                                  # only the phase function changed
+        tf, scale = None, None
+        try:
+            if keys & {"tf_rgba", "tf_domain"}:
+                rgba = np.asarray(self._tf_rgba.numpy(), dtype=np.float64)
+                dom = self._tf_domain.numpy()
+                if rgba.size % 4 or dom.size != 2:
+                    raise ParameterError(f"amr: tf_rgba must hold N x 4 values and tf_domain 2, "
+                                         f"got {rgba.size} and {dom.size}")
+                tf = TransferFunction(rgba.reshape(-1, 4), (float(dom[0]), float(dom[1])))
+            if "density_scale" in keys:
+                scale = check_density_scale(float(self._scale.numpy()[0]))
+        except ValueError:
+            self.set_transfer_function(self.tf, self.density_scale, update=False)
+            raise
+        if tf is not None:
+            self.set_transfer_function(tf, update=False)
+        if scale is not None:
+            self.density_scale = scale
+            self.structures.set_transfer_function(self.tf, scale, rebuild=False)
+        # values put by SceneParameters may be literals: opaque, so that no
+        # kernel is recompiled (or frozen function recorded) for a new value
+        dr.make_opaque(self._scale, self._tf_rgba, self._tf_domain)
+        self.update_majorants()
+
+    def set_transfer_function(self, tf: TransferFunction, density_scale=None, update: bool = True):
+        """Use a new TF (new table, domain or size) and/or density scale:
+        uploads the small table and recomputes every majorant; the kernels are
+        not recompiled (all TF data are opaque). The pre-classified kd-tree is
+        rebuilt, since its topology was chosen for the old TF."""
+        if not isinstance(tf, TransferFunction):
+            raise ValueError(f"amr: expected a TransferFunction, got {type(tf).__name__}")
+        self.tf = tf
+        self.tf_device.set(tf)
+        # the traversed parameters are updated in place (SceneParameters hold them)
+        mi.set_property(self._tf_rgba, mi.Float(tf.rgba.ravel()))
+        mi.set_property(self._tf_domain, mi.Float(tf.domain))
+        if density_scale is not None:
+            self.density_scale = check_density_scale(density_scale)
+            mi.set_property(self._scale, mi.Float(self.density_scale))
+        dr.make_opaque(self._tf_rgba, self._tf_domain, self._scale)
+        self.structures.set_transfer_function(self.tf, self.density_scale)
+        if update:
+            self.update_majorants()
+
+    def to_string(self):
+        return (f"AMRMedium[\n  cells = {len(self.cells)},\n  levels = "
+                f"{self.cells.levels.tolist()},\n  reconstruction = {self.reconstruction},\n"
+                f"  majorant = {self.majorant_mode},\n  traversal = {self.traversal},\n"
+                f"  sampling = {self.sampling},\n  structures = {sorted(self.structures.built)},\n"
+                f"  density_scale = {self.density_scale},\n  transfer_function = {self.tf}\n]")
+
+
+def medium_class():
+    """The ``amr`` medium class of the active variant."""
+    return AMRMedium.variant_class()

@@ -1,0 +1,156 @@
+"""The ``amr`` medium's properties, parsed once into a typed record.
+
+Parsing validates every value (unknown names, wrong types, out-of-range
+numbers give a `ParameterError` naming the parameter); the medium only
+stores the result (docs/design.md section 6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+from ..data.cells import AMRCells
+from ..data.io import load_cells
+from ..data.reconstruction import METHODS
+from ..memory import default_memory_limit
+from ..params import ParameterError, check_known, get_float, get_int, get_string
+from ..pipeline import SAMPLINGS, TRAVERSALS, StructureOptions
+from ..transfer.function import TransferFunction
+
+MAJORANTS = ("ray", "global")
+OVERLAPS = ("error", "finest")
+#: Bound on the iterations of one tracking loop (reported by the counters).
+MAX_TRACKING_ITERATIONS = 1 << 20
+#: Largest density_scale: majorants and their reciprocals stay normal float32
+#: numbers (at 1e38 the reciprocal flushes to 0 and a medium turns clear).
+MAX_DENSITY_SCALE = 1e30
+#: Largest condition number of to_world's linear part (float32 precision).
+MAX_CONDITION = 1e7
+KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
+         "density_scale", "reconstruction", "majorant", "grid_resolution",
+         "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
+         "kdtree_leaves", "max_iterations", "memory_limit"}
+
+
+@dataclass(frozen=True)
+class MediumOptions:
+    """Everything the ``amr`` medium needs, validated. ``density_scale`` in
+    inverse world units; ``to_world`` maps the local unit cube to the world."""
+    cells: AMRCells
+    tf: TransferFunction
+    density_scale: float
+    majorant: str
+    max_iterations: int
+    to_world: "mi.ScalarTransform4f"
+    structures: StructureOptions
+
+    @property
+    def world_scale(self) -> float:
+        """Geometric mean scale of ``to_world`` (local unit length in world units)."""
+        m = np.array(self.to_world.matrix, dtype=np.float64)[:3, :3]
+        return float(np.cbrt(abs(np.linalg.det(m)))) or 1.0
+
+
+def parse_medium_options(props: mi.Properties) -> MediumOptions:
+    """Validate the ``amr`` plugin's properties and load its data."""
+    check_known(props, "amr", KNOWN, allow=lambda k, v: isinstance(v, mi.PhaseFunction))
+    cells = _load_data(props)
+    structures = StructureOptions(
+        reconstruction=get_string(props, "amr", "reconstruction", "tent", METHODS),
+        traversal=get_string(props, "amr", "traversal", "grid", TRAVERSALS),
+        sampling=get_string(props, "amr", "sampling", "hash", SAMPLINGS),
+        grid_resolution=get_int(props, "amr", "grid_resolution", None, minimum=1),
+        brick_size=get_int(props, "amr", "brick_size", 8, minimum=1, maximum=1024),
+        kdtree_leaves=get_int(props, "amr", "kdtree_leaves", 4096, minimum=1),
+        memory_limit=get_float(props, "amr", "memory_limit", default_memory_limit(), positive=True))
+    return MediumOptions(
+        cells=cells,
+        tf=_transfer_function(props, cells),
+        density_scale=get_float(props, "amr", "density_scale", 1.0, minimum=0.0, maximum=MAX_DENSITY_SCALE),
+        majorant=get_string(props, "amr", "majorant", "ray", MAJORANTS),
+        max_iterations=get_int(props, "amr", "max_iterations", MAX_TRACKING_ITERATIONS,
+                               minimum=1, maximum=2**31),
+        to_world=_to_world(props),
+        structures=structures)
+
+
+def check_density_scale(v) -> float:
+    """``v`` as a valid density scale, or a `ParameterError`."""
+    v = float(v)
+    if not (np.isfinite(v) and 0 <= v <= MAX_DENSITY_SCALE):
+        raise ParameterError(f"amr: density_scale must be a finite number in [0, {MAX_DENSITY_SCALE:g}], got {v:g}")
+    return v
+
+
+def as_transform4f(t) -> "mi.ScalarTransform4f":
+    """Any Mitsuba scalar transform (float or double) as ScalarTransform4f."""
+    if t is None:
+        return mi.ScalarTransform4f()
+    if isinstance(t, mi.ScalarTransform4f):
+        return t
+    m = np.array(getattr(t, "matrix", t), dtype=np.float64)
+    # the inverse in float64: a float32 inversion under- or overflows for
+    # scales far from 1 (1e-20: the determinant is 1e-60)
+    inv_t = np.linalg.inv(m).T
+    return mi.ScalarTransform4f(mi.ScalarMatrix4f(m.astype(np.float32)), mi.ScalarMatrix4f(inv_t.astype(np.float32)))
+
+
+def _load_data(props) -> AMRCells:
+    overlap = get_string(props, "amr", "overlap", "error", OVERLAPS)
+    has_file, has_data = "filename" in props.keys(), "data" in props.keys()
+    if has_file == has_data:
+        raise ValueError("amr: give exactly one of 'filename' (a .cells or .npz file) "
+                         "or 'data' (an AMRCells object)")
+    if has_data:
+        data = props["data"]
+        if not isinstance(data, AMRCells):
+            raise ParameterError(f"amr: 'data' must be an mi_amr.AMRCells, got {type(data).__name__}")
+        return data
+    resolver = mi.file_resolver()
+    path = Path(str(resolver.resolve(get_string(props, "amr", "filename", None))))
+    scalars = get_string(props, "amr", "scalars", None)
+    if scalars is not None:
+        scalars = str(resolver.resolve(scalars))
+    return load_cells(path, scalars, overlap=overlap)
+
+
+def _transfer_function(props, cells: AMRCells) -> TransferFunction:
+    tf = props.get("transfer_function", "foggy")
+    vlo, vhi = cells.value_range
+    if vhi <= vlo:                 # constant data: centre the value in the TF domain
+        pad = max(0.5, 1e-3 * abs(vlo))
+        vlo, vhi = vlo - pad, vhi + pad
+    domain = (get_float(props, "amr", "tf_min", vlo), get_float(props, "amr", "tf_max", vhi))
+    if domain[1] <= domain[0]:
+        raise ParameterError(f"amr: tf_min must be below tf_max, got {domain[0]} and {domain[1]}")
+    if isinstance(tf, TransferFunction):
+        return tf
+    if isinstance(tf, str):
+        tf_path = tf
+        if tf.endswith(".json"):
+            tf_path = str(mi.file_resolver().resolve(tf))
+        return TransferFunction.load(tf_path, domain)
+    raise ParameterError(f"amr: transfer_function must be a preset name, a .json path "
+                         f"or a TransferFunction, got {type(tf).__name__}")
+
+
+def _to_world(props) -> "mi.ScalarTransform4f":
+    """``to_world`` as a finite, invertible ScalarTransform4f."""
+    if "to_world" not in props.keys():
+        return mi.ScalarTransform4f()
+    t = props["to_world"]
+    if not hasattr(t, "matrix"):
+        raise ParameterError(f"amr: to_world must be a transform, got {t!r} ({type(t).__name__})")
+    m = np.array(t.matrix, dtype=np.float64)
+    if not np.all(np.isfinite(m)):
+        raise ParameterError("amr: to_world has non-finite entries")
+    a = m[:3, :3]
+    cond = np.linalg.cond(a)
+    if not np.isfinite(cond) or cond > MAX_CONDITION:
+        raise ParameterError(f"amr: to_world is singular or too ill-conditioned for float32 "
+                             f"(condition number {cond:.3g} > {MAX_CONDITION:.0e})")
+    return as_transform4f(t)

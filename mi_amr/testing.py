@@ -1,0 +1,77 @@
+"""Oracles for tests: brute-force reconstruction and image statistics.
+
+Slow by design (O(cells) per point, many render passes); never used while
+rendering.
+"""
+
+from __future__ import annotations
+
+import mitsuba as mi
+import numpy as np
+
+from .data.cells import AMRCells
+from .data.reconstruction import WEIGHT_EPS, check_method
+
+
+def brute_force(cells: AMRCells, x, method: str = "tent", chunk: int = 256):
+    """Reconstruct at points ``x`` (M, 3), absolute finest units, by looping
+    over all cells (vectorised). Returns ``(value, found)``."""
+    check_method(method)
+    x = np.asarray(x, dtype=np.float64)
+    w = cells.width.astype(np.float64)
+    lo = cells.pos.astype(np.float64)
+    val = np.zeros(len(x))
+    found = np.zeros(len(x), dtype=bool)
+    for s in range(0, len(x), chunk):
+        xs = x[s:s + chunk, None, :]
+        if method == "tent":
+            c = lo + 0.5 * w[:, None]
+            phi = np.prod(np.maximum(0.0, 1.0 - np.abs(xs - c) / w[:, None]), axis=2)
+            sw = phi.sum(axis=1)
+            found[s:s + chunk] = sw > WEIGHT_EPS
+            val[s:s + chunk] = np.where(sw > WEIGHT_EPS, (phi * cells.value).sum(axis=1) / np.maximum(sw, 1e-300), 0.0)
+        else:
+            inside = np.all((xs >= lo) & (xs < lo + w[:, None]), axis=2)
+            # finest containing cell: smallest width among those that contain x
+            wm = np.where(inside, w, np.inf)
+            j = np.argmin(wm, axis=1)
+            hit = inside[np.arange(len(j)), j]
+            found[s:s + chunk] = hit
+            val[s:s + chunk] = np.where(hit, cells.value[j], 0.0)
+    return val, found
+
+
+def render_passes(scene, passes: int, spp: int, seed0: int = 0, sensor=0) -> np.ndarray:
+    """``passes`` independent renders (seeds ``seed0 ..``), shape (P, H, W, C)."""
+    imgs = []
+    for i in range(passes):
+        img = mi.render(scene, spp=spp, seed=seed0 + i, sensor=sensor)
+        imgs.append(np.array(img, dtype=np.float64))
+    return np.stack(imgs)
+
+
+def block_z_scores(passes_a: np.ndarray, passes_b: np.ndarray, block: int = 8,
+                   rel_floor: float = 1e-5) -> np.ndarray:
+    """z-scores of the difference of per-block image means of two estimators.
+
+    Each input holds independent passes (P, H, W, C). Per block (``block``
+    pixels square, channels averaged) the mean over passes and its standard
+    error (sample std / sqrt(P)) are formed; the result is
+    ``(mean_a - mean_b) / sqrt(se_a^2 + se_b^2 + (rel_floor * mean)^2)``
+    per block. The floor stands for float32 rounding: an estimator with zero
+    variance (a block that sees only the background) still carries rounding
+    noise of order 1e-7 relative per path vertex.
+    """
+    def block_means(p):
+        P, H, W = p.shape[:3]
+        hb, wb = H // block, W // block
+        q = p[:, :hb * block, :wb * block].reshape(P, hb, block, wb, block, -1)
+        return q.mean(axis=(2, 4, 5))
+
+    ma, mb = block_means(passes_a), block_means(passes_b)
+    mean_a, mean_b = ma.mean(axis=0), mb.mean(axis=0)
+    se2 = ma.var(axis=0, ddof=1) / len(ma) + mb.var(axis=0, ddof=1) / len(mb)
+    se2 = se2 + (rel_floor * 0.5 * (np.abs(mean_a) + np.abs(mean_b))) ** 2
+    diff = mean_a - mean_b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(se2 > 0, diff / np.sqrt(se2), np.where(diff == 0, 0.0, np.inf))

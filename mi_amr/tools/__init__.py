@@ -1,0 +1,1 @@
+"""Tools: command line, benchmark, dense references, XML scene rewriting, image I/O."""

@@ -1,0 +1,389 @@
+"""The mi-amr benchmark: render time against error, in one process.
+
+    python -m mi_amr.bench [--quick] --out DIR [FILE.cells ...]
+
+For each data set (the synthetic ``cloud``, ``shell``, ``stadium`` and any
+``.cells`` file given) x transfer function (``spiky``, ``foggy``) x
+configuration (Mitsuba's ``heterogeneous`` + ``gridvolume`` reference on the
+dense resampling, the ``amr`` medium in stock ``volpath`` with ``global``
+and ``ray`` majorants, and ``amrvolpath`` with every traversal x sampling),
+it measures build time, kernel compile time (the first frame), the median
+frame time, RMSE against a high-sample reference image, efficiency
+``1 / (MSE * seconds)``, density look-ups per real collision, structure
+memory and the majorant recompute time of a TF change. Reconstruction is
+``nearest`` by default so that the dense reference renders exactly the same
+field and every configuration converges to the same image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+from .._llvm import ensure_llvm_path
+
+TRAVERSALS = ("grid", "abr", "brick", "kdtree")
+SAMPLINGS = ("hash", "abr", "brick")
+SCALES = {("cloud", "spiky"): 60.0, ("cloud", "foggy"): 150.0,
+          ("shell", "spiky"): 60.0, ("shell", "foggy"): 200.0,
+          ("stadium", "spiky"): 300.0, ("stadium", "foggy"): 300.0}
+
+
+def all_configs():
+    out = ["reference", "volpath/global", "volpath/ray"]
+    out += [f"amrvolpath/{t}/{s}" for t in TRAVERSALS for s in SAMPLINGS]
+    return out
+
+
+def bench_scene(medium, res: int, integrator: dict):
+    """The benchmark view: the volume in the unit cube, sun and sky light."""
+    import mitsuba as mi
+    T = mi.ScalarTransform4f
+    return {"type": "scene", "integrator": integrator,
+            "sensor": {"type": "perspective", "fov": 38,
+                       "to_world": T().look_at([1.7, 1.25, 2.4], [0.5, 0.47, 0.5], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
+            "env": {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.55, 0.65]}},
+            "sun": {"type": "directional", "direction": [-0.5, -1.0, -0.35],
+                    "irradiance": {"type": "rgb", "value": 2.5}},
+            "volume": {"type": "cube", "to_world": T().translate([0.5, 0.5, 0.5]) @ T().scale(0.5),
+                       "bsdf": {"type": "null"}, "interior": medium}}
+
+
+def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resolution=None):
+    """Measure one configuration; returns (record, image)."""
+    import drjit as dr
+    import numpy as np
+
+    from .reference import dense_bytes, reference_medium
+    kind = config.split("/")
+    integ = {"type": "volpath", "max_depth": args.max_depth}
+    t0 = time.perf_counter()
+    if kind[0] == "reference":
+        medium = reference_medium(cells, tf, scale, args.reconstruction,
+                                  memory_limit=int(args.memory_limit * 2**30))
+    else:
+        medium = {"type": "amr", "data": cells, "transfer_function": tf, "density_scale": scale,
+                  "reconstruction": args.reconstruction}
+        if grid_resolution is not None:
+            medium["grid_resolution"] = int(grid_resolution)
+        if kind[0] == "volpath":
+            medium["majorant"] = kind[1]
+        else:
+            medium.update(traversal=kind[1], sampling=kind[2])
+            integ = {"type": "amrvolpath", "max_depth": args.max_depth, "counters": True}
+    scene = mi.load_dict(bench_scene(medium, args.res, integ))
+    build_s = time.perf_counter() - t0
+    integrator = scene.integrator()
+    t0 = time.perf_counter()
+    np.array(mi.render(scene, spp=1, seed=99_999))
+    compile_s = time.perf_counter() - t0
+    times, mses, img = [], [], None
+    acc = None
+    if hasattr(integrator, "reset_counters"):
+        integrator.reset_counters()
+    for r in range(args.repeats):
+        t0 = time.perf_counter()
+        img = np.array(mi.render(scene, spp=args.spp, seed=r), dtype=np.float64)
+        times.append(time.perf_counter() - t0)
+        acc = img if acc is None else acc + img
+        if ref_image is not None:
+            mses.append(float(np.mean((img - ref_image) ** 2)))
+    seconds = statistics.median(times)
+    curve = []
+    if ref_image is not None:
+        for n in args.curve_spp:
+            t0 = time.perf_counter()
+            im = np.array(mi.render(scene, spp=n, seed=777 + n), dtype=np.float64)
+            curve.append([n, time.perf_counter() - t0, float(np.sqrt(np.mean((im - ref_image) ** 2)))])
+    rec = {"config": config, "build_s": build_s, "compile_s": compile_s, "curve": curve,
+           "seconds_per_frame": seconds, "spp": args.spp,
+           "seconds_per_spp": seconds / args.spp, "mean": float(img.mean())}
+    if ref_image is not None:
+        mse = float(np.mean(mses))               # over the repeats: a steadier estimate
+        rec["rmse"] = mse ** 0.5
+        rec["efficiency"] = 1.0 / (mse * seconds) if mse > 0 else float("inf")
+    if hasattr(integrator, "counters"):
+        c = integrator.counters()
+        rec["lookups_per_collision"] = c["lookups_per_collision"]
+        rec["counters"] = c
+    else:
+        rec["lookups_per_collision"] = None
+    if kind[0] == "reference":
+        rec["structure_bytes"] = dense_bytes(cells)
+        rec["majorant_update_s"] = None
+    else:
+        med = [s for s in scene.shapes() if s.interior_medium() is not None][0].interior_medium()
+        rec["structure_bytes"] = med.structure_bytes
+        dr.eval()
+        t0 = time.perf_counter()
+        for _ in range(5):
+            med.update_majorants()
+            dr.eval(med.structures.global_majorant)
+            dr.sync_thread()
+        rec["majorant_update_s"] = (time.perf_counter() - t0) / 5
+        rec["build_detail_s"] = dict(med.build_seconds)
+    return rec, acc / args.repeats
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m mi_amr.bench", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("files", nargs="*", help="extra .cells data sets")
+    p.add_argument("--out", required=True, help="results folder")
+    p.add_argument("--quick", action="store_true", help="small sizes: minutes on 2 cores")
+    p.add_argument("--cells", type=int, default=20000)
+    p.add_argument("--res", type=int, default=128)
+    p.add_argument("--spp", type=int, default=16)
+    p.add_argument("--ref-spp", type=int, default=1024)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--max-depth", type=int, default=64)
+    p.add_argument("--datasets", nargs="*", default=["cloud", "shell", "stadium"])
+    p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
+    p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
+    p.add_argument("--reconstruction", default="nearest", choices=("nearest", "tent"))
+    p.add_argument("--memory-limit", type=float, default=4.0,
+                   help="GiB allowed for the dense reference; larger data sets skip it")
+    p.add_argument("--variant", default="llvm_ad_rgb")
+    p.add_argument("--curve-spp", type=int, nargs="*", default=[1, 2, 4, 8],
+                   help="sample counts of the error-against-time curves")
+    p.add_argument("--sweep", type=int, nargs="*", default=[8, 12, 16, 24, 32, 48, 64, 96],
+                   help="grid resolutions of the sweep (amrvolpath/grid/hash); empty: no sweep")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.cells, args.res, args.spp, args.ref_spp, args.repeats = 4000, 48, 4, 128, 3
+        args.curve_spp, args.sweep = [1, 2, 4], [8, 16, 32, 64]
+
+    ensure_llvm_path()
+    import mitsuba as mi
+    mi.set_variant(args.variant)
+    import mi_amr
+    from ..data.datasets import make_dataset
+    from ..data.io import load_cells
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    configs = args.configs or all_configs()
+    data = [(n, make_dataset(n, cells=args.cells, levels=7 if n == "stadium" else 4)) for n in args.datasets]
+    data += [(Path(f).stem, load_cells(f)) for f in args.files]
+    records, sweeps = [], []
+    t_start = time.perf_counter()
+    for name, cells in data:
+        for tf_name in args.tfs:
+            tf = mi_amr.TransferFunction.preset(tf_name, cells.value_range)
+            scale = SCALES.get((name, tf_name), 100.0)
+            # High-sample reference image: the default amrvolpath configuration.
+            ref_args = argparse.Namespace(**{**vars(args), "spp": args.ref_spp, "repeats": 1})
+            _, ref_img = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, ref_args)
+            ref_rec = None
+            for config in configs:
+                try:
+                    rec, _ = run_config(mi, config, cells, tf, scale, args, ref_img)
+                except MemoryError as e:          # the dense reference does not fit
+                    print(f"{name:8s} {tf_name:6s} {config:24s} skipped: {e}", flush=True)
+                    records.append({"dataset": name, "tf": tf_name, "config": config, "cells": len(cells),
+                                    "skipped": str(e)})
+                    continue
+                rec.update(dataset=name, tf=tf_name, cells=len(cells), density_scale=scale)
+                if config == "reference":
+                    ref_rec = rec
+                rec["efficiency_vs_reference"] = (rec["efficiency"] / ref_rec["efficiency"]
+                                                  if ref_rec and ref_rec.get("efficiency") else None)
+                records.append(rec)
+                lpc = rec["lookups_per_collision"]
+                print(f"{name:8s} {tf_name:6s} {config:24s} {rec['seconds_per_spp'] * 1e3:8.2f} ms/spp "
+                      f"rmse {rec['rmse']:.4f} eff x{rec['efficiency_vs_reference'] or float('nan'):6.2f} "
+                      f"lookups/coll {lpc if lpc is not None else float('nan'):6.2f} "
+                      f"build {rec['build_s']:6.2f}s", flush=True)
+            if args.sweep:
+                sweeps.append(grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img))
+            (out / "results.json").write_text(json.dumps(records, indent=1, default=float))
+            (out / "sweep.json").write_text(json.dumps(sweeps, indent=1, default=float))
+    tf_timing = tf_change_timing(mi, args, data[0][1] if data else None)
+    (out / "tf_change.json").write_text(json.dumps(tf_timing, indent=1, default=float))
+    write_tables(records, sweeps, out, tf_timing)
+    plot_curves(records, out)
+    plot_sweeps(sweeps, out)
+    print(f"wrote {out}/results.json, sweep.json, tables.md and the PNG curves "
+          f"({time.perf_counter() - t_start:.0f} s)")
+    return 0
+
+
+def tf_change_timing(mi, args, cells):
+    """Majorant recompute time for 10^5, 10^6 and 10^7 leaves (one Dr.Jit
+    kernel over the leaves' value ranges), and the first frame after a TF
+    change against the steady-state frame time."""
+    import drjit as dr
+    import numpy as np
+
+    import mi_amr
+    from ..transfer.device import DeviceTransferFunction
+    rng = np.random.default_rng(0)
+    tf = DeviceTransferFunction(mi_amr.TransferFunction.preset("spiky", (0.0, 1.0)))
+    scale = mi.Float(50.0)
+    dr.make_opaque(scale)
+    out = {"recompute": []}
+    for n in (10**5, 10**6, 10**7):
+        a = rng.random(n, dtype=np.float32)
+        vmin = mi.Float(a)
+        vmax = mi.Float(a + rng.random(n, dtype=np.float32) * 0.2)
+        dr.eval(vmin, vmax)
+        times = []
+        for i in range(6):
+            t0 = time.perf_counter()
+            maj = scale * tf.range_max_alpha(vmin, vmax)
+            dr.eval(maj)
+            dr.sync_thread()
+            times.append(time.perf_counter() - t0)
+        ms = 1e3 * statistics.median(times[1:])          # the first includes compilation
+        out["recompute"].append({"leaves": n, "ms": ms, "ms_per_million": ms / (n / 1e6)})
+        print(f"majorant recompute: {n:>9d} leaves {ms:8.2f} ms ({ms / (n / 1e6):.2f} ms per 10^6)", flush=True)
+    if cells is not None:
+        scene = mi.load_dict(bench_scene({"type": "amr", "data": cells, "transfer_function": "foggy",
+                                          "density_scale": 150.0}, args.res,
+                                         {"type": "amrvolpath", "max_depth": args.max_depth}))
+        np.array(mi.render(scene, spp=args.spp, seed=0))        # compile
+        new_tf = mi_amr.TransferFunction.from_colormap("magma", [(0, 0), (0.4, 0.2), (1, 0.1)],
+                                                       cells.value_range, n=128)
+        t0 = time.perf_counter()
+        mi_amr.set_transfer_function(scene, new_tf, density_scale=120.0)
+        update_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        np.array(mi.render(scene, spp=args.spp, seed=7))
+        first = time.perf_counter() - t0
+        steady = []                                    # the same TF, frames after the first
+        for r in range(3):
+            t0 = time.perf_counter()
+            np.array(mi.render(scene, spp=args.spp, seed=r))
+            steady.append(time.perf_counter() - t0)
+        out["frame"] = {"steady_s": statistics.median(steady), "first_after_change_s": first,
+                        "ratio": first / statistics.median(steady), "set_transfer_function_s": update_s}
+        print(f"first frame after a TF change: {first:.3f} s vs steady {statistics.median(steady):.3f} s "
+              f"({out['frame']['ratio']:.2f}x); set_transfer_function {1e3 * update_s:.1f} ms", flush=True)
+    return out
+
+
+def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
+    """Efficiency of amrvolpath/grid/hash over grid resolutions, and of the
+    resolution `auto_resolution` picks (Fig. 8 of the paper)."""
+    from ..structures.cost_model import auto_resolution
+    rows = []
+    for r in args.sweep:
+        rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img, grid_resolution=r)
+        rows.append({"grid_resolution": r, "efficiency": rec["efficiency"],
+                     "seconds_per_spp": rec["seconds_per_spp"],
+                     "lookups_per_collision": rec["lookups_per_collision"]})
+    auto, costs = auto_resolution(cells, tf, scale, support=args.reconstruction)
+    rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img, grid_resolution=auto)
+    best = max(rows, key=lambda x: x["efficiency"])
+    out = {"dataset": name, "tf": tf_name, "rows": rows, "auto_resolution": auto,
+           "auto_efficiency": rec["efficiency"], "best_resolution": best["grid_resolution"],
+           "best_efficiency": best["efficiency"], "auto_vs_best": rec["efficiency"] / best["efficiency"],
+           "model_costs": costs}
+    print(f"{name:8s} {tf_name:6s} grid sweep: best R={best['grid_resolution']}, auto R={auto} "
+          f"reaches {out['auto_vs_best']:.0%} of the best efficiency", flush=True)
+    return out
+
+
+def plot_curves(records, out: Path):
+    """RMSE against render seconds, log-log, one PNG per data set x TF."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    for key in dict.fromkeys((r["dataset"], r["tf"]) for r in records):
+        rows = [r for r in records if (r["dataset"], r["tf"]) == key and r.get("curve")]
+        if not rows:
+            continue
+        fig, ax = plt.subplots(figsize=(7, 5))
+        for r in rows:
+            c = [p for p in r["curve"] if p[2] > 0]
+            style = "-" if r["config"].startswith("amrvolpath") else "--"
+            lw = 2.5 if r["config"] in ("reference", "amrvolpath/grid/hash") else 1.0
+            ax.loglog([p[1] for p in c], [p[2] for p in c], style, marker="o", ms=3, lw=lw, label=r["config"])
+        ax.set_xlabel("render time [s]")
+        ax.set_ylabel("RMSE vs high-spp image")
+        ax.set_title(f"{key[0]} / {key[1]}: error against time")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7, ncol=2)
+        fig.tight_layout()
+        fig.savefig(out / f"curves_{key[0]}_{key[1]}.png", dpi=110)
+        plt.close(fig)
+
+
+def plot_sweeps(sweeps, out: Path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    if not sweeps:
+        return
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for sw in sweeps:
+        r = [x["grid_resolution"] for x in sw["rows"]]
+        e = [x["efficiency"] / sw["best_efficiency"] for x in sw["rows"]]
+        line, = ax.semilogx(r, e, marker="o", label=f"{sw['dataset']}/{sw['tf']}")
+        ax.plot([sw["auto_resolution"]], [sw["auto_vs_best"]], marker="*", ms=14, color=line.get_color())
+    ax.set_xlabel("grid resolution (macrocells along the longest axis)")
+    ax.set_ylabel("efficiency / best of sweep (star: automatic choice)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "grid_sweep.png", dpi=110)
+    plt.close(fig)
+
+
+def write_tables(records, sweeps, out: Path, tf_timing=None):
+    """One Markdown table per data set, laid out like the paper's Table 2,
+    and the grid-resolution sweep."""
+    lines = ["# mi-amr benchmark", ""]
+    for name in dict.fromkeys(r["dataset"] for r in records):
+        skipped = [r for r in records if r["dataset"] == name and r.get("skipped")]
+        rows = [r for r in records if r["dataset"] == name and not r.get("skipped")]
+        tfs = list(dict.fromkeys(r["tf"] for r in rows))
+        lines += [f"## {name} ({rows[0]['cells']} cells)", "",
+                  "| configuration | " + " | ".join(f"{t}: ms/spp | {t}: eff. vs ref | {t}: look-ups/coll."
+                                                     for t in tfs) + " | memory MiB |",
+                  "|---|" + "---|---|---|" * len(tfs) + "---|"]
+        for config in dict.fromkeys(r["config"] for r in rows):
+            cells = []
+            mem = None
+            for t in tfs:
+                r = next((x for x in rows if x["config"] == config and x["tf"] == t), None)
+                if r is None:
+                    cells += ["", "", ""]
+                    continue
+                mem = r["structure_bytes"] / 2**20
+                eff = r.get("efficiency_vs_reference")
+                lpc = r.get("lookups_per_collision")
+                cells += [f"{r['seconds_per_spp'] * 1e3:.2f}", f"{eff:.2f}x" if eff else "",
+                          f"{lpc:.2f}" if lpc else ""]
+            lines.append(f"| {config} | " + " | ".join(cells) + f" | {mem:.2f} |")
+        for r in skipped:
+            lines.append(f"\n{r['config']} ({r['tf']}) skipped: {r['skipped']}")
+        lines.append("")
+    if sweeps:
+        lines += ["## Grid resolution sweep (amrvolpath/grid/hash)", "",
+                  "| data set | TF | best R | best efficiency | auto R | auto / best |", "|---|---|---|---|---|---|"]
+        for sw in sweeps:
+            lines.append(f"| {sw['dataset']} | {sw['tf']} | {sw['best_resolution']} | {sw['best_efficiency']:.4g} | "
+                         f"{sw['auto_resolution']} | {sw['auto_vs_best']:.0%} |")
+        lines.append("")
+    if tf_timing:
+        lines += ["## Transfer-function change", "", "| leaves | majorant recompute ms | ms per 10^6 leaves |",
+                  "|---|---|---|"]
+        for r in tf_timing["recompute"]:
+            lines.append(f"| {r['leaves']} | {r['ms']:.2f} | {r['ms_per_million']:.2f} |")
+        if "frame" in tf_timing:
+            f = tf_timing["frame"]
+            lines += ["", f"First frame after a TF change: {f['first_after_change_s']:.3f} s, steady state "
+                          f"{f['steady_s']:.3f} s ({f['ratio']:.2f}x); set_transfer_function "
+                          f"{1e3 * f['set_transfer_function_s']:.1f} ms."]
+        lines.append("")
+    (out / "tables.md").write_text("\n".join(lines))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Transfer functions: the host table (`function`) and its Dr.Jit side (`device`)."""
