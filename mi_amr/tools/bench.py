@@ -264,7 +264,38 @@ def tf_change_timing(mi, args, cells):
                         "ratio": first / statistics.median(steady), "set_transfer_function_s": update_s}
         print(f"first frame after a TF change: {first:.3f} s vs steady {statistics.median(steady):.3f} s "
               f"({out['frame']['ratio']:.2f}x); set_transfer_function {1e3 * update_s:.1f} ms", flush=True)
+        out["frozen"] = frozen_frame_timing(mi, scene, args.spp)
     return out
+
+
+def frozen_frame_timing(mi, scene, spp: int, rounds: int = 5):
+    """Frame time of a ``dr.freeze``-recorded render against a plain one on
+    the same scene, alternating the two; medians and the per-round ratios."""
+    import drjit as dr
+    import numpy as np
+
+    @dr.freeze
+    def frozen(scene, seed):
+        return mi.render(scene, spp=spp, seed=seed)
+
+    for seed in (100, 101):                          # record, and the state Mitsuba adds after a frame
+        np.array(frozen(scene, dr.opaque(mi.UInt32, seed)))
+    plain_s, frozen_s = [], []
+    for r in range(rounds):
+        t0 = time.perf_counter()
+        np.array(mi.render(scene, spp=spp, seed=r))
+        plain_s.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        np.array(frozen(scene, dr.opaque(mi.UInt32, r)))
+        frozen_s.append(time.perf_counter() - t0)
+    ratios = sorted(p / f for p, f in zip(plain_s, frozen_s))
+    res = {"plain_s": statistics.median(plain_s), "frozen_s": statistics.median(frozen_s),
+           "speedup_median": statistics.median(ratios), "speedup_range": [ratios[0], ratios[-1]],
+           "recordings": frozen.n_recordings}
+    print(f"frozen frame {res['frozen_s']:.3f} s vs plain {res['plain_s']:.3f} s: "
+          f"{res['speedup_median']:.2f}x (range {ratios[0]:.2f}-{ratios[-1]:.2f}, "
+          f"{frozen.n_recordings} recordings)", flush=True)
+    return res
 
 
 def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
