@@ -1,6 +1,5 @@
 """The amrvolpath integrator: same expectation as volpath, every structure."""
 
-import itertools
 
 import mitsuba as mi
 import numpy as np

@@ -1,11 +1,9 @@
 """Builders of the ExaBricks family against brute-force oracles."""
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-import mi_amr
 from mi_amr.structures.brick_lists import BrickLists
 from mi_amr.device.bricks import BrickSampler, DeviceBrickLists, DeviceBricks
 from mi_amr.structures.bricks import Bricks
