@@ -13,11 +13,12 @@ import os
 
 ENV_VAR = "MI_AMR_MEMORY_LIMIT"
 
-#: Peak build bytes per cell of each structure (measured, rounded up).
+#: Peak build bytes per item (a cell; for "hash" a block) of each structure
+#: (measured, rounded up).
 BYTES_PER_CELL = {
     "cells": 160,          # AMRCells validation (keys, sorting): 80 measured
-    "hash_nearest": 350,   # CellHash: keys, payload, build temporaries: 173
-    "hash_tent": 1000,     # StencilHash: 8 stencils per cell, unique/sort: 456
+    "volume": 64,          # BlockVolume from a file: chunk temporaries + values
+    "hash": 400,           # hash of blocks: keys, payload, build temporaries
     "bricks": 200,         # Bricks: per-level grouping rounds: 75
 }
 #: Bytes per macrocell: host ranges and level mask, device copies, majorants.

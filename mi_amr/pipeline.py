@@ -1,8 +1,9 @@
-"""The structures pipeline: from cells and options to device structures.
+"""The structures pipeline: from AMR data and options to device structures.
 
-`Structures` builds, once per medium, exactly what the chosen traversal and
-sampling need (host structures are cached on the `AMRCells` object, so media
-sharing data build them once), checks each build against the memory budget,
+The data are kept in their compact form, a `BlockVolume` (docs/design.md
+section 9). `Structures` builds, once per medium, exactly what the chosen
+traversal and sampling need (host structures are cached on the data object,
+so media sharing data build them once), checks each build against the memory budget,
 uploads the device structs and recomputes every majorant when the transfer
 function or the density scale changes (docs/design.md sections 4 and 6).
 
@@ -19,6 +20,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .device.bricks import BrickSampler, DeviceBrickLists, DeviceBricks
 from .device.grid import DeviceMacrocellGrid
@@ -29,7 +31,6 @@ from .device.tree import DeviceTree
 from .memory import require, structure_bytes
 from .structures.brick_lists import BrickLists
 from .structures.bricks import Bricks
-from .structures.cell_hash import key_origin
 from .structures.cost_model import auto_resolution
 from .structures.kdtree_sah import build_sah_kdtree
 from .structures.macrocell_grid import MacrocellGrid, axis_resolution, default_resolution
@@ -65,17 +66,25 @@ class Structures:
     device struct). `segments` and `sampler` return views over them.
     """
 
-    def __init__(self, cells: AMRCells, options: StructureOptions, tf: TransferFunction,
+    def __init__(self, data: AMRCells | BlockVolume, options: StructureOptions, tf: TransferFunction,
                  density_scale: float, world_scale: float):
-        self.cells = cells
+        if isinstance(data, AMRCells):          # blocks of the cells, made once per AMRCells object
+            self._given_cells = data
+            cache = data.__dict__.setdefault("_mi_amr_cache", {})
+            if "volume" not in cache:
+                cache["volume"] = BlockVolume.from_cells(data)
+            data = cache["volume"]
+        else:
+            self._given_cells = None
+        self.volume = data
         self.options = options
         self.world_scale = world_scale
         self._tf, self._density_scale = tf, density_scale
         self.device = {}
         self.host = {}                  # host-only structures (bricks)
         self.build_seconds = {}
-        lo, hi = cells.bounds
-        self.origin = key_origin(cells)
+        lo, hi = data.bounds
+        self.origin = data.origin
         self.offset = mi.Vector3f(*[float(c) for c in lo - self.origin])
         self.extent = mi.Vector3f(*[float(c) for c in hi - lo])
         self.global_majorant = mi.Float(0.0)
@@ -93,7 +102,7 @@ class Structures:
         if name not in store:
             if dr.flag(dr.JitFlag.SymbolicScope):
                 raise RuntimeError(f"amr: structure '{name}' must be built before rendering")
-            require(need, f"amr: the {name} structure of {self.cells.source} ({len(self.cells)} cells)",
+            require(need, f"amr: the {name} structure of {self.volume.source} ({len(self.volume)} cells)",
                     self.options.memory_limit, "use fewer cells or raise the limit")
             t0 = time.perf_counter()
             store[name] = make()
@@ -103,21 +112,34 @@ class Structures:
         return store[name]
 
     def _host_cached(self, key, make):
-        """Host structures depend only on the cells and build options: cache
-        them on the AMRCells object (a re-loaded scene builds nothing)."""
-        cache = self.cells.__dict__.setdefault("_mi_amr_cache", {})
+        """Host structures depend only on the data and build options: cache
+        them on the data object (a re-loaded scene builds nothing)."""
+        cache = self.volume.__dict__.setdefault("_mi_amr_cache", {})
         if key not in cache:
             cache[key] = make()
         return cache[key]
+
+    @property
+    def cells(self) -> AMRCells:
+        """Per-cell records, for the builders that still need them (bricks,
+        region trees): the `AMRCells` given, or made from the blocks once."""
+        if self._given_cells is not None:
+            return self._given_cells
+        return self._host_cached("cells", self.volume.to_cells)
 
     @property
     def grid(self) -> DeviceMacrocellGrid:
         def make():
             res = self.options.grid_resolution
             if res is None:                 # cost model of the data and the TF
-                res, _ = auto_resolution(self.cells, self._tf, self._density_scale,
-                                         self.world_scale, self.options.reconstruction)
-            return DeviceMacrocellGrid(MacrocellGrid(self.cells, res, support=self.options.reconstruction,
+                grids = {}
+                res, _ = auto_resolution(self.volume, self._tf, self._density_scale,
+                                         self.world_scale, self.options.reconstruction, grids=grids)
+                for g in grids.values():    # the chosen grid from the finest one, if they tile
+                    pooled = g.pooled(res)
+                    if pooled is not None:
+                        return DeviceMacrocellGrid(pooled)
+            return DeviceMacrocellGrid(MacrocellGrid(self.volume, res, support=self.options.reconstruction,
                                                      memory_limit=self.options.memory_limit))
         return self._build("grid", make)
 
@@ -125,7 +147,7 @@ class Structures:
     def bricks(self) -> Bricks:
         size = self.options.brick_size
         return self._build("bricks", lambda: self._host_cached(("bricks", size), lambda: Bricks(self.cells, size)),
-                           need=structure_bytes("bricks", len(self.cells)), store=self.host)
+                           need=structure_bytes("bricks", len(self.volume)), store=self.host)
 
     def brick_tree(self, kind: str) -> DeviceTree:
         """kd-tree over brick domains (``abr``) or brick bounds (``brick``)."""
@@ -133,7 +155,7 @@ class Structures:
 
         def make_host():
             b = self.bricks
-            lo, hi = self.cells.bounds
+            lo, hi = self.volume.bounds
             if kind == "abr":
                 blo, bhi = b.domains()
             else:
@@ -144,7 +166,7 @@ class Structures:
             return tree, vmin, vmax
 
         def make():
-            lo, hi = self.cells.bounds
+            lo, hi = self.volume.bounds
             tree, vmin, vmax = self._host_cached((f"{kind}_tree", self.options.brick_size, method), make_host)
             return DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), vmin, vmax)
         return self._build(f"{kind}_tree", make)
@@ -153,9 +175,9 @@ class Structures:
         """SAH kd-tree built for the current TF over a macrocell grid four
         times finer than the default one (at most 128 per axis)."""
         def make():
-            res = int(min(128, 4 * default_resolution(self.cells).max()))
+            res = int(min(128, 4 * default_resolution(self.volume).max()))
             g = self._host_cached(("kd_grid", res, self.options.reconstruction),
-                                  lambda: MacrocellGrid(self.cells, res, support=self.options.reconstruction,
+                                  lambda: MacrocellGrid(self.volume, res, support=self.options.reconstruction,
                                                         memory_limit=self.options.memory_limit))
             r = g.res
             shape = (r[2], r[1], r[0])
@@ -184,14 +206,14 @@ class Structures:
         method, sampling = self.options.reconstruction, self.options.sampling
         if sampling == "hash":
             grid = self.grid                       # its level masks limit the levels visited
-            table = self._build("hash", lambda: DeviceReconstruction(self.cells, method),
-                                need=structure_bytes(f"hash_{method}", len(self.cells)))
+            table = self._build("hash", lambda: DeviceReconstruction(self.volume, method),
+                                need=structure_bytes("hash", len(self.volume.level)) + self.volume.values.nbytes)
             return HashSampler(table, grid, self.offset, self.extent)
         bricks = self._build("device_bricks", lambda: DeviceBricks(self.bricks, self.origin))
         if sampling == "abr":
             return BrickSampler(bricks, method, self.offset, self.extent, abr_tree=self.brick_tree("abr"))
-        lo, hi = self.cells.bounds
-        res = _list_grid_resolution(self.cells)
+        lo, hi = self.volume.bounds
+        res = _list_grid_resolution(self.volume)
         lists = self._build("brick_lists", lambda: DeviceBrickLists(BrickLists(
             self.bricks, lo, hi - lo, res, memory_limit=self.options.memory_limit)))
         return BrickSampler(bricks, method, self.offset, self.extent, lists=lists)

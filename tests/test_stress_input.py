@@ -171,8 +171,10 @@ def test17b_fuzz_structured_records(tmp_path_factory, rec, vals, cut, overlap):
     c = _check_loaded_or_clear_error(lambda: read_exabricks(d / "f.cells", overlap=overlap),
                                      ["f.cells", "f.scalars"])
     if c is not None:
-        from mi_amr.structures.cell_hash import CellHash
-        CellHash(c)                                   # point location accepts every valid data set
+        from mi_amr.data.blocks import BlockVolume
+        v = BlockVolume.from_cells(c)                 # point location accepts every valid data set
+        value, found = v.lookup(int(c.level[0]), (c.pos[:1] - v.origin) >> int(c.level[0]))
+        assert found.all() and value[0] == c.value[0]
         lo, hi = c.bounds
         assert (hi - lo).max() < 2**31
 

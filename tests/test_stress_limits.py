@@ -97,7 +97,7 @@ def test16_structures_that_do_not_fit_fail_before_allocating(llvm, tmp_path, mon
     any large allocation."""
     import time
     from mi_amr.memory import MemoryLimitError, parse_bytes
-    cells = constant_cells(4)
+    cells = constant_cells(8)
     t0 = time.perf_counter()
     with pytest.raises(Exception, match=r"macrocell grid of 10000x10000x10000 cells needs about .* TiB"):
         mi.load_dict({"type": "amr", "data": cells, "grid_resolution": 10000})

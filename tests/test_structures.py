@@ -7,7 +7,6 @@ import pytest
 from mi_amr.structures.brick_lists import BrickLists
 from mi_amr.device.bricks import BrickSampler, DeviceBrickLists, DeviceBricks
 from mi_amr.structures.bricks import Bricks
-from mi_amr.structures.cell_hash import key_origin
 from mi_amr.data.datasets import make_dataset
 from mi_amr.structures.kdtree_sah import build_sah_kdtree
 from mi_amr.testing import brute_force
@@ -86,7 +85,7 @@ def test03_leaf_ranges_contain_reconstructed_values(data, method):
 @pytest.mark.parametrize("method", ["tent", "nearest"])
 def test04_brick_sampling_matches_brute_force(variant, data, mode, method):
     b = Bricks(data)
-    origin = key_origin(data)
+    origin = data.origin
     lo, hi = data.bounds
     dev = DeviceBricks(b, origin)
     frame = (mi.Vector3f(*[float(c) for c in lo - origin]), mi.Vector3f(*[float(c) for c in hi - lo]))

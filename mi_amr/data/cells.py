@@ -62,22 +62,8 @@ class AMRCells(mi.Object):
     # ---- Validation ----------------------------------------------------
     def _validate(self, overlap: str):
         src = self.source
-        if np.any(self.level < 0):
-            i = int(np.argmax(self.level < 0))
-            raise ValueError(f"{src}: cell {i} has negative level {self.level[i]}")
-        if np.any(self.level > MAX_LEVEL):
-            i = int(np.argmax(self.level > MAX_LEVEL))
-            raise ValueError(f"{src}: cell {i} has level {self.level[i]} > {MAX_LEVEL}")
-        if not np.all(np.isfinite(self.value)):
-            i = int(np.argmax(~np.isfinite(self.value)))
-            raise ValueError(f"{src}: cell {i} has non-finite value {self.value[i]}")
+        check_cells(self.pos, self.level, self.value, src)
         w = (np.int64(1) << self.level.astype(np.int64))[:, None]
-        bad = np.any(self.pos % w != 0, axis=1)
-        if np.any(bad):
-            i = int(np.argmax(bad))
-            raise ValueError(
-                f"{src}: cell {i} at {self.pos[i].tolist()} (level {self.level[i]}) "
-                f"is not aligned to its width {int(w[i, 0])}")
         lo = self.pos.min(axis=0)
         hi = (self.pos + w).max(axis=0)
         if np.any(hi - lo > 2**31 - 1):
@@ -96,6 +82,19 @@ class AMRCells(mi.Object):
     # ---- Properties ----------------------------------------------------
     def __len__(self):
         return int(self.value.shape[0])
+
+    def cell_chunks(self, max_cells: int = 1 << 22):
+        """Yield ``(pos, level, value)`` slices of at most ``max_cells`` cells
+        (the same reading interface as `BlockVolume.cell_chunks`)."""
+        for s in range(0, len(self), max_cells):
+            yield self.pos[s:s + max_cells], self.level[s:s + max_cells], self.value[s:s + max_cells]
+
+    @property
+    def origin(self) -> np.ndarray:
+        """Lower data corner aligned to the coarsest level present (the key
+        origin of point location; finest units)."""
+        lmax = int(self.level.max())
+        return (self.bounds[0] >> lmax) << lmax
 
     @property
     def width(self) -> np.ndarray:
@@ -141,6 +140,29 @@ class AMRCells(mi.Object):
             n = int((self.level == L).sum())
             lines.append(f"  level {int(L):2d} (width {2**int(L):>6d}): {n}")
         return "\n".join(lines)
+
+
+def check_cells(pos, level, value, source: str, start: int = 0):
+    """Validate one batch of raw cells (levels in range, finite values, corners
+    aligned to the cell width); ``start`` is the index of the batch's first
+    cell in the whole data, for the error message."""
+    level = np.asarray(level)
+    if np.any(level < 0):
+        i = int(np.argmax(level < 0))
+        raise ValueError(f"{source}: cell {start + i} has negative level {level[i]}")
+    if np.any(level > MAX_LEVEL):
+        i = int(np.argmax(level > MAX_LEVEL))
+        raise ValueError(f"{source}: cell {start + i} has level {level[i]} > {MAX_LEVEL}")
+    if not np.all(np.isfinite(value)):
+        i = int(np.argmax(~np.isfinite(value)))
+        raise ValueError(f"{source}: cell {start + i} has non-finite value {value[i]}")
+    w = (np.int64(1) << level.astype(np.int64))[:, None]
+    bad = np.any(np.asarray(pos) & (w - 1) != 0, axis=1)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"{source}: cell {start + i} at {np.asarray(pos[i]).tolist()} (level {level[i]}) "
+            f"is not aligned to its width {int(w[i, 0])}")
 
 
 def _non_overlapping(pos: np.ndarray, level: np.ndarray) -> np.ndarray:

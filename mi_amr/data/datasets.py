@@ -12,6 +12,15 @@ refine (split into 8) the cells where the field varies most, down to level
   faintly turbulent interior, like an impact.
 * ``stadium``: a small, finely refined object (a torus) inside a large,
   coarse, almost empty domain: the "teapot in a stadium" case.
+
+These three refine cell by cell (octree-like: about 8 cells per same-level
+box). Simulation codes write *block-structured* data instead, and so does
+
+* ``blocks``: the ``cloud`` field on fixed-size blocks of ``nxb^3`` cells
+  (8^3-32^3, as FLASH/PARAMESH writes them): the same top-down refinement,
+  applied to whole blocks. `block_leaves` gives the blocks, `block_cells`
+  their cells chunk by chunk, so that 10^8-cell files are written without
+  holding per-cell arrays of the whole data (`write_block_dataset`).
 """
 
 from __future__ import annotations
@@ -22,7 +31,9 @@ import numpy as np
 
 from .cells import AMRCells
 
-NAMES = ("cloud", "shell", "stadium")
+NAMES = ("cloud", "shell", "stadium", "blocks")
+#: Cells per block side of the ``blocks`` data set, by default.
+DEFAULT_NXB = 16
 
 
 class _Noise:
@@ -106,6 +117,11 @@ def make_dataset(name: str, cells: int = 20000, levels: int = 4, seed: int = 0) 
     """
     if name not in NAMES:
         raise ValueError(f"unknown data set {name!r} (choose from {', '.join(NAMES)})")
+    if name == "blocks":
+        leaves = block_leaves(cells, levels, seed)
+        parts = list(block_cells(*leaves))
+        return AMRCells(*(np.concatenate([p[i] for p in parts]) for i in range(3)),
+                        source=f"dataset blocks(cells={cells}, levels={levels}, seed={seed})", validate=False)
     if levels < 2 or levels > 12:
         raise ValueError(f"levels must be in 2..12, got {levels}")
     if cells < 64:
@@ -161,7 +177,62 @@ def ensure_dataset(path, name: str, cells: int = 20000, levels: int = 4, seed: i
     already exists; returns the path. Used to generate larger data on first use."""
     from .io import save_cells
     path = Path(path)
+    if not path.exists() and name == "blocks" and path.suffix == ".cells":
+        return write_block_dataset(path, cells, levels, seed)
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         save_cells(make_dataset(name, cells, levels, seed), path)
+    return path
+
+
+def block_leaves(cells: int, levels: int = 4, seed: int = 0, nxb: int | None = None):
+    """Leaf blocks of the ``blocks`` data set: about ``cells / nxb^3`` blocks
+    of ``nxb^3`` cells each, refined top-down like the ``cloud`` data set
+    (one block there stands for one cell here). ``nxb`` defaults to
+    `DEFAULT_NXB`, less for data sets under 64 such blocks. Returns ``(lo
+    (K, 3) int64 finest units, level (K,), nxb, n_fine, seed)``: the
+    argument list of `block_cells`."""
+    if nxb is None:
+        nxb = int(np.clip(2 ** int(np.floor(np.log2(max(cells / 64, 8)) / 3)), 2, DEFAULT_NXB))
+    if nxb < 2 or nxb & (nxb - 1):
+        raise ValueError(f"nxb must be a power of two >= 2, got {nxb}")
+    units = make_dataset("cloud", max(64, int(round(cells / nxb ** 3))), levels, seed)
+    lo_units, hi_units = units.bounds
+    n_fine = int((hi_units - lo_units).max()) * nxb
+    return units.pos * nxb, units.level, nxb, n_fine, seed
+
+
+def block_cells(lo, level, nxb: int, n_fine: int, seed: int, chunk: int = 1 << 21):
+    """Yield ``(pos int64 (m, 3), level int32 (m,), value float32 (m,))`` of
+    the cells of the blocks ``lo``/``level`` (see `block_leaves`), a few
+    blocks at a time; the values sample the ``cloud`` field at cell centres."""
+    f, _ = _field("cloud", seed)
+    local = np.stack(np.unravel_index(np.arange(nxb ** 3), (nxb,) * 3, order="F"), axis=1)
+    step = max(1, chunk // nxb ** 3)
+    for s in range(0, len(level), step):
+        L = level[s:s + step].astype(np.int64)
+        w = (np.int64(1) << L)[:, None, None]
+        pos = (lo[s:s + step, None, :] + local[None] * w).reshape(-1, 3)
+        lev = np.repeat(L, nxb ** 3).astype(np.int32)
+        x = (pos + 0.5 * np.repeat(w[:, 0, 0], nxb ** 3)[:, None]) / n_fine
+        yield pos, lev, f(x).astype(np.float32)
+
+
+def write_block_dataset(path, cells: int, levels: int = 4, seed: int = 0, nxb: int | None = None) -> Path:
+    """Write the ``blocks`` data set as an ExaBricks pair ``path`` (``.cells``)
+    + ``.scalars``, streaming block by block (memory: the chunks only)."""
+    path = Path(path)
+    if path.suffix != ".cells":
+        raise ValueError(f"{path}: the streaming writer writes .cells files")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    args = block_leaves(cells, levels, seed, nxb)
+    tmp_c, tmp_s = path.with_suffix(".cells.part"), path.with_suffix(".scalars.part")
+    with open(tmp_c, "wb") as fc, open(tmp_s, "wb") as fs:
+        for pos, lev, val in block_cells(*args):
+            rec = np.empty((len(lev), 4), dtype="<i4")
+            rec[:, :3], rec[:, 3] = pos, lev
+            fc.write(rec.tobytes())
+            fs.write(val.astype("<f4").tobytes())
+    tmp_c.replace(path)
+    tmp_s.replace(path.with_suffix(".scalars"))
     return path

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .blocks import BlockVolume, _sample_runs
 from .cells import AMRCells
 from ..memory import require, structure_bytes
 
@@ -28,13 +29,8 @@ def scalars_path_for(cells_path: str | os.PathLike) -> Path:
     return p.with_suffix(".scalars")
 
 
-def read_exabricks(cells_path, scalars_path=None, *, overlap: str = "error") -> AMRCells:
-    """Read an ExaBricks ``.cells`` / ``.scalars`` pair.
-
-    Raises ``ValueError`` naming the file when a size is not a whole number
-    of records, when the two files disagree on the cell count, or when the
-    content is invalid (see `AMRCells`).
-    """
+def _exabricks_pair(cells_path, scalars_path):
+    """Check an ExaBricks pair's sizes; returns the two paths and the cell count."""
     cells_path = Path(cells_path)
     scalars_path = Path(scalars_path) if scalars_path else scalars_path_for(cells_path)
     for p in (cells_path, scalars_path):
@@ -52,12 +48,48 @@ def read_exabricks(cells_path, scalars_path=None, *, overlap: str = "error") -> 
         raise ValueError(f"{cells_path} has {nc_bytes // 16} cells but {scalars_path} has "
                          f"{ns_bytes // 4} values: the files do not belong together or one "
                          "is truncated")
-    require(structure_bytes("cells", nc_bytes // 16), f"{cells_path} ({nc_bytes // 16} cells)",
-            hint="raise the limit to load it")
+    return cells_path, scalars_path, nc_bytes // 16
+
+
+def read_exabricks(cells_path, scalars_path=None, *, overlap: str = "error") -> AMRCells:
+    """Read an ExaBricks ``.cells`` / ``.scalars`` pair into per-cell records.
+
+    Raises ``ValueError`` naming the file when a size is not a whole number
+    of records, when the two files disagree on the cell count, or when the
+    content is invalid (see `AMRCells`). For large data use
+    `read_exabricks_blocks`, which streams into the compact form.
+    """
+    cells_path, scalars_path, n = _exabricks_pair(cells_path, scalars_path)
+    require(structure_bytes("cells", n), f"{cells_path} ({n} cells)", hint="raise the limit to load it")
     rec = np.fromfile(cells_path, dtype=CELL_DTYPE)
     val = np.fromfile(scalars_path, dtype="<f4")
     pos = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
     return AMRCells(pos, rec["level"], val, overlap=overlap, source=str(cells_path))
+
+
+def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "error",
+                          block: int | None = None, chunk: int = 1 << 22) -> BlockVolume:
+    """Stream an ExaBricks pair into a `BlockVolume`: both files are
+    memory-mapped and read ``chunk`` cells at a time (twice), validated as
+    strictly as `read_exabricks`; no per-cell array of the whole file is
+    made."""
+    cells_path, scalars_path, n = _exabricks_pair(cells_path, scalars_path)
+    if n == 0:
+        raise ValueError(f"{cells_path}: contains no cells")
+    require(structure_bytes("volume", n), f"{cells_path} ({n} cells)", hint="raise the limit to load it")
+    rec = np.memmap(cells_path, dtype="<i4", mode="r", shape=(n, 4))
+    val = np.memmap(scalars_path, dtype="<f4", mode="r", shape=(n,))
+
+    def chunks():
+        for s in range(0, n, chunk):
+            r = np.asarray(rec[s:s + chunk])
+            yield r[:, :3], r[:, 3], np.asarray(val[s:s + chunk])
+
+    def read(s, e):
+        r = np.asarray(rec[s:e])
+        return r[:, :3], r[:, 3], None
+    return BlockVolume.from_chunks(chunks, str(cells_path), overlap=overlap, block=block,
+                                   sample=lambda: _sample_runs(n, read))
 
 
 def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Path, Path]:
@@ -123,6 +155,15 @@ def load_cells(path, scalars=None, *, overlap: str = "error") -> AMRCells:
     if path.suffix == ".cells":
         return read_exabricks(path, scalars, overlap=overlap)
     raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected .cells or .npz)")
+
+
+def load_volume(path, scalars=None, *, overlap: str = "error") -> BlockVolume:
+    """Load AMR data into its compact resident form: ``.cells`` files are
+    streamed (`read_exabricks_blocks`), ``.npz`` archives read and converted."""
+    path = Path(path)
+    if path.suffix == ".cells":
+        return read_exabricks_blocks(path, scalars, overlap=overlap)
+    return BlockVolume.from_cells(load_cells(path, scalars, overlap=overlap))
 
 
 def save_cells(cells: AMRCells, path) -> Path:

@@ -1,72 +1,115 @@
-"""Point location and reconstruction through per-level hash tables (Dr.Jit).
+"""Point location and reconstruction through a hash of blocks (Dr.Jit).
 
-``nearest`` probes a `CellHash` level by level, finest first; ``tent``
-probes a `StencilHash` once per contributing level and gathers the level's
-2x2x2 stencil (docs/design.md section 3).
+The data live in a `BlockVolume`: aligned B^3 blocks of same-level cells.
+One hash table per level maps a block coordinate to its block; a cell's
+value is then one gather (docs/design.md sections 3 and 9). ``nearest``
+probes level by level, finest first, and stops at the first cell present;
+``tent`` visits the 2x2x2 stencil of every contributing level, probing once
+per distinct block the stencil touches (usually one).
 """
 
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
+from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..data.reconstruction import WEIGHT_EPS, check_method
-from ..structures.cell_hash import CellHash, StencilHash, hash_u32, pack_key
+from ..structures.cell_hash import LevelHash, hash_u32, pack_key
 from .ray import in_unit_cube
 from .structs import jit_struct
+
+#: Stencil corner c = dx + 2 dy + 4 dz.
+CORNERS = [(c & 1, (c >> 1) & 1, (c >> 2) & 1) for c in range(8)]
+
+
+class BlockHash(LevelHash):
+    """Per-level hash of the block coordinates of a `BlockVolume`; payload:
+    the block index."""
+
+    def __init__(self, volume: BlockVolume):
+        entries = {int(L): (volume.coord[volume.level == L],
+                            np.nonzero(volume.level == L)[0].astype(np.uint32))
+                   for L in np.unique(volume.level)}
+        super().__init__(entries, np.uint32, volume.source)
 
 
 @jit_struct(keys="UInt64", keys_z="UInt32", offset="UInt32", mask="UInt32", max_probe="UInt32",
             payload="UInt32", values="Float")
 class DeviceReconstruction:
-    """Per-level hash tables in Dr.Jit, and reconstruction through them.
+    """Reconstruction at points, in Dr.Jit, from the blocks of a `BlockVolume`
+    (an `AMRCells` is converted first)."""
 
-    ``nearest`` probes a `CellHash` level by level, finest first, and stops
-    at the first cell that contains ``x``. ``tent`` probes a `StencilHash`
-    once per level that can contribute: a hit yields the level's whole
-    2x2x2 stencil (8 gathers from contiguous memory), so a sample costs
-    about one probe plus 8 gathers per contributing level.
-    """
-
-    def __init__(self, cells: AMRCells, method: str):
+    def __init__(self, volume: BlockVolume | AMRCells, method: str):
         self.method = check_method(method)
-        self.hash = StencilHash(cells) if method == "tent" else CellHash(cells)
-        self.origin = self.hash.origin
+        if isinstance(volume, AMRCells):
+            volume = BlockVolume.from_cells(volume)
+        self.volume = volume
+        self.hash = BlockHash(volume)
+        self.origin = volume.origin
+        self.block = volume.block
+        self.log2_block = volume.log2_block
         self.keys = mi.UInt64(self.hash.keys)
         self.keys_z = mi.UInt32(self.hash.keys_z)
         self.wide = self.hash.wide
         self.offset = mi.UInt32(self.hash.offset)
         self.mask = mi.UInt32(self.hash.mask)
         self.max_probe = mi.UInt32(self.hash.max_probe)
-        if method == "tent":                # slot -> stencil index -> 8 values
-            self.payload = mi.UInt32(self.hash.payload)
-            self.values = mi.Float(self.hash.values)
-        else:                               # slot -> value
-            self.payload = mi.UInt32(0)
-            self.values = mi.Float(self.hash.payload)
+        self.payload = mi.UInt32(self.hash.payload)
+        self.values = mi.Float(volume.values)
         dr.make_opaque(self.keys, self.keys_z, self.payload, self.values, self.offset, self.mask, self.max_probe)
+        # On the CPU backend the device array is host memory: the volume's
+        # builders read it through a view, so the values are kept once.
+        self.shares_values = dr.backend_v(self.values) == dr.JitBackend.LLVM
+        if self.shares_values:
+            volume.values = self.values.numpy()
 
     @property
     def nbytes(self) -> int:
-        return self.hash.nbytes
+        """Bytes of the hash, plus the device values unless they are the
+        volume's own (CPU backend: counted once, in `BlockVolume.nbytes`)."""
+        return self.hash.nbytes + (0 if self.shares_values else 4 * dr.width(self.values))
+
+    def _probe(self, qb: mi.Vector3u, L, probe, active):
+        """One linear-probing step for block ``qb`` of level ``L``:
+        ``(hit, finished, block index)``."""
+        key = pack_key(mi.UInt64(qb.x), mi.UInt64(qb.y), mi.UInt64(qb.z), self.wide)
+        h = hash_u32(qb.x, qb.y, qb.z)
+        slot = dr.gather(mi.UInt32, self.offset, L, active) + \
+            ((h + probe) & dr.gather(mi.UInt32, self.mask, L, active))
+        k = dr.gather(mi.UInt64, self.keys, slot, active)
+        hit = active & (k == key)
+        if dr.hint(self.wide, mode="scalar"):
+            hit &= dr.gather(mi.UInt32, self.keys_z, slot, hit) == qb.z
+        finished = hit | ~active | (k == 0xFFFFFFFFFFFFFFFF) | (probe + 1 >= self.max_probe)
+        return hit, finished, dr.gather(mi.UInt32, self.payload, slot, hit)
+
+    def _local(self, q: mi.Vector3u):
+        """Index of cell ``q`` (level coordinates) inside its block."""
+        m = self.block - 1
+        return (q.x & m) + self.block * ((q.y & m) + self.block * (q.z & m))
 
     @dr.syntax
     def eval(self, x: mi.Vector3f, level_bits: mi.UInt32, active=True):
         """Reconstruct at ``x`` (finest units relative to ``origin``).
 
         ``level_bits``: the levels that may contribute at ``x`` (from the
-        macrocell grid). Returns ``(value, found)``. The loop does one probe
-        per iteration and runs at most ``levels x max_probe`` iterations.
+        macrocell grid). Returns ``(value, found)``. Each loop iteration does
+        one probe; a level takes at most ``max_probe`` probes per block
+        (``nearest``: one block; ``tent``: at most 8).
         """
         tent = self.method == "tent"
+        limit = float(min(self.hash.coord_limit << self.log2_block, 1 << 31))
+        b3 = self.block ** 3
         remaining = dr.select(active, level_bits, 0)
         probe = mi.UInt32(0)
+        done = mi.UInt32(0)                 # tent: stencil corners handled at this level
         sum_w = mi.Float(0.0)
         sum_wv = mi.Float(0.0)
         found = mi.Bool(False)
         while dr.hint(remaining != 0, label="amr_reconstruct", exclude=[self]):
-            # ---- Key of the current level: the stencil base, or the cell ----
             L = dr.tzcnt(remaining)
             # x / 2^L is exact; fractions stay small numbers so that no
             # sub-cell offset is rounded away near 2^24 (float32 spacing 1)
@@ -74,43 +117,47 @@ class DeviceReconstruction:
             fl = dr.floor(xl)
             frac = xl - fl
             if dr.hint(tent, mode="scalar"):
+                # Stencil b + {0,1}^3 with b = floor(xl - 1/2); tent weights
+                # (Eq. phi_i, docs/design.md section 3) from t1, the offset
+                # of x from corner 0's centre
                 upper = frac >= 0.5
-                q = fl + dr.select(upper, 1.0, 0.0)           # stencil key s = b + 1
-                t1 = dr.select(upper, frac - 0.5, frac + 0.5)  # offset from corner 0's centre
-            else:
-                q = fl
-            in_range = dr.all((q >= 0.0) & (q < float(self.hash.coord_limit)))
-            qi = mi.Vector3u(dr.select(in_range, q, 0.0))
-
-            # ---- One linear-probing step in the level's table ----
-            key = pack_key(mi.UInt64(qi.x), mi.UInt64(qi.y), mi.UInt64(qi.z), self.wide)
-            h = hash_u32(qi.x, qi.y, qi.z)
-            slot = dr.gather(mi.UInt32, self.offset, L) + ((h + probe) & dr.gather(mi.UInt32, self.mask, L))
-            k = dr.gather(mi.UInt64, self.keys, slot, in_range)
-            hit = in_range & (k == key)
-            if dr.hint(self.wide, mode="scalar"):
-                hit &= dr.gather(mi.UInt32, self.keys_z, slot, hit) == qi.z
-            if dr.hint(tent, mode="scalar"):
-                # Tent weights of the 8 stencil cells (Eq. phi_i, docs/design.md section 3)
-                idx = dr.gather(mi.UInt32, self.payload, slot, hit) * 8
+                base = fl - dr.select(upper, 0.0, 1.0)
+                t1 = dr.select(upper, frac - 0.5, frac + 0.5)
                 t0 = 1.0 - t1
-                for c in range(8):
-                    wx = t1.x if c & 1 else t0.x
-                    wy = t1.y if (c >> 1) & 1 else t0.y
-                    wz = t1.z if (c >> 2) & 1 else t0.z
-                    w = wx * wy * wz
-                    v = dr.gather(mi.Float, self.values, idx + c, hit & (w > 0.0))
-                    ok = hit & (w > 0.0) & ~dr.isnan(v)
-                    sum_w += dr.select(ok, w, 0.0)
-                    sum_wv += dr.select(ok, w * v, 0.0)
+                ok_corner = []
+                for c, (dx, dy, dz) in enumerate(CORNERS):
+                    qc = base + mi.Vector3f(dx, dy, dz)
+                    w = (t1.x if dx else t0.x) * (t1.y if dy else t0.y) * (t1.z if dz else t0.z)
+                    ok_corner.append(dr.all((qc >= 0.0) & (qc < limit)) & (w > 0.0))
+                    done |= dr.select(ok_corner[c], 0, 1 << c)
+                # the first corner not handled yet picks the block to probe
+                c0 = dr.tzcnt(~done & 0xFF)
+                q0 = base + mi.Vector3f(mi.Float(c0 & 1), mi.Float((c0 >> 1) & 1), mi.Float((c0 >> 2) & 1))
+                need = done != 0xFF
+                qb = mi.Vector3u(dr.select(need, q0, 0.0)) >> self.log2_block
+                hit, finished, blk = self._probe(qb, L, probe, need)
+                for c, (dx, dy, dz) in enumerate(CORNERS):
+                    qc = base + mi.Vector3f(dx, dy, dz)
+                    qi = mi.Vector3u(dr.select(ok_corner[c], qc, 0.0))
+                    mine = finished & need & ok_corner[c] & ((done & (1 << c)) == 0) & \
+                        dr.all((qi >> self.log2_block) == qb)
+                    w = (t1.x if dx else t0.x) * (t1.y if dy else t0.y) * (t1.z if dz else t0.z)
+                    v = dr.gather(mi.Float, self.values, blk * b3 + self._local(qi), mine & hit)
+                    use = mine & hit & ~dr.isnan(v)
+                    sum_w += dr.select(use, w, 0.0)
+                    sum_wv += dr.select(use, w * v, 0.0)
+                    done |= dr.select(mine, 1 << c, 0)
+                probe = dr.select(finished, 0, probe + 1)
+                level_done = done == 0xFF
+                done = dr.select(level_done, 0, done)
             else:
-                v = dr.gather(mi.Float, self.values, slot, hit)
-                sum_wv = dr.select(hit, v, sum_wv)
-                found |= hit
-            level_done = hit | ~in_range | (k == 0xFFFFFFFFFFFFFFFF) | (probe + 1 >= self.max_probe)
-
-            # ---- Advance: next probe or next level ----
-            probe = dr.select(level_done, 0, probe + 1)
+                in_range = dr.all((fl >= 0.0) & (fl < limit))
+                qi = mi.Vector3u(dr.select(in_range, fl, 0.0))
+                hit, level_done, blk = self._probe(qi >> self.log2_block, L, probe, in_range)
+                v = dr.gather(mi.Float, self.values, blk * b3 + self._local(qi), hit)
+                found |= hit & ~dr.isnan(v)
+                sum_wv = dr.select(hit & ~dr.isnan(v), v, sum_wv)
+                probe = dr.select(level_done, 0, probe + 1)
             remaining = dr.select(level_done, remaining & (remaining - 1), remaining)
             if dr.hint(not tent, mode="scalar"):
                 remaining = dr.select(found, 0, remaining)

@@ -178,7 +178,6 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
                 "use an isotropic, hg, rayleigh, tabphase or blendphase phase function")
         options = parse_medium_options(props)
         self.options = options
-        self.cells = options.cells
         self.tf = options.tf
         self.density_scale = options.density_scale
         self.majorant_mode = options.majorant
@@ -191,12 +190,23 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self._tf_domain = mi.Float(self.tf.domain)
         dr.make_opaque(self._to_local, self._scale, self._max_iterations, self._tf_rgba, self._tf_domain)
         self.tf_device = DeviceTransferFunction(self.tf)
-        self.structures = Structures(self.cells, options.structures, self.tf, self.density_scale,
+        self.structures = Structures(options.data, options.structures, self.tf, self.density_scale,
                                      options.world_scale)
         self._ray_majorant = _RayMajorant()
         self.update_majorants()
 
     # ---- Read-only views --------------------------------------------------------
+    @property
+    def volume(self):
+        """The data in their resident form (`mi_amr.data.blocks.BlockVolume`)."""
+        return self.structures.volume
+
+    @property
+    def cells(self):
+        """The data as per-cell records (`AMRCells`): the object given as
+        ``data``, or made from the blocks on first use (small data only)."""
+        return self.structures.cells
+
     @property
     def reconstruction(self) -> str:
         return self.options.structures.reconstruction
@@ -226,6 +236,12 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
     def structure_bytes(self) -> int:
         """Memory of every structure built so far (host arrays uploaded)."""
         return self.structures.nbytes
+
+    @property
+    def resident_bytes(self) -> int:
+        """Memory the medium keeps: its data (`BlockVolume.nbytes`) and every
+        structure built so far, each counted once."""
+        return self.volume.nbytes + self.structures.nbytes
 
     @property
     def global_majorant(self) -> float:
@@ -383,8 +399,8 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
             self.update_majorants()
 
     def to_string(self):
-        return (f"AMRMedium[\n  cells = {len(self.cells)},\n  levels = "
-                f"{self.cells.levels.tolist()},\n  reconstruction = {self.reconstruction},\n"
+        return (f"AMRMedium[\n  cells = {len(self.volume)},\n  levels = "
+                f"{self.volume.levels.tolist()},\n  reconstruction = {self.reconstruction},\n"
                 f"  majorant = {self.majorant_mode},\n  traversal = {self.traversal},\n"
                 f"  sampling = {self.sampling},\n  structures = {sorted(self.structures.built)},\n"
                 f"  density_scale = {self.density_scale},\n  transfer_function = {self.tf}\n]")

@@ -14,7 +14,8 @@ import mitsuba as mi
 import numpy as np
 
 from ..data.cells import AMRCells
-from ..data.io import load_cells
+from ..data.blocks import BlockVolume
+from ..data.io import load_volume
 from ..data.reconstruction import METHODS
 from ..memory import default_memory_limit
 from ..params import ParameterError, check_known, get_float, get_int, get_string
@@ -40,7 +41,7 @@ KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
 class MediumOptions:
     """Everything the ``amr`` medium needs, validated. ``density_scale`` in
     inverse world units; ``to_world`` maps the local unit cube to the world."""
-    cells: AMRCells
+    data: AMRCells | BlockVolume
     tf: TransferFunction
     density_scale: float
     majorant: str
@@ -58,7 +59,7 @@ class MediumOptions:
 def parse_medium_options(props: mi.Properties) -> MediumOptions:
     """Validate the ``amr`` plugin's properties and load its data."""
     check_known(props, "amr", KNOWN, allow=lambda k, v: isinstance(v, mi.PhaseFunction))
-    cells = _load_data(props)
+    data = _load_data(props)
     structures = StructureOptions(
         reconstruction=get_string(props, "amr", "reconstruction", "tent", METHODS),
         traversal=get_string(props, "amr", "traversal", "grid", TRAVERSALS),
@@ -68,8 +69,8 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
         kdtree_leaves=get_int(props, "amr", "kdtree_leaves", 4096, minimum=1),
         memory_limit=get_float(props, "amr", "memory_limit", default_memory_limit(), positive=True))
     return MediumOptions(
-        cells=cells,
-        tf=_transfer_function(props, cells),
+        data=data,
+        tf=_transfer_function(props, data),
         density_scale=get_float(props, "amr", "density_scale", 1.0, minimum=0.0, maximum=MAX_DENSITY_SCALE),
         majorant=get_string(props, "amr", "majorant", "ray", MAJORANTS),
         max_iterations=get_int(props, "amr", "max_iterations", MAX_TRACKING_ITERATIONS,
@@ -99,7 +100,7 @@ def as_transform4f(t) -> "mi.ScalarTransform4f":
     return mi.ScalarTransform4f(mi.ScalarMatrix4f(m.astype(np.float32)), mi.ScalarMatrix4f(inv_t.astype(np.float32)))
 
 
-def _load_data(props) -> AMRCells:
+def _load_data(props) -> AMRCells | BlockVolume:
     overlap = get_string(props, "amr", "overlap", "error", OVERLAPS)
     has_file, has_data = "filename" in props.keys(), "data" in props.keys()
     if has_file == has_data:
@@ -107,18 +108,19 @@ def _load_data(props) -> AMRCells:
                          "or 'data' (an AMRCells object)")
     if has_data:
         data = props["data"]
-        if not isinstance(data, AMRCells):
-            raise ParameterError(f"amr: 'data' must be an mi_amr.AMRCells, got {type(data).__name__}")
+        if not isinstance(data, (AMRCells, BlockVolume)):
+            raise ParameterError(f"amr: 'data' must be an mi_amr.AMRCells or BlockVolume, "
+                                 f"got {type(data).__name__}")
         return data
     resolver = mi.file_resolver()
     path = Path(str(resolver.resolve(get_string(props, "amr", "filename", None))))
     scalars = get_string(props, "amr", "scalars", None)
     if scalars is not None:
         scalars = str(resolver.resolve(scalars))
-    return load_cells(path, scalars, overlap=overlap)
+    return load_volume(path, scalars, overlap=overlap)
 
 
-def _transfer_function(props, cells: AMRCells) -> TransferFunction:
+def _transfer_function(props, cells: AMRCells | BlockVolume) -> TransferFunction:
     tf = props.get("transfer_function", "foggy")
     vlo, vhi = cells.value_range
     if vhi <= vlo:                 # constant data: centre the value in the TF domain

@@ -1,17 +1,15 @@
-"""Point location: one open-addressing hash table of cell keys per level.
+"""Open-addressing hash tables of integer coordinates, one per level.
 
-A cell of level L is keyed by its integer coordinate ``q = (pos - origin) >> L``
-in level-L units. Looking up "the level-L cell at q" costs O(1) expected
-probes regardless of the number of cells; a query point needs one lookup per
-level for ``nearest`` and eight (the 2x2x2 stencil) per level for ``tent``.
-The tables are built once on the host (numpy) and queried in Dr.Jit.
+Point location keys the blocks of a `BlockVolume` by their level-L block
+coordinate (`mi_amr.device.hash_sampler.BlockHash`): a lookup costs O(1)
+expected probes regardless of the data size. The tables are built once on
+the host (numpy) and probed in Dr.Jit with the same hash function.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..data.cells import AMRCells, cell_keys
 
 #: Bits per axis in a packed ("narrow") 64-bit key. Levels whose coordinates
 #: reach 2**KEY_BITS use "wide" keys: ``qx | qy << 32`` in 64 bits plus ``qz``
@@ -126,68 +124,6 @@ class LevelHash:
             val[pending[hit]] = self.payload[slot[hit]]
             pending = pending[~hit & (k != EMPTY_KEY)]
         return val, found
-
-
-def key_origin(cells: AMRCells) -> np.ndarray:
-    """Lower corner of the key space in finest units, aligned to the coarsest
-    level present, so that every level's coordinates are integers >= 0."""
-    lmax = int(cells.level.max())
-    lo, _ = cells.bounds
-    return (lo >> lmax) << lmax
-
-
-class CellHash(LevelHash):
-    """Cells keyed by ``q = (pos - origin) >> level``; payload: the value."""
-
-    def __init__(self, cells: AMRCells):
-        self.origin = key_origin(cells)
-        rel = cells.pos - self.origin
-        entries = {int(L): (rel[cells.level == L] >> int(L), cells.value[cells.level == L])
-                   for L in cells.levels}
-        super().__init__(entries, np.float32, cells.source)
-
-    @property
-    def values(self) -> np.ndarray:
-        return self.payload
-
-
-class StencilHash(LevelHash):
-    """The 2x2x2 tent stencils of every level, for one-probe tent lookups.
-
-    At level L a point ``x`` (finest units relative to ``origin``) sees the
-    level-L cells ``b + {0,1}^3`` with ``b = floor(x / 2**L - 1/2)``. Every
-    stencil that holds at least one cell is stored, keyed by ``s = b + 1``
-    (so keys are >= 0); the payload indexes ``values`` (S, 8), corner
-    ``c = dx + 2 dy + 4 dz``, NaN where the stencil has no cell.
-    """
-
-    def __init__(self, cells: AMRCells):
-        self.origin = key_origin(cells)
-        rel = cells.pos - self.origin
-        entries, blocks, count = {}, [], 0
-        corners = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], dtype=np.int64)
-        for L in cells.levels:
-            L = int(L)
-            sel = cells.level == L
-            q = rel[sel] >> L
-            # cell q is corner c of the stencil with s = q - corner + 1
-            s_all = (q[:, None, :] - corners[None] + 1).reshape(-1, 3)
-            c_all = np.tile(np.arange(8), len(q))
-            v_all = np.repeat(cells.value[sel], 8)
-            uniq, inv = np.unique(cell_keys(s_all), return_inverse=True)
-            first = np.zeros(len(uniq), dtype=np.int64)
-            first[inv[::-1]] = np.arange(len(inv))[::-1]
-            vals = np.full((len(uniq), 8), np.nan, dtype=np.float32)
-            vals[inv, c_all] = v_all
-            entries[L] = (s_all[first], count + np.arange(len(uniq), dtype=np.uint32))
-            blocks.append(vals)
-            count += len(uniq)
-        super().__init__(entries, np.uint32, cells.source)
-        self.values = np.concatenate(blocks).reshape(-1)
-
-    @property
-    def nbytes(self) -> int:
-        return super().nbytes + self.values.nbytes
 
 
 def _build_table(q: np.ndarray, values: np.ndarray, cap: int, wide: bool):

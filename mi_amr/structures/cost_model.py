@@ -21,7 +21,7 @@ CANDIDATES = (8, 16, 32, 64, 128)
 
 
 def auto_resolution(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.0,
-                    support: str = "tent", candidates=CANDIDATES):
+                    support: str = "tent", candidates=CANDIDATES, grids: dict | None = None):
     """Grid resolution (longest axis) minimising the expected tracking cost
     per unit of ray length in the unit cube:
 
@@ -34,12 +34,16 @@ def auto_resolution(cells: AMRCells, tf, density_scale: float, world_scale: floa
     collisions happen (scattered and shadow rays: the mean weighted by
     ``mu_bar``). ``world_scale`` converts local to world length. The
     value ranges are splatted once at the finest candidate and max/min-pooled
-    by powers of two for the coarser ones. Returns ``(best, {R: cost})``."""
+    by powers of two for the coarser ones. Returns ``(best, {R: cost})``;
+    ``grids``, when given, receives the finest grid (``grids[R] = grid``),
+    from which `MacrocellGrid.pooled` makes the chosen one."""
     lo, hi = cells.bounds
     ext = int((hi - lo).max())
     cands = sorted(c for c in candidates if c <= max(ext, min(candidates)))
     finest = cands[-1]
     g = MacrocellGrid(cells, finest, support=support)
+    if grids is not None:
+        grids[finest] = g
     r = g.res
     vmin = g.vmin.reshape(r[2], r[1], r[0])
     vmax = g.vmax.reshape(r[2], r[1], r[0])

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..memory import BYTES_PER_MACROCELL, require
 from .boxes import expand_boxes
@@ -33,7 +34,7 @@ def axis_resolution(longest: int, extent) -> np.ndarray:
     return np.maximum(1, np.round(longest * ext / ext.max())).astype(np.int64)
 
 
-def default_resolution(cells: AMRCells) -> np.ndarray:
+def default_resolution(cells: AMRCells | BlockVolume) -> np.ndarray:
     """Grid resolution chosen from the data: about 8 cells per macrocell on
     average, a power of two along the longest axis between 8 and 128, never
     finer than the finest level, other axes in proportion. (Measured on the
@@ -51,7 +52,8 @@ class MacrocellGrid:
 
     Parameters
     ----------
-    cells : AMRCells
+    cells : AMRCells or BlockVolume
+        Read chunk by chunk (`cell_chunks`).
     resolution : int or (3,) ints, optional
         Macrocells per axis (x, y, z). ``None`` picks `default_resolution`;
         a single int is the count along the longest axis.
@@ -65,7 +67,7 @@ class MacrocellGrid:
         anything is allocated.
     """
 
-    def __init__(self, cells: AMRCells, resolution=None, support: str = "tent",
+    def __init__(self, cells: AMRCells | BlockVolume, resolution=None, support: str = "tent",
                  chunk: int = 1 << 20, memory_limit: float | None = None):
         lo, hi = cells.bounds
         ext = (hi - lo).astype(np.float64)
@@ -89,43 +91,248 @@ class MacrocellGrid:
         vmin = np.full(n, np.inf, dtype=np.float32)
         vmax = np.full(n, -np.inf, dtype=np.float32)
         bits = np.zeros(n, dtype=np.uint32)
-        # the macrocell box of each cell's support
-        scale = res / ext
-        pos = cells.pos.astype(np.float64) - lo
-        w = cells.width.astype(np.float64)[:, None]
-        a, b = (pos - 0.5 * w, pos + 1.5 * w) if support == "tent" else (pos, pos + w)
-        i0 = np.clip(np.floor(a * scale), 0, res - 1).astype(np.int64)
-        i1 = np.clip(np.floor(b * scale), 0, res - 1).astype(np.int64)
-        del pos, w, a, b
-        volume = (i1 - i0 + 1).prod(axis=1)
-        value = cells.value
-        level_bit = np.uint32(1) << cells.level.astype(np.uint32)
-        # Large boxes (coarse cells over many macrocells) are written as
-        # slices of the 3D arrays; they are few, since each level's cells
-        # are disjoint. The rest are expanded in chunks of bounded size.
-        large = np.nonzero(volume > LARGE_BOX)[0]
-        shape = (int(res[2]), int(res[1]), int(res[0]))
-        vmin3, vmax3, bits3 = vmin.reshape(shape), vmax.reshape(shape), bits.reshape(shape)
-        for i in large:
-            sl = (slice(i0[i, 2], i1[i, 2] + 1), slice(i0[i, 1], i1[i, 1] + 1), slice(i0[i, 0], i1[i, 0] + 1))
-            np.minimum(vmin3[sl], value[i], out=vmin3[sl])
-            np.maximum(vmax3[sl], value[i], out=vmax3[sl])
-            np.bitwise_or(bits3[sl], level_bit[i], out=bits3[sl])
-        small = np.nonzero(volume <= LARGE_BOX)[0]
-        ends = np.cumsum(volume[small])
-        start = 0
-        while start < len(small):
-            stop = max(start + 1, int(np.searchsorted(ends, ends[start] - volume[small[start]] + chunk,
-                                                      side="right")))
-            sel = small[start:stop]
-            idx, owner = expand_boxes(i0[sel], i1[sel], res)
-            owner = sel[owner]
-            np.minimum.at(vmin, idx, value[owner])
-            np.maximum.at(vmax, idx, value[owner])
-            np.bitwise_or.at(bits, idx, level_bit[owner])
-            start = stop
+        splat = _RangeSplat(cells.origin, lo, hi, res, support, chunk, vmin, vmax, bits)
+        if isinstance(cells, BlockVolume):
+            for level, coord, values in cells.block_chunks():
+                splat.add_blocks(level, coord, values, cells.log2_block)
+        else:
+            for pos, level, value in cells.cell_chunks():
+                splat.add(pos, level, value)
+        splat.finish()
         self.vmin, self.vmax, self.level_bits = vmin, vmax, bits
+
+    def pooled(self, resolution: int) -> "MacrocellGrid | None":
+        """The grid of ``resolution`` (longest axis) made by merging blocks of
+        this grid's macrocells (min, max, or): exactly what a build at that
+        resolution gives when its macrocells tile this grid's, else None."""
+        res = axis_resolution(resolution, self.extent)
+        f = self.res // res
+        if np.any(f < 1) or np.any(f * res != self.res) or len(set(f.tolist())) != 1:
+            return None
+        f = int(f[0])
+        shape = (int(self.res[2]), int(self.res[1]), int(self.res[0]))
+        g = MacrocellGrid.__new__(MacrocellGrid)
+        g.res, g.lo, g.extent = res, self.lo, self.extent
+
+        def pool(a, op):
+            a = a.reshape(shape[0] // f, f, shape[1] // f, f, shape[2] // f, f)
+            return op.reduce(op.reduce(op.reduce(a, axis=5), axis=3), axis=1).reshape(-1)
+        g.vmin, g.vmax = pool(self.vmin, np.minimum), pool(self.vmax, np.maximum)
+        g.level_bits = pool(self.level_bits, np.bitwise_or)
+        return g
 
     @property
     def nbytes(self) -> int:
         return self.vmin.nbytes + self.vmax.nbytes + self.level_bits.nbytes + 4 * self.vmin.size
+
+
+
+class _RangeSplat:
+    """Folds cells into the macrocell ranges and level masks, chunk by chunk.
+
+    Coarse levels (their level grid at most `DENSE_FACTOR` times the
+    macrocell count) are first written into a dense grid of the level, then
+    reduced with windowed min/max along each axis: a macrocell's window is
+    exactly the cells whose support box overlaps it. Finer levels, whose
+    supports span at most 3 macrocells per axis, are folded in with one
+    vectorised pass per offset; anything wider goes through `expand_boxes`.
+    Every path gives the same ranges as folding each cell into each
+    macrocell its support overlaps.
+    """
+
+    DENSE_FACTOR = 4
+
+    def __init__(self, origin, lo, hi, res, support, chunk, vmin, vmax, bits):
+        self.origin, self.lo, self.res = np.asarray(origin, np.int64), np.asarray(lo, np.int64), res
+        self.ext = (np.asarray(hi, np.int64) - self.lo).astype(np.float64)
+        self.scale = res / self.ext
+        self.support, self.chunk = support, chunk
+        self.vmin, self.vmax, self.bits = vmin, vmax, bits
+        self.hi = np.asarray(hi, np.int64)
+        self.dense = {}               # level -> (qmin (3,), values (nz, ny, nx) float32, NaN = no cell)
+
+    def _dense_shape(self, L):
+        qmin = (self.lo - self.origin) >> L
+        qmax = (self.hi - 1 - self.origin) >> L
+        return qmin, (qmax - qmin + 1)
+
+    def _is_dense(self, L):
+        _, n = self._dense_shape(L)
+        return float(np.prod(n.astype(np.float64))) <= self.DENSE_FACTOR * float(np.prod(self.res))
+
+    def _interval(self, qw, w):
+        """Support of cells with lower corners ``qw`` (finest units relative to lo)."""
+        return (qw - 0.5 * w, qw + 1.5 * w) if self.support == "tent" else (qw, qw + w)
+
+    def add(self, pos, level, value):
+        levels = np.unique(level)
+        for L in levels:
+            L = int(L)
+            sel = level == L if len(levels) > 1 else slice(None)
+            p, v = pos[sel], value[sel]
+            if self._is_dense(L):
+                qmin, n = self._dense_shape(L)
+                if L not in self.dense:
+                    self.dense[L] = (qmin, np.full((int(n[2]), int(n[1]), int(n[0])), np.nan, np.float32))
+                q = ((p.astype(np.int64) - self.origin) >> L) - qmin
+                self.dense[L][1][q[:, 2], q[:, 1], q[:, 0]] = v
+            else:
+                self._fold_cells(p, L, v)
+
+    def add_blocks(self, level, coord, values, log2_block):
+        """Fold blocks of cells: ``level`` (k,), block coordinates ``coord``
+        (k, 3), ``values`` (k, B, B, B) indexed [block, z, y, x], NaN = no
+        cell. Dense levels are written into their level grid; on the others
+        each block is reduced over the window of cells that reach each
+        macrocell, axis by axis, and folded in once per macrocell."""
+        B = 1 << log2_block
+        for L in np.unique(level):
+            L = int(L)
+            sel = np.nonzero(level == L)[0]
+            q0 = coord[sel].astype(np.int64) << log2_block          # first cell of each block
+            v = values[sel]
+            if self._is_dense(L):
+                qmin, n = self._dense_shape(L)
+                if L not in self.dense:
+                    self.dense[L] = (qmin, np.full((int(n[2]), int(n[1]), int(n[0])), np.nan, np.float32))
+                grid = self.dense[L][1]
+                r = q0 - qmin
+                t = np.arange(B)
+                iz = np.broadcast_to(r[:, 2, None, None, None] + t[None, :, None, None], v.shape)
+                iy = np.broadcast_to(r[:, 1, None, None, None] + t[None, None, :, None], v.shape)
+                ix = np.broadcast_to(r[:, 0, None, None, None] + t[None, None, None, :], v.shape)
+                ok = ~np.isnan(v)                  # present cells lie inside the level grid
+                grid[iz[ok], iy[ok], ix[ok]] = v[ok]
+                continue
+            vmin = np.where(np.isnan(v), np.inf, v)
+            vmax = np.where(np.isnan(v), -np.inf, v)
+            first = []
+            for axis in range(3):                              # x, y, z: array axes 3, 2, 1
+                q = q0[:, axis, None] + np.arange(B)[None]          # (k, B) level coordinates
+                qw = (q << L) + (self.origin[axis] - self.lo[axis])
+                a, b = self._interval(qw.astype(np.float64), float(1 << L))
+                i0 = np.clip(np.floor(a * self.scale[axis]), 0, self.res[axis] - 1).astype(np.int64)
+                i1 = np.clip(np.floor(b * self.scale[axis]), 0, self.res[axis] - 1).astype(np.int64)
+                j0 = i0[:, :1]
+                span = int((i1[:, -1:] - j0).max()) + 1
+                j = j0 + np.arange(span)[None]                      # (k, J) macrocells touched
+                qa = (i1[:, None, :] < j[:, :, None]).sum(axis=2)   # first cell reaching j
+                qb = (i0[:, None, :] <= j[:, :, None]).sum(axis=2) - 1
+                vmin = _block_window_reduce(vmin, 3 - axis, qa, qb, np.minimum, np.inf)
+                vmax = _block_window_reduce(vmax, 3 - axis, qa, qb, np.maximum, -np.inf)
+                first.append((j0[:, 0], span, i1[:, -1]))
+            (jx0, nx, jx1), (jy0, ny, jy1), (jz0, nz, jz1) = first
+            jz, jy, jx = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+            gx, gy, gz = jx0[:, None, None, None] + jx, jy0[:, None, None, None] + jy, jz0[:, None, None, None] + jz
+            ok = ((gx <= jx1[:, None, None, None]) & (gy <= jy1[:, None, None, None])
+                  & (gz <= jz1[:, None, None, None]) & (vmax > -np.inf))
+            idx = (gx + self.res[0] * (gy + self.res[1] * gz))[ok]
+            np.minimum.at(self.vmin, idx, vmin[ok])
+            np.maximum.at(self.vmax, idx, vmax[ok])
+            np.bitwise_or.at(self.bits, idx, np.uint32(1 << L))
+
+    def _fold_cells(self, pos, L, value):
+        w = float(1 << L)
+        a, b = self._interval(pos.astype(np.float64) - self.lo, w)
+        res = self.res
+        i0 = np.clip(np.floor(a * self.scale), 0, res - 1).astype(np.int64)
+        i1 = np.clip(np.floor(b * self.scale), 0, res - 1).astype(np.int64)
+        del a, b
+        bit = np.uint32(1 << L)
+        span = i1 - i0
+        near = (span[:, 0] <= 2) & (span[:, 1] <= 2) & (span[:, 2] <= 2)
+        # group the cells by their span (3^3 kinds); each kind folds into the
+        # macrocells base + d for every offset d <= span
+        kind = np.where(near, span[:, 0] + 3 * span[:, 1] + 9 * span[:, 2], 27)
+        order = np.argsort(kind, kind="stable")
+        bounds = np.searchsorted(kind[order], np.arange(28))
+        base = i0[:, 0] + res[0] * (i0[:, 1] + res[1] * i0[:, 2])
+        for k in range(27):
+            sel = order[bounds[k]:bounds[k + 1]]
+            if not len(sel):
+                continue
+            sx, sy, sz = k % 3, (k // 3) % 3, k // 9
+            b0, v = base[sel], value[sel]
+            for dz in range(sz + 1):
+                for dy in range(sy + 1):
+                    for dx in range(sx + 1):
+                        idx = b0 + (dx + res[0] * (dy + res[1] * dz))
+                        np.minimum.at(self.vmin, idx, v)
+                        np.maximum.at(self.vmax, idx, v)
+                        np.bitwise_or.at(self.bits, idx, bit)
+        far = ~near
+        if far.any():
+            i0, i1, value = i0[far], i1[far], value[far]
+            ends = np.cumsum((i1 - i0 + 1).prod(axis=1))
+            start = 0
+            while start < len(i0):
+                stop = max(start + 1, int(np.searchsorted(ends, (ends[start - 1] if start else 0) + self.chunk,
+                                                          side="right")))
+                idx, owner = expand_boxes(i0[start:stop], i1[start:stop], res)
+                np.minimum.at(self.vmin, idx, value[start:stop][owner])
+                np.maximum.at(self.vmax, idx, value[start:stop][owner])
+                np.bitwise_or.at(self.bits, idx, bit)
+                start = stop
+
+    def finish(self):
+        """Reduce the dense levels into the macrocells."""
+        res = self.res
+        shape = (int(res[2]), int(res[1]), int(res[0]))
+        for L, (qmin, grid) in self.dense.items():
+            w = float(1 << L)
+            lo_min, lo_max = np.where(np.isnan(grid), np.inf, grid), np.where(np.isnan(grid), -np.inf, grid)
+            del grid
+            for axis in range(3):                  # x, y, z: array axes 2, 1, 0
+                q = qmin[axis] + np.arange(lo_min.shape[2 - axis])
+                qw = (q << L) + (self.origin[axis] - self.lo[axis])
+                a, b = self._interval(qw.astype(np.float64), w)
+                i0 = np.clip(np.floor(a * self.scale[axis]), 0, res[axis] - 1).astype(np.int64)
+                i1 = np.clip(np.floor(b * self.scale[axis]), 0, res[axis] - 1).astype(np.int64)
+                j = np.arange(res[axis])
+                qa = np.searchsorted(i1, j, side="left")         # first cell reaching macrocell j
+                qb = np.searchsorted(i0, j, side="right") - 1    # last cell starting at or before j
+                lo_min = _window_reduce(lo_min, 2 - axis, qa, qb, np.minimum, np.inf)
+                lo_max = _window_reduce(lo_max, 2 - axis, qa, qb, np.maximum, -np.inf)
+            lo_min, lo_max = lo_min.reshape(-1), lo_max.reshape(-1)
+            assert lo_min.size == int(np.prod(shape))
+            np.minimum(self.vmin, lo_min, out=self.vmin)
+            np.maximum(self.vmax, lo_max, out=self.vmax)
+            self.bits |= np.where(lo_max > -np.inf, np.uint32(1 << L), np.uint32(0))
+        self.dense.clear()
+
+
+def _window_reduce(a, axis, qa, qb, op, fill):
+    """``out[..., j, ...] = op`` over ``a[..., qa[j]:qb[j] + 1, ...]`` along
+    ``axis`` (``fill`` for empty windows)."""
+    n = a.shape[axis]
+    width = int(np.max(qb - qa + 1)) if len(qa) else 0
+    out_shape = list(a.shape)
+    out_shape[axis] = len(qa)
+    out = np.full(out_shape, fill, dtype=a.dtype)
+    for k in range(max(width, 0)):
+        idx = qa + k
+        valid = (idx <= qb) & (idx < n)
+        taken = np.take(a, np.clip(idx, 0, n - 1), axis=axis)
+        shape = [1, 1, 1]
+        shape[axis] = len(qa)
+        op(out, np.where(valid.reshape(shape), taken, fill), out=out)
+    return out
+
+
+def _block_window_reduce(a, axis, qa, qb, op, fill):
+    """Per block (axis 0 of ``a``), ``out[k, ..., j, ...] = op`` over
+    ``a[k, ..., qa[k, j]:qb[k, j] + 1, ...]`` along ``axis`` (``fill`` for
+    empty windows); ``qa``, ``qb``: (k, J)."""
+    n = a.shape[axis]
+    width = int((qb - qa + 1).max()) if qa.size else 0
+    out_shape = list(a.shape)
+    out_shape[axis] = qa.shape[1]
+    out = np.full(out_shape, fill, dtype=a.dtype)
+    shape = [qa.shape[0], 1, 1, 1]
+    shape[axis] = qa.shape[1]
+    for k in range(max(width, 0)):
+        idx = qa + k
+        valid = ((idx <= qb) & (idx < n)).reshape(shape)
+        taken = np.take_along_axis(a, np.clip(idx, 0, n - 1).reshape(shape), axis=axis)
+        op(out, np.where(valid, taken, fill), out=out)
+    return out

@@ -118,7 +118,7 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
         rec["majorant_update_s"] = None
     else:
         med = [s for s in scene.shapes() if s.interior_medium() is not None][0].interior_medium()
-        rec["structure_bytes"] = med.structure_bytes
+        rec["structure_bytes"] = med.resident_bytes      # data + structures, as the dense reference
         dr.eval()
         t0 = time.perf_counter()
         for _ in range(5):

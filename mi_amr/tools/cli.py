@@ -231,8 +231,15 @@ def cmd_compare(args):
 # ---- dataset ---------------------------------------------------------------
 def cmd_dataset(args):
     ensure_llvm_path()
-    from ..data.datasets import make_dataset
+    from ..data.datasets import make_dataset, write_block_dataset
     from ..data.io import save_cells
+    if args.name == "blocks" and Path(args.output).suffix == ".cells":
+        # streamed block by block: no per-cell array of the whole data set
+        out = write_block_dataset(args.output, args.cells, args.levels, args.seed, args.nxb)
+        print(f"wrote {out}: {out.stat().st_size // 16} cells in blocks")
+        return
+    if args.nxb is not None:
+        raise SystemExit("mi-amr dataset: --nxb applies to 'blocks' written as .cells")
     cells = make_dataset(args.name, args.cells, args.levels, args.seed)
     out = save_cells(cells, args.output)
     print(f"wrote {out}: {cells}")
@@ -302,12 +309,15 @@ def build_parser():
     sub.add_parser("bench", help="the benchmark: mi-amr bench --quick --out DIR "
                                  "(same as python -m mi_amr.bench)")
 
-    d = sub.add_parser("dataset", help="generate a synthetic data set")
-    d.add_argument("name", choices=("cloud", "shell", "stadium"))
+    d = sub.add_parser("dataset", help="generate a synthetic data set",
+                       epilog="example: mi-amr dataset blocks big.cells --cells 100000000 --levels 5")
+    d.add_argument("name", choices=("cloud", "shell", "stadium", "blocks"), help="octree-like: cloud, shell, stadium; "
+                   "block-structured (FLASH-like nxb^3 blocks): blocks")
     d.add_argument("output")
     d.add_argument("--cells", type=int, default=20000)
     d.add_argument("--levels", type=int, default=4)
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--nxb", type=int, default=None, help="cells per block side of 'blocks' (default 16)")
     d.set_defaults(func=cmd_dataset)
     return p
 

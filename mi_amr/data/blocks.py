@@ -1,0 +1,367 @@
+"""The compact resident form of AMR data: aligned blocks of same-level cells.
+
+Each level's index space is cut into aligned blocks of ``B x B x B`` cells
+(``B`` a power of two, chosen per data set by memory, see `choose_block_size`).
+A block that holds at least one cell stores all ``B^3`` values, x fastest,
+with NaN where the level has no cell; nothing else is kept per cell (about
+4 bytes per cell on block-structured data, where boxes fill whole blocks).
+Point location hashes the block coordinate of a level (docs/design.md
+section 9); builders read cells back block by block (`BlockVolume.cell_chunks`).
+
+Coordinates: finest-level cell units, as in `mi_amr.data.cells`. ``origin``
+is the lower data corner aligned to the coarsest level, so that level and
+block coordinates ``((pos - origin) >> L) >> log2(B)`` are never negative.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import mitsuba as mi
+
+from .cells import AMRCells, check_cells
+
+#: Block sizes tried by `choose_block_size` (cells per side).
+BLOCK_SIZES = (2, 4, 8, 16)
+#: Host bytes of one block's entry in the point-location hash (key 8 B,
+#: payload 4 B, at the table's load factor of about 0.35).
+HASH_BYTES_PER_BLOCK = 12 / 0.35
+#: Cells validated and placed per step when streaming.
+CHUNK = 1 << 22
+#: Cells per contiguous run of the sample that chooses the block size.
+SAMPLE = 1 << 17
+
+
+class BlockVolume(mi.Object):
+    """AMR cells stored as aligned same-level blocks (see module docstring).
+
+    Attributes (numpy)
+    ------------------
+    block : int                  cells per block side ``B``
+    level : uint8 (K,)           level of each block
+    coord : int32 (K, 3)         block coordinate at that level (x, y, z)
+    values : float32 (K * B^3,)  cell values, NaN where no cell
+    origin, lo, hi : int64 (3,)  key origin and data bounds (finest units)
+    n_cells : int                cells present
+    source : str                 name used in error messages
+    """
+
+    def __init__(self, block, level, coord, values, origin, lo, hi, n_cells, source):
+        super().__init__()
+        self.block = int(block)
+        self.log2_block = int(self.block).bit_length() - 1
+        self.level = level
+        self.coord = coord
+        self.values = values
+        self.origin, self.lo, self.hi = origin, lo, hi
+        self.n_cells = int(n_cells)
+        self.source = source
+        self._update_range()
+
+    def _update_range(self):
+        lo_v, hi_v = np.inf, -np.inf
+        for s in range(0, len(self.values), CHUNK):
+            v = self.values[s:s + CHUNK]
+            if not np.isnan(v).all():
+                lo_v, hi_v = min(lo_v, float(np.nanmin(v))), max(hi_v, float(np.nanmax(v)))
+        self._range = (lo_v, hi_v)
+
+    # ---- Construction --------------------------------------------------
+    @classmethod
+    def from_cells(cls, cells: AMRCells, block: int | None = None) -> "BlockVolume":
+        """Blocks of validated ``cells`` (in memory)."""
+        lo, hi = cells.bounds
+        chunks = lambda: ((cells.pos[s:s + CHUNK], cells.level[s:s + CHUNK], cells.value[s:s + CHUNK])  # noqa: E731
+                          for s in range(0, len(cells), CHUNK))
+        return _build(chunks, lo, hi, int(cells.level.max()), cells.source, "error", block,
+                      lambda: _sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)))
+
+    @classmethod
+    def from_chunks(cls, chunks, source: str, overlap: str = "error", block: int | None = None,
+                    sample=None):
+        """Blocks from a re-iterable source of raw cells: ``chunks()`` yields
+        ``(pos (m, 3) ints, level (m,), value (m,))``, read three times
+        (validation and bounds, blocks, values). Each chunk is validated as
+        `AMRCells` validates; overlaps across chunks are found from the
+        blocks. ``sample()`` yields a few contiguous runs of cells from
+        across the data, from which the block size is chosen (default: the
+        first chunk)."""
+        lo = np.full(3, np.iinfo(np.int64).max)
+        hi = np.full(3, np.iinfo(np.int64).min)
+        lmax, n, start = 0, 0, 0
+        for pos, level, value in chunks():
+            check_cells(pos, level, value, source, start)
+            start += len(value)
+            if len(value):
+                w = np.int64(1) << level.astype(np.int64)
+                lo = np.minimum(lo, pos.min(axis=0))
+                hi = np.maximum(hi, (pos + w[:, None]).max(axis=0))
+                lmax = max(lmax, int(level.max()))
+                n += len(value)
+        if n == 0:
+            raise ValueError(f"{source}: contains no cells")
+        if np.any(hi - lo > 2**31 - 1):
+            raise ValueError(f"{source}: bounding box {lo.tolist()}..{hi.tolist()} exceeds 2**31 finest cells")
+        return _build(chunks, lo, hi, lmax, source, overlap, block, sample)
+
+    # ---- Properties ----------------------------------------------------
+    def __len__(self):
+        return self.n_cells
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.lo, self.hi
+
+    @property
+    def levels(self) -> np.ndarray:
+        return np.unique(self.level).astype(np.int32)
+
+    @property
+    def value_range(self) -> tuple[float, float]:
+        return self._range
+
+    @property
+    def nbytes(self) -> int:
+        """Resident host bytes: values and per-block headers."""
+        return self.values.nbytes + self.level.nbytes + self.coord.nbytes
+
+    def __repr__(self):
+        return (f"BlockVolume[{self.n_cells} cells in {len(self.level)} blocks of {self.block}^3, "
+                f"levels {self.levels.tolist()}, {self.nbytes / max(self.n_cells, 1):.1f} B/cell]")
+
+    # ---- Reading cells back ----------------------------------------------
+    def cell_chunks(self, max_cells: int = CHUNK):
+        """Yield ``(pos int64 (m, 3), level int32 (m,), value float32 (m,))``
+        of the present cells, a few blocks at a time (about ``max_cells``
+        cells per chunk), in block order."""
+        b3 = self.block ** 3
+        step = max(1, max_cells // b3)
+        local = np.stack(np.unravel_index(np.arange(b3), (self.block,) * 3, order="F"), axis=1)
+        for s in range(0, len(self.level), step):
+            v = self.values[s * b3:(s + step) * b3].reshape(-1, b3)
+            blk, cell = np.nonzero(~np.isnan(v))
+            L = self.level[s:s + step][blk].astype(np.int64)
+            q = (self.coord[s:s + step][blk].astype(np.int64) << self.log2_block) + local[cell]
+            yield (q << L[:, None]) + self.origin, L.astype(np.int32), v[blk, cell]
+
+    def block_chunks(self, max_cells: int = CHUNK):
+        """Yield ``(level (k,), coord (k, 3), values (k, B, B, B))`` for a few
+        blocks at a time (about ``max_cells`` values), values indexed
+        [block, z, y, x] with NaN where there is no cell."""
+        b3 = self.block ** 3
+        step = max(1, max_cells // b3)
+        for s in range(0, len(self.level), step):
+            yield (self.level[s:s + step], self.coord[s:s + step],
+                   self.values[s * b3:(s + step) * b3].reshape(-1, self.block, self.block, self.block))
+
+    def to_cells(self) -> AMRCells:
+        """All cells as an `AMRCells` (per-cell records: for small data and for
+        builders that still need them)."""
+        parts = list(self.cell_chunks())
+        return AMRCells(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                        np.concatenate([p[2] for p in parts]), source=self.source, validate=False)
+
+    def lookup(self, level: int, q: np.ndarray):
+        """Host point location: ``(value, found)`` of the level-``level``
+        cells at level coordinates ``q`` (int (M, 3), relative to ``origin``)."""
+        q = np.asarray(q, dtype=np.int64)
+        sel = np.nonzero(self.level == level)[0]
+        found = np.zeros(len(q), dtype=bool)
+        value = np.zeros(len(q), dtype=np.float32)
+        if not len(sel):
+            return value, found
+        keys = _block_keys(self.coord[sel], np.full(len(sel), level), False)
+        order = np.argsort(keys)
+        ok = np.all(q >= 0, axis=1)
+        qk = _block_keys(np.where(ok[:, None], q, 0) >> self.log2_block, np.full(len(q), level), False)
+        i = np.minimum(np.searchsorted(keys, qk, sorter=order), len(sel) - 1)
+        hit = ok & (keys[order[i]] == qk)
+        blk = sel[order[i]]
+        loc = q & (self.block - 1)
+        slot = blk * self.block ** 3 + loc[:, 0] + self.block * (loc[:, 1] + self.block * loc[:, 2])
+        v = self.values[np.where(hit, slot, 0)]
+        found = hit & ~np.isnan(v)
+        value[found] = v[found]
+        return value, found
+
+
+def _sample_runs(n: int, read):
+    """Eight contiguous runs of `SAMPLE` cells spread over ``n`` cells (all of
+    them when that is fewer); ``read(start, stop)`` returns one run."""
+    if n <= 8 * SAMPLE:
+        yield read(0, n)
+        return
+    for s in np.linspace(0, n - SAMPLE, 8).astype(np.int64):
+        yield read(int(s), int(s) + SAMPLE)
+
+
+def choose_block_size(block_counts: dict) -> int:
+    """Block size with the fewest resident bytes, from the number of blocks
+    each size needs: ``K(B) * (4 B^3 + hash bytes per block)``."""
+    cost = {b: k * (4.0 * b ** 3 + HASH_BYTES_PER_BLOCK) for b, k in block_counts.items()}
+    return min(cost, key=cost.get)
+
+
+#: Bits per axis of a packed int64 block key (5 bits hold the level).
+KEY_AXIS_BITS = 19
+
+
+def _block_keys(coord: np.ndarray, level: np.ndarray, packed: bool = True) -> np.ndarray:
+    """One sortable key per (block coordinate, level): packed into int64
+    when every coordinate is below ``2**KEY_AXIS_BITS``, else a 16-byte void
+    (big-endian rows, so byte order is numeric order)."""
+    coord = np.asarray(coord)
+    if packed:
+        c = coord.astype(np.int64)
+        return ((np.asarray(level, dtype=np.int64) << (3 * KEY_AXIS_BITS)) | (c[:, 2] << (2 * KEY_AXIS_BITS))
+                | (c[:, 1] << KEY_AXIS_BITS) | c[:, 0])
+    rows = np.empty((len(level), 4), dtype=">i4")
+    rows[:, :3] = coord[:, ::-1]
+    rows[:, 3] = level
+    return np.ascontiguousarray(rows).view(np.dtype((np.void, 16))).ravel()
+
+
+def _unpack_keys(keys: np.ndarray, packed: bool):
+    """Inverse of `_block_keys`: ``(coord int64 (K, 3), level int64 (K,))``."""
+    if packed:
+        m = (1 << KEY_AXIS_BITS) - 1
+        return (np.stack([keys & m, (keys >> KEY_AXIS_BITS) & m, (keys >> (2 * KEY_AXIS_BITS)) & m], axis=1),
+                keys >> (3 * KEY_AXIS_BITS))
+    rows = keys.view(">i4").reshape(-1, 4).astype(np.int64)
+    return rows[:, 2::-1].copy(), rows[:, 3]
+
+
+def _distinct(keys: np.ndarray) -> np.ndarray:
+    """Sorted distinct keys; runs of equal neighbours (cells of one block
+    stored together, as codes write them) are collapsed before sorting."""
+    if len(keys) > 1:
+        keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
+    return np.unique(keys)
+
+
+def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None):
+    """Choose the block size (from ``sample()``, or the first chunk), then
+    two passes over ``chunks()``: the set of blocks, then the values."""
+    origin = (np.asarray(lo, dtype=np.int64) >> lmax) << lmax
+    sizes = BLOCK_SIZES if block is None else (int(block),)
+    for b in sizes:
+        if b < 1 or b & (b - 1):
+            raise ValueError(f"{source}: block size must be a power of two, got {b}")
+    packed = int(np.max(np.asarray(hi, dtype=np.int64) - origin)) // min(sizes) < (1 << KEY_AXIS_BITS)
+
+    def block_keys(pos, level, b):
+        L = level.astype(np.int64)
+        return _block_keys(((pos.astype(np.int64) - origin) >> L[:, None]) // b, L, packed)
+    # ---- Block size: fewest bytes per cell on the sample ----
+    if len(sizes) > 1:
+        runs = list(sample() if sample is not None else [next(iter(chunks()))])
+        counts = {b: sum(len(_distinct(block_keys(p, lv, b))) for p, lv, _ in runs) for b in sizes}
+        b = choose_block_size(counts)
+    else:
+        b = sizes[0]
+    # ---- Pass 1: the blocks ----
+    keys = _distinct(np.concatenate([_distinct(block_keys(p, lv, b)) for p, lv, _ in chunks()]))
+    coord, blevel = _unpack_keys(keys, packed)
+    coord, blevel = coord.astype(np.int32), blevel.astype(np.uint8)
+    b3 = b ** 3
+    if len(keys) * b3 >= 2**32:
+        raise ValueError(f"{source}: {len(keys)} blocks of {b}^3 values exceed 2**32 values")
+    values = np.full(len(keys) * b3, np.nan, dtype=np.float32)
+    # ---- Pass 2: place each cell's value; a second value in a slot is a duplicate ----
+    n, start = 0, 0
+    for pos, level, value in chunks():
+        L = level.astype(np.int64)
+        q = (pos.astype(np.int64) - origin) >> L[:, None]
+        blk = np.searchsorted(keys, _block_keys(q // b, L, packed))
+        loc = q & (b - 1)
+        slot = blk * b3 + loc[:, 0] + b * (loc[:, 1] + b * loc[:, 2])
+        m = len(slot)
+        taken = ~np.isnan(values[slot])           # placed by an earlier chunk
+        free = np.nonzero(~taken)[0]
+        fslot = slot[free]
+        if len(free) < (1 << 24):
+            # a slot twice in this chunk: write each cell's index (exact in
+            # float32) and read it back; the later write wins
+            mark = np.arange(len(free), dtype=np.float32)
+            values[fslot] = mark
+            lost = values[fslot] != mark
+            values[fslot] = np.nan
+        else:
+            _, first = np.unique(fslot, return_index=True)
+            lost = np.ones(len(free), dtype=bool)
+            lost[first] = False
+        if taken.any() or lost.any():
+            if overlap == "error":
+                dup = taken.copy()
+                dup[free[lost]] = True
+                i = int(np.argmax(dup))
+                raise ValueError(
+                    f"{source}: cell {start + i} at {np.asarray(pos[i]).tolist()} (level {int(level[i])}) "
+                    "duplicates another cell: cells overlap finer or duplicate cells; pass "
+                    "overlap='finest' to keep the finer ones")
+            _, first = np.unique(fslot, return_index=True)    # duplicates at one level: keep the first
+            free = free[first]
+        values[slot[free]] = np.asarray(value, dtype=np.float32)[free]
+        n += len(free)
+        start += m
+    vol = BlockVolume(b, blevel, coord, values, origin, np.asarray(lo, np.int64), np.asarray(hi, np.int64),
+                      n, source)
+    removed = _remove_overlaps(vol, overlap)
+    if removed:                                   # coarse cells dropped: bounds and range may shrink
+        vol.n_cells -= removed
+        keep = ~np.isnan(vol.values.reshape(len(vol.level), -1)).all(axis=1)
+        if not keep.all():                        # drop blocks left empty
+            vol.values = np.ascontiguousarray(vol.values.reshape(len(keep), -1)[keep]).reshape(-1)
+            vol.level, vol.coord = vol.level[keep], vol.coord[keep]
+        lo, hi = np.full(3, np.iinfo(np.int64).max), np.full(3, np.iinfo(np.int64).min)
+        for pos, level, _ in vol.cell_chunks():
+            lo = np.minimum(lo, pos.min(axis=0))
+            hi = np.maximum(hi, (pos + (np.int64(1) << level.astype(np.int64))[:, None]).max(axis=0))
+        vol.lo, vol.hi = lo, hi
+        vol._update_range()
+    return vol
+
+
+def _remove_overlaps(vol: BlockVolume, overlap: str) -> int:
+    """Find coarse cells that cover finer ones, level pair by level pair:
+    a fine block whose ancestor block (at the coarse level) does not exist
+    cannot overlap; the others are checked cell by cell. With ``overlap ==
+    "error"`` raise, else clear the coarse cells. Returns the cells removed."""
+    levels = vol.levels
+    removed = 0
+    b, b3 = vol.block, vol.block ** 3
+    local = np.stack(np.unravel_index(np.arange(b3), (b,) * 3, order="F"), axis=1)
+    for Lc in levels[1:]:
+        csel = np.nonzero(vol.level == Lc)[0]
+        ckeys = _block_keys(vol.coord[csel], np.full(len(csel), Lc), False)
+        corder = np.argsort(ckeys)
+        for Lf in levels[levels < Lc]:
+            k = int(Lc - Lf)
+            fsel = np.nonzero(vol.level == Lf)[0]
+            anc = _block_keys(vol.coord[fsel] >> k, np.full(len(fsel), Lc), False)
+            i = np.minimum(np.searchsorted(ckeys, anc, sorter=corder), len(csel) - 1)
+            cand = fsel[ckeys[corder[i]] == anc]
+            for s in range(0, len(cand), max(1, CHUNK // b3)):
+                blocks = cand[s:s + CHUNK // b3]
+                v = vol.values.reshape(-1, b3)[blocks]
+                bi, ci = np.nonzero(~np.isnan(v))
+                q = (vol.coord[blocks][bi].astype(np.int64) << vol.log2_block) + local[ci]
+                _, hit = vol.lookup(int(Lc), q >> k)
+                if not hit.any():
+                    continue
+                if overlap == "error":
+                    j = int(np.argmax(hit))
+                    cpos = ((q[j] >> k) << Lc) + vol.origin
+                    raise ValueError(
+                        f"{vol.source}: cells overlap finer or duplicate cells (first: the level-{int(Lc)} "
+                        f"cell at {cpos.tolist()} covers a level-{int(Lf)} cell); pass overlap='finest' "
+                        "to keep the finer ones")
+                cq = np.unique(q[hit] >> k, axis=0)
+                cb = cq >> vol.log2_block
+                ck = _block_keys(cb, np.full(len(cq), Lc), False)
+                j = csel[corder[np.searchsorted(ckeys, ck, sorter=corder)]]
+                loc = cq & (b - 1)
+                slot = j * b3 + loc[:, 0] + b * (loc[:, 1] + b * loc[:, 2])
+                removed += int((~np.isnan(vol.values[slot])).sum())
+                vol.values[slot] = np.nan
+    return removed
+

@@ -1,0 +1,185 @@
+"""The compact resident form (`BlockVolume`): equivalence with the cells it
+came from, streaming load, point location on host and device, macrocell
+ranges built from blocks, and what a medium keeps in memory."""
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_amr
+from mi_amr.data.blocks import BlockVolume
+from mi_amr.data.datasets import make_dataset, write_block_dataset
+from mi_amr.data.io import read_exabricks, read_exabricks_blocks, write_exabricks
+from mi_amr.device.hash_sampler import DeviceReconstruction
+from mi_amr.memory import MemoryLimitError
+from mi_amr.structures.boxes import expand_boxes
+from mi_amr.structures.macrocell_grid import MacrocellGrid, axis_resolution
+from mi_amr.testing import brute_force
+
+from conftest import random_amr
+
+DATA = {"random": lambda: random_amr(0), "cloud": lambda: make_dataset("cloud", 5000),
+        "stadium": lambda: make_dataset("stadium", 5000, levels=7),
+        "blocks": lambda: make_dataset("blocks", 40000, levels=4)}
+
+
+def sorted_cells(c):
+    order = np.lexsort((c.pos[:, 0], c.pos[:, 1], c.pos[:, 2], c.level))
+    return c.pos[order], c.level[order], c.value[order]
+
+
+@pytest.mark.parametrize("name", DATA)
+@pytest.mark.parametrize("block", [None, 2, 8])
+def test01_blocks_hold_exactly_the_cells(name, block):
+    """Every cell comes back (position, level, value) and nothing else; host
+    point location finds each cell and misses outside the data."""
+    cells = DATA[name]()
+    vol = BlockVolume.from_cells(cells, block)
+    assert len(vol) == len(cells) and vol.value_range == cells.value_range
+    for a, b in zip(sorted_cells(cells), sorted_cells(vol.to_cells())):
+        np.testing.assert_array_equal(a, b)
+    for L in cells.levels:
+        sel = cells.level == L
+        q = (cells.pos[sel] - vol.origin) >> int(L)
+        value, found = vol.lookup(int(L), q)
+        assert found.all() and np.array_equal(value, cells.value[sel])
+        _, found = vol.lookup(int(L), q + (vol.hi - vol.lo))           # beyond the data
+        assert not found.any()
+
+
+def test02_block_size_follows_the_data():
+    """Block-structured data fill whole blocks (4 bytes per cell plus
+    headers); octree-like data get small blocks, and no size the chooser
+    rejected would need fewer bytes."""
+    blocks = BlockVolume.from_cells(DATA["blocks"]())
+    assert blocks.block >= 8 and blocks.nbytes / len(blocks) < 4.2
+    cells = DATA["cloud"]()
+    chosen = BlockVolume.from_cells(cells)
+    assert chosen.nbytes / len(chosen) < 12
+    for b in (2, 4, 8, 16):
+        other = BlockVolume.from_cells(cells, b)
+        # hash bytes per block are the chooser's estimate; values dominate
+        assert chosen.nbytes + 35 * len(chosen.level) <= other.nbytes + 35 * len(other.level) + 1
+
+
+@pytest.mark.parametrize("chunk", [1000, 1 << 22])
+def test03_streaming_load_equals_in_memory(tmp_path, chunk):
+    """A .cells file read in chunks gives the blocks of the whole data."""
+    cells = DATA["blocks"]()
+    write_exabricks(cells, tmp_path / "d.cells")
+    streamed = read_exabricks_blocks(tmp_path / "d.cells", chunk=chunk)
+    direct = BlockVolume.from_cells(cells, streamed.block)
+    np.testing.assert_array_equal(streamed.coord, direct.coord)
+    np.testing.assert_array_equal(streamed.level, direct.level)
+    np.testing.assert_array_equal(streamed.values, direct.values)
+    assert streamed.source.endswith("d.cells") and len(streamed) == len(cells)
+
+
+def test04_streaming_load_finds_overlaps_across_chunks(tmp_path):
+    """A coarse cell over finer ones, and a duplicate, in different chunks:
+    a clear error naming the file (or, with overlap='finest', the cells
+    AMRCells keeps)."""
+    cells = random_amr(1)
+    bad = [(np.concatenate([cells.pos, [[0, 0, 0]]]), np.r_[cells.level, 3], np.r_[cells.value, 1.0]),
+           (np.concatenate([cells.pos, cells.pos[:1]]), np.r_[cells.level, cells.level[:1]],
+            np.r_[cells.value, 5.0])]
+    for i, (pos, level, value) in enumerate(bad):
+        path = tmp_path / f"bad{i}.cells"
+        write_exabricks(mi_amr.AMRCells(pos, level, value, validate=False), path)
+        with pytest.raises(ValueError, match=rf"bad{i}.cells.*overlap finer or duplicate"):
+            read_exabricks_blocks(path, chunk=100)
+        kept = read_exabricks_blocks(path, chunk=100, overlap="finest").to_cells()
+        ref = read_exabricks(path, overlap="finest")
+        for a, b in zip(sorted_cells(ref), sorted_cells(kept)):
+            np.testing.assert_array_equal(a, b)
+
+
+def test05_huge_or_inconsistent_files_fail_before_allocating(tmp_path):
+    big = tmp_path / "big.cells"
+    with open(big, "wb") as f:
+        f.truncate(100 << 30)
+    with open(tmp_path / "big.scalars", "wb") as f:
+        f.truncate(25 << 30)
+    with pytest.raises(MemoryLimitError, match="big.cells"):
+        read_exabricks_blocks(big)
+    write_exabricks(random_amr(0), tmp_path / "t.cells")
+    with open(tmp_path / "t.scalars", "ab") as f:
+        f.write(b"\0\0\0\0")
+    with pytest.raises(ValueError, match="t.cells has .* cells but .*t.scalars has"):
+        read_exabricks_blocks(tmp_path / "t.cells")
+
+
+@pytest.mark.parametrize("block", [2, 8])
+@pytest.mark.parametrize("method", ["nearest", "tent"])
+def test06_device_reconstruction_matches_brute_force(variant, block, method):
+    """Values at random points, cell corners and centres (stencils across
+    block boundaries included) equal the brute-force oracle."""
+    cells = random_amr(7, n=16, levels=4)
+    dev = DeviceReconstruction(BlockVolume.from_cells(cells, block), method)
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-2, 18, (4000, 3))
+    x[:800] = np.round(x[:800] * 2) / 2
+    ref, ref_found = brute_force(cells, x, method)
+    bits = mi.UInt32(sum(1 << int(L) for L in cells.levels))
+    val, found = dev.eval(mi.Vector3f((x - dev.origin).astype(np.float32).T), bits)
+    np.testing.assert_array_equal(found.numpy(), ref_found)
+    np.testing.assert_allclose(val.numpy(), np.where(ref_found, ref, 0.0), rtol=1e-5, atol=1e-6)
+
+
+def fold_each_cell(cells, res, support):
+    """Oracle: each cell's value and level folded into every macrocell its
+    support overlaps."""
+    lo, hi = cells.bounds
+    ext = (hi - lo).astype(np.float64)
+    r = axis_resolution(res, ext)
+    n = int(np.prod(r))
+    vmin, vmax, bits = np.full(n, np.inf, np.float32), np.full(n, -np.inf, np.float32), np.zeros(n, np.uint32)
+    pos, w = (cells.pos - lo).astype(np.float64), cells.width[:, None].astype(np.float64)
+    a, b = (pos - 0.5 * w, pos + 1.5 * w) if support == "tent" else (pos, pos + w)
+    i0 = np.clip(np.floor(a * r / ext), 0, r - 1).astype(np.int64)
+    i1 = np.clip(np.floor(b * r / ext), 0, r - 1).astype(np.int64)
+    idx, owner = expand_boxes(i0, i1, r)
+    np.minimum.at(vmin, idx, cells.value[owner])
+    np.maximum.at(vmax, idx, cells.value[owner])
+    np.bitwise_or.at(bits, idx, (np.uint32(1) << cells.level.astype(np.uint32))[owner])
+    return vmin, vmax, bits
+
+
+@pytest.mark.parametrize("name", ["random", "stadium", "blocks"])
+@pytest.mark.parametrize("support", ["tent", "nearest"])
+def test07_macrocell_ranges_from_blocks_are_exact(name, support):
+    """Ranges and level masks built from blocks (windowed per block, dense
+    per coarse level) or from cells equal folding every cell into every
+    macrocell its support touches; a pooled grid equals a direct build."""
+    cells = DATA[name]()
+    vol = BlockVolume.from_cells(cells)
+    for res in (5, 16, 37):
+        ref = fold_each_cell(cells, res, support)
+        for src in (cells, vol):
+            g = MacrocellGrid(src, res, support=support)
+            for a, b in zip((g.vmin, g.vmax, g.level_bits), ref):
+                np.testing.assert_array_equal(a, b)
+    fine = MacrocellGrid(vol, 32, support=support)
+    pooled, direct = fine.pooled(8), MacrocellGrid(vol, 8, support=support)
+    if pooled is not None:
+        np.testing.assert_array_equal(pooled.vmax, direct.vmax)
+        np.testing.assert_array_equal(pooled.level_bits, direct.level_bits)
+
+
+def test08_a_medium_from_a_file_keeps_only_blocks(llvm, tmp_path):
+    """Loaded from a .cells file with the default structures, a medium keeps
+    the blocks (4 bytes per cell on block-structured data, values shared
+    with the device on the CPU) and small structures, no per-cell records."""
+    path = write_block_dataset(tmp_path / "b.cells", 40000, levels=4)
+    from conftest import volume_scene
+    scene = mi.load_dict(volume_scene({"type": "amr", "filename": str(path), "transfer_function": "spiky",
+                                       "density_scale": 20.0}, res=8, integrator="amrvolpath"))
+    assert np.isfinite(mi.render(scene, spp=2).numpy()).all()
+    med = mi_amr.amr_media(scene)[0]
+    assert isinstance(med.volume, BlockVolume) and med.structures._given_cells is None
+    assert "cells" not in med.volume.__dict__.get("_mi_amr_cache", {})
+    assert med.volume.nbytes / len(med.volume) < 4.1
+    # besides the blocks: the macrocell grid and the block hash, nothing
+    hash_bytes = med.structures.device["hash"].hash.nbytes
+    assert med.resident_bytes == med.volume.nbytes + med.grid.nbytes + hash_bytes
+    assert hash_bytes < 100 * len(med.volume.level)
