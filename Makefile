@@ -7,7 +7,7 @@ RUN   := DRJIT_LIBLLVM_PATH="$$(tools/find-llvm19)" $(PY)
 SPP   ?= 64
 PYTEST_ARGS ?=
 
-.PHONY: setup demo test test-all bench bench-quick clean
+.PHONY: setup demo test test-all bench bench-quick bench-scale clean
 
 setup:
 	@tools/setup.sh
@@ -36,3 +36,7 @@ bench-quick: setup
 
 bench: setup
 	$(RUN) -m mi_amr.bench --out out/bench
+
+# load, build, memory and frame time from 10^5 to 10^8 cells (writes ~2 GB of data to out/data)
+bench-scale: setup
+	$(RUN) -m mi_amr.bench --scale 1e5 1e6 1e7 1e8 --out out/bench-scale

@@ -71,9 +71,10 @@ class Structures:
         if isinstance(data, AMRCells):          # blocks of the cells, made once per AMRCells object
             self._given_cells = data
             cache = data.__dict__.setdefault("_mi_amr_cache", {})
-            if "volume" not in cache:
-                cache["volume"] = BlockVolume.from_cells(data)
-            data = cache["volume"]
+            key = ("volume", options.reconstruction)
+            if key not in cache:
+                cache[key] = BlockVolume.from_cells(data, method=options.reconstruction)
+            data = cache[key]
         else:
             self._given_cells = None
         self.volume = data

@@ -22,9 +22,11 @@ from .cells import AMRCells, check_cells
 
 #: Block sizes tried by `choose_block_size` (cells per side).
 BLOCK_SIZES = (2, 4, 8, 16)
-#: Host bytes of one block's entry in the point-location hash (key 8 B,
-#: payload 4 B, at the table's load factor of about 0.35).
-HASH_BYTES_PER_BLOCK = 12 / 0.35
+#: Bytes of one entry in the point-location hash: key 8 B and payload 4 B at
+#: a load factor of at most 0.35, tables rounded up to powers of two (x1.4).
+HASH_BYTES_PER_BLOCK = 12 / 0.35 * 1.4
+#: Bytes per block of the tent stencil index: 7 neighbour indices.
+NEIGHBOUR_BYTES_PER_BLOCK = 28
 #: Cells validated and placed per step when streaming.
 CHUNK = 1 << 22
 #: Cells per contiguous run of the sample that chooses the block size.
@@ -67,17 +69,19 @@ class BlockVolume(mi.Object):
 
     # ---- Construction --------------------------------------------------
     @classmethod
-    def from_cells(cls, cells: AMRCells, block: int | None = None) -> "BlockVolume":
-        """Blocks of validated ``cells`` (in memory)."""
+    def from_cells(cls, cells: AMRCells, block: int | None = None, method: str = "tent") -> "BlockVolume":
+        """Blocks of validated ``cells`` (in memory); ``method``: the
+        reconstruction they will serve (it weighs the block size)."""
         lo, hi = cells.bounds
         chunks = lambda: ((cells.pos[s:s + CHUNK], cells.level[s:s + CHUNK], cells.value[s:s + CHUNK])  # noqa: E731
                           for s in range(0, len(cells), CHUNK))
         return _build(chunks, lo, hi, int(cells.level.max()), cells.source, "error", block,
-                      lambda: _sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)))
+                      lambda: _sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)),
+                      method)
 
     @classmethod
     def from_chunks(cls, chunks, source: str, overlap: str = "error", block: int | None = None,
-                    sample=None):
+                    sample=None, method: str = "tent"):
         """Blocks from a re-iterable source of raw cells: ``chunks()`` yields
         ``(pos (m, 3) ints, level (m,), value (m,))``, read three times
         (validation and bounds, blocks, values). Each chunk is validated as
@@ -101,7 +105,7 @@ class BlockVolume(mi.Object):
             raise ValueError(f"{source}: contains no cells")
         if np.any(hi - lo > 2**31 - 1):
             raise ValueError(f"{source}: bounding box {lo.tolist()}..{hi.tolist()} exceeds 2**31 finest cells")
-        return _build(chunks, lo, hi, lmax, source, overlap, block, sample)
+        return _build(chunks, lo, hi, lmax, source, overlap, block, sample, method)
 
     # ---- Properties ----------------------------------------------------
     def __len__(self):
@@ -160,6 +164,44 @@ class BlockVolume(mi.Object):
         return AMRCells(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
                         np.concatenate([p[2] for p in parts]), source=self.source, validate=False)
 
+    def stencil_index(self):
+        """Tables for one-probe tent stencils (docs/design.md section 9).
+
+        A stencil ``b + {0,1}^3`` has its cells in the blocks ``block(b) +
+        {0,1}^3``. Returns ``(ghost_coord (G, 3), ghost_level (G,),
+        neighbours uint32 (K + G, 7))``: *ghosts* are the missing blocks at
+        ``coord - d`` (d in {0,1}^3 \\ 0) of every block, so that the block of
+        any stencil base with a cell is present or a ghost; ``neighbours[k,
+        d - 1]`` is the block at ``coord + d`` (``d = dx + 2 dy + 4 dz``) of
+        block k (ghosts numbered after the K blocks), or ``0xFFFFFFFF``."""
+        keys = _block_keys(self.coord, self.level, False)
+        order = np.argsort(keys)
+        offsets = [np.array([d & 1, (d >> 1) & 1, (d >> 2) & 1], dtype=np.int64) for d in range(1, 8)]
+        coord = self.coord.astype(np.int64)
+
+        def find(k):
+            i = np.minimum(np.searchsorted(keys, k, sorter=order), len(keys) - 1)
+            return order[i], keys[order[i]] == k
+        ghost_c, ghost_l = [], []
+        for off in offsets:
+            c = coord - off
+            ok = np.all(c >= 0, axis=1)
+            _, present = find(_block_keys(np.where(ok[:, None], c, 0), self.level, False))
+            sel = ok & ~present
+            ghost_c.append(c[sel])
+            ghost_l.append(self.level[sel])
+        gk, first = np.unique(_block_keys(np.concatenate(ghost_c), np.concatenate(ghost_l), False),
+                              return_index=True)
+        ghost_coord = np.concatenate(ghost_c)[first]
+        ghost_level = np.concatenate(ghost_l)[first]
+        all_coord = np.concatenate([coord, ghost_coord])
+        all_level = np.concatenate([self.level, ghost_level])
+        neighbours = np.full((len(all_level), 7), 0xFFFFFFFF, dtype=np.uint32)
+        for d, off in enumerate(offsets):
+            idx, hit = find(_block_keys(all_coord + off, all_level, False))
+            neighbours[hit, d] = idx[hit]
+        return ghost_coord.astype(np.int32), ghost_level, neighbours
+
     def lookup(self, level: int, q: np.ndarray):
         """Host point location: ``(value, found)`` of the level-``level``
         cells at level coordinates ``q`` (int (M, 3), relative to ``origin``)."""
@@ -194,11 +236,30 @@ def _sample_runs(n: int, read):
         yield read(int(s), int(s) + SAMPLE)
 
 
-def choose_block_size(block_counts: dict) -> int:
-    """Block size with the fewest resident bytes, from the number of blocks
-    each size needs: ``K(B) * (4 B^3 + hash bytes per block)``."""
-    cost = {b: k * (4.0 * b ** 3 + HASH_BYTES_PER_BLOCK) for b, k in block_counts.items()}
+def choose_block_size(block_counts: dict, ghost_counts: dict | None = None) -> int:
+    """Block size with the fewest resident bytes: for ``K(B)`` blocks,
+    ``K (4 B^3 + hash)``, plus, for tent reconstruction (``ghost_counts``
+    given: ``G(B)`` ghost blocks), ``(K + G)`` neighbour rows and ``G`` hash
+    entries (see `BlockVolume.stencil_index`)."""
+    cost = {}
+    for b, k in block_counts.items():
+        cost[b] = k * (4.0 * b ** 3 + HASH_BYTES_PER_BLOCK)
+        if ghost_counts is not None:
+            g = ghost_counts[b]
+            cost[b] += g * HASH_BYTES_PER_BLOCK + (k + g) * NEIGHBOUR_BYTES_PER_BLOCK
     return min(cost, key=cost.get)
+
+
+def _ghost_count(coord: np.ndarray, level: np.ndarray) -> int:
+    """Missing blocks at ``coord - d``, d in {0,1}^3 \\ 0, of the given blocks."""
+    keys = np.unique(_block_keys(coord, level, False))
+    cand = []
+    for d in range(1, 8):
+        c = coord - np.array([d & 1, (d >> 1) & 1, (d >> 2) & 1])
+        ok = np.all(c >= 0, axis=1)
+        cand.append(_block_keys(c[ok], level[ok], False))
+    cand = np.unique(np.concatenate(cand))
+    return int(len(cand) - np.isin(cand, keys).sum())
 
 
 #: Bits per axis of a packed int64 block key (5 bits hold the level).
@@ -238,7 +299,7 @@ def _distinct(keys: np.ndarray) -> np.ndarray:
     return np.unique(keys)
 
 
-def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None):
+def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="tent"):
     """Choose the block size (from ``sample()``, or the first chunk), then
     two passes over ``chunks()``: the set of blocks, then the values."""
     origin = (np.asarray(lo, dtype=np.int64) >> lmax) << lmax
@@ -254,8 +315,15 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None):
     # ---- Block size: fewest bytes per cell on the sample ----
     if len(sizes) > 1:
         runs = list(sample() if sample is not None else [next(iter(chunks()))])
-        counts = {b: sum(len(_distinct(block_keys(p, lv, b))) for p, lv, _ in runs) for b in sizes}
-        b = choose_block_size(counts)
+        counts, ghosts = {}, {}
+        for b in sizes:
+            counts[b], ghosts[b] = 0, 0
+            for p, lv, _ in runs:
+                c, L = _unpack_keys(_distinct(block_keys(p, lv, b)), packed)
+                counts[b] += len(L)
+                if method == "tent":
+                    ghosts[b] += _ghost_count(c, L)
+        b = choose_block_size(counts, ghosts if method == "tent" else None)
     else:
         b = sizes[0]
     # ---- Pass 1: the blocks ----

@@ -68,11 +68,12 @@ def read_exabricks(cells_path, scalars_path=None, *, overlap: str = "error") -> 
 
 
 def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "error",
-                          block: int | None = None, chunk: int = 1 << 22) -> BlockVolume:
+                          block: int | None = None, chunk: int = 1 << 22, method: str = "tent") -> BlockVolume:
     """Stream an ExaBricks pair into a `BlockVolume`: both files are
     memory-mapped and read ``chunk`` cells at a time (twice), validated as
     strictly as `read_exabricks`; no per-cell array of the whole file is
-    made."""
+    made. ``method``: the reconstruction the blocks will serve (it weighs
+    the block size)."""
     cells_path, scalars_path, n = _exabricks_pair(cells_path, scalars_path)
     if n == 0:
         raise ValueError(f"{cells_path}: contains no cells")
@@ -89,7 +90,7 @@ def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "erro
         r = np.asarray(rec[s:e])
         return r[:, :3], r[:, 3], None
     return BlockVolume.from_chunks(chunks, str(cells_path), overlap=overlap, block=block,
-                                   sample=lambda: _sample_runs(n, read))
+                                   sample=lambda: _sample_runs(n, read), method=method)
 
 
 def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Path, Path]:
@@ -157,13 +158,13 @@ def load_cells(path, scalars=None, *, overlap: str = "error") -> AMRCells:
     raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected .cells or .npz)")
 
 
-def load_volume(path, scalars=None, *, overlap: str = "error") -> BlockVolume:
+def load_volume(path, scalars=None, *, overlap: str = "error", method: str = "tent") -> BlockVolume:
     """Load AMR data into its compact resident form: ``.cells`` files are
     streamed (`read_exabricks_blocks`), ``.npz`` archives read and converted."""
     path = Path(path)
     if path.suffix == ".cells":
-        return read_exabricks_blocks(path, scalars, overlap=overlap)
-    return BlockVolume.from_cells(load_cells(path, scalars, overlap=overlap))
+        return read_exabricks_blocks(path, scalars, overlap=overlap, method=method)
+    return BlockVolume.from_cells(load_cells(path, scalars, overlap=overlap), method=method)
 
 
 def save_cells(cells: AMRCells, path) -> Path:

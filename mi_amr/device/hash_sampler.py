@@ -27,17 +27,20 @@ CORNERS = [(c & 1, (c >> 1) & 1, (c >> 2) & 1) for c in range(8)]
 
 class BlockHash(LevelHash):
     """Per-level hash of the block coordinates of a `BlockVolume`; payload:
-    the block index."""
+    the block index. ``ghosts``, ``(coord, level)`` of blocks without values,
+    are numbered after the volume's blocks."""
 
-    def __init__(self, volume: BlockVolume):
-        entries = {int(L): (volume.coord[volume.level == L],
-                            np.nonzero(volume.level == L)[0].astype(np.uint32))
-                   for L in np.unique(volume.level)}
+    def __init__(self, volume: BlockVolume, ghosts=None):
+        coord, level = volume.coord, volume.level
+        if ghosts is not None:
+            coord, level = np.concatenate([coord, ghosts[0]]), np.concatenate([level, ghosts[1]])
+        entries = {int(L): (coord[level == L], np.nonzero(level == L)[0].astype(np.uint32))
+                   for L in np.unique(level)}
         super().__init__(entries, np.uint32, volume.source)
 
 
 @jit_struct(keys="UInt64", keys_z="UInt32", offset="UInt32", mask="UInt32", max_probe="UInt32",
-            payload="UInt32", values="Float")
+            payload="UInt32", values="Float", neighbours="UInt32", n_blocks="UInt32")
 class DeviceReconstruction:
     """Reconstruction at points, in Dr.Jit, from the blocks of a `BlockVolume`
     (an `AMRCells` is converted first)."""
@@ -45,9 +48,14 @@ class DeviceReconstruction:
     def __init__(self, volume: BlockVolume | AMRCells, method: str):
         self.method = check_method(method)
         if isinstance(volume, AMRCells):
-            volume = BlockVolume.from_cells(volume)
+            volume = BlockVolume.from_cells(volume, method=method)
         self.volume = volume
-        self.hash = BlockHash(volume)
+        if method == "tent":                # ghost blocks and neighbours: one probe per stencil
+            ghost_coord, ghost_level, neighbours = volume.stencil_index()
+            self.hash = BlockHash(volume, (ghost_coord, ghost_level))
+        else:
+            self.hash, neighbours = BlockHash(volume), np.zeros(1, np.uint32)
+        self.n_blocks = mi.UInt32(len(volume.level))
         self.origin = volume.origin
         self.block = volume.block
         self.log2_block = volume.log2_block
@@ -59,7 +67,9 @@ class DeviceReconstruction:
         self.max_probe = mi.UInt32(self.hash.max_probe)
         self.payload = mi.UInt32(self.hash.payload)
         self.values = mi.Float(volume.values)
-        dr.make_opaque(self.keys, self.keys_z, self.payload, self.values, self.offset, self.mask, self.max_probe)
+        self.neighbours = mi.UInt32(neighbours.ravel())
+        dr.make_opaque(self.keys, self.keys_z, self.payload, self.values, self.offset, self.mask, self.max_probe,
+                       self.neighbours, self.n_blocks)
         # On the CPU backend the device array is host memory: the volume's
         # builders read it through a view, so the values are kept once.
         self.shares_values = dr.backend_v(self.values) == dr.JitBackend.LLVM
@@ -70,7 +80,8 @@ class DeviceReconstruction:
     def nbytes(self) -> int:
         """Bytes of the hash, plus the device values unless they are the
         volume's own (CPU backend: counted once, in `BlockVolume.nbytes`)."""
-        return self.hash.nbytes + (0 if self.shares_values else 4 * dr.width(self.values))
+        return (self.hash.nbytes + 4 * dr.width(self.neighbours)
+                + (0 if self.shares_values else 4 * dr.width(self.values)))
 
     def _probe(self, qb: mi.Vector3u, L, probe, active):
         """One linear-probing step for block ``qb`` of level ``L``:
@@ -130,20 +141,34 @@ class DeviceReconstruction:
                     w = (t1.x if dx else t0.x) * (t1.y if dy else t0.y) * (t1.z if dz else t0.z)
                     ok_corner.append(dr.all((qc >= 0.0) & (qc < limit)) & (w > 0.0))
                     done |= dr.select(ok_corner[c], 0, 1 << c)
-                # the first corner not handled yet picks the block to probe
+                need = done != 0xFF
+                # Probe the block of the base cell b (a ghost when it has no
+                # cell but a neighbour does): its upper neighbours hold every
+                # other corner, and no such block means no corner at this
+                # level. At the data's lower edge (b < 0) probe the block of
+                # the first corner not handled yet and take the corners in it.
+                use_base = need & dr.all(base >= 0.0)
                 c0 = dr.tzcnt(~done & 0xFF)
                 q0 = base + mi.Vector3f(mi.Float(c0 & 1), mi.Float((c0 >> 1) & 1), mi.Float((c0 >> 2) & 1))
-                need = done != 0xFF
-                qb = mi.Vector3u(dr.select(need, q0, 0.0)) >> self.log2_block
+                target = dr.select(use_base, base, q0)
+                qb = mi.Vector3u(dr.select(need, target, 0.0)) >> self.log2_block
                 hit, finished, blk = self._probe(qb, L, probe, need)
+                base_local = mi.Vector3u(dr.select(use_base, base, 0.0)) & (self.block - 1)
                 for c, (dx, dy, dz) in enumerate(CORNERS):
                     qc = base + mi.Vector3f(dx, dy, dz)
                     qi = mi.Vector3u(dr.select(ok_corner[c], qc, 0.0))
-                    mine = finished & need & ok_corner[c] & ((done & (1 << c)) == 0) & \
-                        dr.all((qi >> self.log2_block) == qb)
+                    open_c = finished & need & ok_corner[c] & ((done & (1 << c)) == 0)
+                    # from the base block: the neighbour direction of corner c
+                    d = (dr.select(base_local.x + 1 >= self.block, dx, 0)
+                         | dr.select(base_local.y + 1 >= self.block, 2 * dy, 0)
+                         | dr.select(base_local.z + 1 >= self.block, 4 * dz, 0))
+                    via_nb = open_c & use_base & hit & (d != 0)
+                    blk_c = dr.select(via_nb, dr.gather(mi.UInt32, self.neighbours, blk * 7 + d - 1, via_nb), blk)
+                    mine = open_c & (use_base | dr.all((qi >> self.log2_block) == qb))
+                    has = mine & hit & (blk_c < self.n_blocks)      # ghosts and "none" hold no values
                     w = (t1.x if dx else t0.x) * (t1.y if dy else t0.y) * (t1.z if dz else t0.z)
-                    v = dr.gather(mi.Float, self.values, blk * b3 + self._local(qi), mine & hit)
-                    use = mine & hit & ~dr.isnan(v)
+                    v = dr.gather(mi.Float, self.values, blk_c * b3 + self._local(qi), has)
+                    use = has & ~dr.isnan(v)
                     sum_w += dr.select(use, w, 0.0)
                     sum_wv += dr.select(use, w * v, 0.0)
                     done |= dr.select(mine, 1 << c, 0)

@@ -59,9 +59,10 @@ class MediumOptions:
 def parse_medium_options(props: mi.Properties) -> MediumOptions:
     """Validate the ``amr`` plugin's properties and load its data."""
     check_known(props, "amr", KNOWN, allow=lambda k, v: isinstance(v, mi.PhaseFunction))
-    data = _load_data(props)
+    reconstruction = get_string(props, "amr", "reconstruction", "tent", METHODS)
+    data = _load_data(props, reconstruction)
     structures = StructureOptions(
-        reconstruction=get_string(props, "amr", "reconstruction", "tent", METHODS),
+        reconstruction=reconstruction,
         traversal=get_string(props, "amr", "traversal", "grid", TRAVERSALS),
         sampling=get_string(props, "amr", "sampling", "hash", SAMPLINGS),
         grid_resolution=get_int(props, "amr", "grid_resolution", None, minimum=1),
@@ -100,7 +101,7 @@ def as_transform4f(t) -> "mi.ScalarTransform4f":
     return mi.ScalarTransform4f(mi.ScalarMatrix4f(m.astype(np.float32)), mi.ScalarMatrix4f(inv_t.astype(np.float32)))
 
 
-def _load_data(props) -> AMRCells | BlockVolume:
+def _load_data(props, method: str) -> AMRCells | BlockVolume:
     overlap = get_string(props, "amr", "overlap", "error", OVERLAPS)
     has_file, has_data = "filename" in props.keys(), "data" in props.keys()
     if has_file == has_data:
@@ -117,7 +118,7 @@ def _load_data(props) -> AMRCells | BlockVolume:
     scalars = get_string(props, "amr", "scalars", None)
     if scalars is not None:
         scalars = str(resolver.resolve(scalars))
-    return load_volume(path, scalars, overlap=overlap)
+    return load_volume(path, scalars, overlap=overlap, method=method)
 
 
 def _transfer_function(props, cells: AMRCells | BlockVolume) -> TransferFunction:

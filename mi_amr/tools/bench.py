@@ -1,6 +1,7 @@
 """The mi-amr benchmark: render time against error, in one process.
 
     python -m mi_amr.bench [--quick] --out DIR [FILE.cells ...]
+    python -m mi_amr.bench --scale 1e5 1e6 1e7 1e8 --out DIR    (see scale_bench)
 
 For each data set (the synthetic ``cloud``, ``shell``, ``stadium`` and any
 ``.cells`` file given) x transfer function (``spiky``, ``foggy``) x
@@ -153,7 +154,23 @@ def main(argv=None):
                    help="sample counts of the error-against-time curves")
     p.add_argument("--sweep", type=int, nargs="*", default=[8, 12, 16, 24, 32, 48, 64, 96],
                    help="grid resolutions of the sweep (amrvolpath/grid/hash); empty: no sweep")
+    p.add_argument("--scale", type=float, nargs="+", default=None, metavar="CELLS",
+                   help="run the scale benchmark instead, at these cell counts (e.g. 1e5 1e6 1e7 1e8)")
+    p.add_argument("--scale-kinds", nargs="+", default=["blocks", "cloud"],
+                   help="data kinds of the scale benchmark (octree-like ones up to 1e7 cells)")
+    p.add_argument("--scale-configs", nargs="+", default=None,
+                   help="configurations of the scale benchmark (default: amrvolpath/grid/hash "
+                        "amrvolpath/kdtree/hash)")
+    p.add_argument("--data-dir", default="out/data", help="where the scale benchmark keeps its .cells files")
     args = p.parse_args(argv)
+    if args.scale:
+        from .scale_bench import DEFAULT_CONFIGS, run_scale
+        res = 64 if args.res == 128 else args.res
+        spp = 4 if args.spp == 16 else args.spp
+        run_scale([int(n) for n in args.scale], args.scale_kinds, args.scale_configs or DEFAULT_CONFIGS,
+                  Path(args.out), Path(args.data_dir), res, spp, args.variant)
+        print(f"wrote {args.out}/scale.json, scale.md and scale.png")
+        return 0
     if args.quick:
         args.cells, args.res, args.spp, args.ref_spp, args.repeats = 4000, 48, 4, 128, 3
         args.curve_spp, args.sweep = [1, 2, 4], [8, 16, 32, 64]
