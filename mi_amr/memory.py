@@ -13,16 +13,35 @@ import os
 
 ENV_VAR = "MI_AMR_MEMORY_LIMIT"
 
-#: Peak build bytes per item (a cell; for "hash" a block) of each structure
-#: (measured, rounded up).
+#: Peak build bytes per cell of each structure (measured, rounded up).
 BYTES_PER_CELL = {
     "cells": 160,          # AMRCells validation (keys, sorting): 80 measured
-    "volume": 64,          # BlockVolume from a file: chunk temporaries + values
-    "hash": 400,           # hash of blocks: keys, payload, build temporaries
     "bricks": 200,         # Bricks: per-level grouping rounds: 75
 }
 #: Bytes per macrocell: host ranges and level mask, device copies, majorants.
 BYTES_PER_MACROCELL = 48
+#: Cells read per chunk when streaming (`mi_amr.data.blocks`).
+CHUNK = 1 << 22
+
+
+def load_bytes(n_cells: int, chunk: int = CHUNK) -> float:
+    """Peak host bytes of streaming ``n_cells`` into a `BlockVolume`: the
+    values (about 8 B per cell; block-structured data take 4) and one
+    chunk's temporaries (measured 120-200 B per chunk cell)."""
+    return 8.0 * n_cells + 170.0 * min(n_cells, chunk)
+
+
+def grid_bytes(n_macrocells: int, n_cells: int) -> float:
+    """Peak host bytes of a macrocell grid build: its arrays and one chunk
+    of block reductions."""
+    return BYTES_PER_MACROCELL * float(n_macrocells) + 12.0 * min(n_cells, CHUNK)
+
+
+def hash_bytes(n_blocks: int, method: str) -> float:
+    """Peak host bytes of the block hash (keys, payload and build rounds;
+    for ``tent`` also ghost blocks and neighbour rows), without the device
+    copy of the values."""
+    return (600.0 if method == "tent" else 250.0) * n_blocks
 
 
 class MemoryLimitError(MemoryError):

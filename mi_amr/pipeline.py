@@ -28,7 +28,7 @@ from .device.hash_sampler import DeviceReconstruction, HashSampler
 from .device.segments import GridSegments, TreeSegments
 from .device.structs import jit_struct
 from .device.tree import DeviceTree
-from .memory import require, structure_bytes
+from .memory import hash_bytes, require, structure_bytes
 from .structures.brick_lists import BrickLists
 from .structures.bricks import Bricks
 from .structures.cost_model import auto_resolution
@@ -208,7 +208,7 @@ class Structures:
         if sampling == "hash":
             grid = self.grid                       # its level masks limit the levels visited
             table = self._build("hash", lambda: DeviceReconstruction(self.volume, method),
-                                need=structure_bytes("hash", len(self.volume.level)) + self.volume.values.nbytes)
+                                need=hash_bytes(len(self.volume.level), method) + self.volume.values.nbytes)
             return HashSampler(table, grid, self.offset, self.extent)
         bricks = self._build("device_bricks", lambda: DeviceBricks(self.bricks, self.origin))
         if sampling == "abr":

@@ -187,3 +187,32 @@ def test08_a_medium_from_a_file_keeps_only_blocks(llvm, tmp_path):
     hash_bytes = med.structures.device["hash"].nbytes
     assert med.resident_bytes == med.volume.nbytes + med.grid.nbytes + hash_bytes
     assert hash_bytes < 0.25 * med.volume.nbytes
+
+
+@pytest.mark.parametrize("name", ["cloud", "blocks"])
+def test09_memory_estimates_within_2x_of_the_measured_peak(llvm, tmp_path, name):
+    """The estimates that guard loading, the macrocell grid and the block
+    hash are within a factor 2 of the host peak measured with tracemalloc
+    (numpy allocations), on octree-like and block-structured data."""
+    import tracemalloc
+    from mi_amr.memory import grid_bytes, hash_bytes, load_bytes
+    cells = make_dataset("cloud", 300000) if name == "cloud" else make_dataset("blocks", 1_000_000, levels=4)
+    path = write_exabricks(cells, tmp_path / "m.cells")[0]
+    del cells
+
+    def peak_of(build):
+        tracemalloc.start()
+        out = build()
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        return out, peak
+    vol, peak = peak_of(lambda: read_exabricks_blocks(path))
+    assert 0.5 < load_bytes(len(vol)) / peak < 2.0, ("load", load_bytes(len(vol)) / peak)
+    for res in (32, 128):
+        g, peak = peak_of(lambda: MacrocellGrid(vol, res))
+        est = grid_bytes(int(np.prod(g.res)), len(vol))
+        assert 0.5 < est / peak < 2.0, ("grid", res, est / peak)
+    for method in ("nearest", "tent"):
+        _, peak = peak_of(lambda: DeviceReconstruction(vol, method))
+        est = hash_bytes(len(vol.level), method)
+        assert 0.5 < est / peak < 2.0, ("hash", method, est / peak)

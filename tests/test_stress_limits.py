@@ -1,6 +1,8 @@
 """Stress tests of limits (marker ``stress``): determinism, loop bounds
 and memory budgets."""
 
+import re
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -101,8 +103,18 @@ def test16_structures_that_do_not_fit_fail_before_allocating(llvm, tmp_path, mon
     t0 = time.perf_counter()
     with pytest.raises(Exception, match=r"macrocell grid of 10000x10000x10000 cells needs about .* TiB"):
         mi.load_dict({"type": "amr", "data": cells, "grid_resolution": 10000})
-    with pytest.raises(Exception, match=r"the hash structure .* needs about .*memory limit of 1.0 KiB"):
-        mi.load_dict({"type": "amr", "data": cells, "grid_resolution": 2, "memory_limit": 1024.0})
+    # a limit between what the grid needs and what the hash needs
+    from conftest import random_amr
+    from mi_amr.data.blocks import BlockVolume
+    from mi_amr.memory import format_bytes, grid_bytes, hash_bytes
+    data = random_amr(0)
+    vol = BlockVolume.from_cells(data, method="tent")
+    grid_need, hash_need = grid_bytes(8, len(data)), hash_bytes(len(vol.level), "tent") + vol.values.nbytes
+    assert grid_need < hash_need
+    limit = 0.5 * (grid_need + hash_need)
+    with pytest.raises(Exception, match=r"the hash structure .* needs about .*memory limit of "
+                       + re.escape(format_bytes(limit))):
+        mi.load_dict({"type": "amr", "data": data, "grid_resolution": 2, "memory_limit": limit})
     monkeypatch.setenv("MI_AMR_MEMORY_LIMIT", "2K")
     assert parse_bytes("2K") == 2048
     with pytest.raises(Exception, match="memory limit of 2.0 KiB"):

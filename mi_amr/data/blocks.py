@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 import mitsuba as mi
 
+from ..memory import CHUNK
+from ..progress import progress
 from .cells import AMRCells, check_cells
 
 #: Block sizes tried by `choose_block_size` (cells per side).
@@ -27,8 +29,6 @@ BLOCK_SIZES = (2, 4, 8, 16)
 HASH_BYTES_PER_BLOCK = 12 / 0.35 * 1.4
 #: Bytes per block of the tent stencil index: 7 neighbour indices.
 NEIGHBOUR_BYTES_PER_BLOCK = 28
-#: Cells validated and placed per step when streaming.
-CHUNK = 1 << 22
 #: Cells per contiguous run of the sample that chooses the block size.
 SAMPLE = 1 << 17
 
@@ -81,7 +81,7 @@ class BlockVolume(mi.Object):
 
     @classmethod
     def from_chunks(cls, chunks, source: str, overlap: str = "error", block: int | None = None,
-                    sample=None, method: str = "tent"):
+                    sample=None, method: str = "tent", total: int | None = None):
         """Blocks from a re-iterable source of raw cells: ``chunks()`` yields
         ``(pos (m, 3) ints, level (m,), value (m,))``, read three times
         (validation and bounds, blocks, values). Each chunk is validated as
@@ -92,7 +92,9 @@ class BlockVolume(mi.Object):
         lo = np.full(3, np.iinfo(np.int64).max)
         hi = np.full(3, np.iinfo(np.int64).min)
         lmax, n, start = 0, 0, 0
+        bar = progress(3 * total if total else None, f"loading {source}")
         for pos, level, value in chunks():
+            bar.update(len(value))
             check_cells(pos, level, value, source, start)
             start += len(value)
             if len(value):
@@ -102,10 +104,13 @@ class BlockVolume(mi.Object):
                 lmax = max(lmax, int(level.max()))
                 n += len(value)
         if n == 0:
+            bar.close()
             raise ValueError(f"{source}: contains no cells")
         if np.any(hi - lo > 2**31 - 1):
+            bar.close()
             raise ValueError(f"{source}: bounding box {lo.tolist()}..{hi.tolist()} exceeds 2**31 finest cells")
-        return _build(chunks, lo, hi, lmax, source, overlap, block, sample, method)
+        with bar:
+            return _build(chunks, lo, hi, lmax, source, overlap, block, sample, method, bar)
 
     # ---- Properties ----------------------------------------------------
     def __len__(self):
@@ -299,7 +304,7 @@ def _distinct(keys: np.ndarray) -> np.ndarray:
     return np.unique(keys)
 
 
-def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="tent"):
+def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="tent", bar=None):
     """Choose the block size (from ``sample()``, or the first chunk), then
     two passes over ``chunks()``: the set of blocks, then the values."""
     origin = (np.asarray(lo, dtype=np.int64) >> lmax) << lmax
@@ -327,7 +332,13 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     else:
         b = sizes[0]
     # ---- Pass 1: the blocks ----
-    keys = _distinct(np.concatenate([_distinct(block_keys(p, lv, b)) for p, lv, _ in chunks()]))
+    parts = []
+    for p, lv, _ in chunks():
+        parts.append(_distinct(block_keys(p, lv, b)))
+        if bar is not None:
+            bar.update(len(lv))
+    keys = _distinct(np.concatenate(parts))
+    del parts
     coord, blevel = _unpack_keys(keys, packed)
     coord, blevel = coord.astype(np.int32), blevel.astype(np.uint8)
     b3 = b ** 3
@@ -371,6 +382,8 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
         values[slot[free]] = np.asarray(value, dtype=np.float32)[free]
         n += len(free)
         start += m
+        if bar is not None:
+            bar.update(m)
     vol = BlockVolume(b, blevel, coord, values, origin, np.asarray(lo, np.int64), np.asarray(hi, np.int64),
                       n, source)
     removed = _remove_overlaps(vol, overlap)

@@ -18,7 +18,7 @@ import numpy as np
 
 from .blocks import BlockVolume, _sample_runs
 from .cells import AMRCells
-from ..memory import require, structure_bytes
+from ..memory import load_bytes, require, structure_bytes
 
 CELL_DTYPE = np.dtype([("x", "<i4"), ("y", "<i4"), ("z", "<i4"), ("level", "<i4")])
 
@@ -77,7 +77,7 @@ def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "erro
     cells_path, scalars_path, n = _exabricks_pair(cells_path, scalars_path)
     if n == 0:
         raise ValueError(f"{cells_path}: contains no cells")
-    require(structure_bytes("volume", n), f"{cells_path} ({n} cells)", hint="raise the limit to load it")
+    require(load_bytes(n, chunk), f"{cells_path} ({n} cells)", hint="raise the limit to load it")
     rec = np.memmap(cells_path, dtype="<i4", mode="r", shape=(n, 4))
     val = np.memmap(scalars_path, dtype="<f4", mode="r", shape=(n,))
 
@@ -90,7 +90,7 @@ def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "erro
         r = np.asarray(rec[s:e])
         return r[:, :3], r[:, 3], None
     return BlockVolume.from_chunks(chunks, str(cells_path), overlap=overlap, block=block,
-                                   sample=lambda: _sample_runs(n, read), method=method)
+                                   sample=lambda: _sample_runs(n, read), method=method, total=n)
 
 
 def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Path, Path]:

@@ -20,7 +20,8 @@ import numpy as np
 
 from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
-from ..memory import BYTES_PER_MACROCELL, require
+from ..memory import grid_bytes, require
+from ..progress import progress
 from .boxes import expand_boxes
 
 #: Boxes of more macrocells than this are written as array slices.
@@ -82,7 +83,7 @@ class MacrocellGrid:
             res = np.asarray(resolution, dtype=np.int64)
             if res.shape != (3,) or np.any(res < 1):
                 raise ValueError(f"grid_resolution must be 3 positive ints, got {resolution}")
-        require(BYTES_PER_MACROCELL * float(np.prod(res)),
+        require(grid_bytes(float(np.prod(res)), len(cells)),
                 f"a macrocell grid of {'x'.join(str(int(r)) for r in res)} cells", memory_limit,
                 "choose a smaller grid_resolution")
         self.res = res
@@ -92,13 +93,16 @@ class MacrocellGrid:
         vmax = np.full(n, -np.inf, dtype=np.float32)
         bits = np.zeros(n, dtype=np.uint32)
         splat = _RangeSplat(cells.origin, lo, hi, res, support, chunk, vmin, vmax, bits)
-        if isinstance(cells, BlockVolume):
-            for level, coord, values in cells.block_chunks():
-                splat.add_blocks(level, coord, values, cells.log2_block)
-        else:
-            for pos, level, value in cells.cell_chunks():
-                splat.add(pos, level, value)
-        splat.finish()
+        with progress(len(cells), f"macrocell ranges {'x'.join(str(int(r)) for r in res)}") as bar:
+            if isinstance(cells, BlockVolume):
+                for level, coord, values in cells.block_chunks():
+                    splat.add_blocks(level, coord, values, cells.log2_block)
+                    bar.update(int(np.count_nonzero(~np.isnan(values))))
+            else:
+                for pos, level, value in cells.cell_chunks():
+                    splat.add(pos, level, value)
+                    bar.update(len(value))
+            splat.finish()
         self.vmin, self.vmax, self.level_bits = vmin, vmax, bits
 
     def pooled(self, resolution: int) -> "MacrocellGrid | None":

@@ -38,9 +38,8 @@ def data_file(kind: str, n: int, data_dir: Path) -> Path:
 def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dict:
     """Runs in its own process: load ``path`` into one medium of
     ``config`` (``integrator/traversal/sampling``), build, render."""
+    import os
     import resource
-
-    import psutil
 
     from .._llvm import ensure_llvm_path
     ensure_llvm_path()
@@ -50,13 +49,15 @@ def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dic
 
     import mi_amr
     from .bench import bench_scene
-    proc = psutil.Process()
+    def rss():
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
     def peak():
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
     integrator, traversal, sampling = config.split("/")
-    base_rss, base_peak = proc.memory_info().rss, peak()
+    base_rss, base_peak = rss(), peak()
     t0 = time.perf_counter()
     medium = {"type": "amr", "filename": path, "transfer_function": "spiky", "density_scale": 60.0,
               "reconstruction": "nearest", "traversal": traversal, "sampling": sampling}
@@ -65,7 +66,7 @@ def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dic
     med = mi_amr.amr_media(scene)[0]
     n = len(med.volume)
     build = dict(med.build_seconds)
-    rss_built, peak_built = proc.memory_info().rss, peak()
+    rss_built, peak_built = rss(), peak()
     t0 = time.perf_counter()
     np.array(mi.render(scene, spp=spp, seed=0))
     first = time.perf_counter() - t0
