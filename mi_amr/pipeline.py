@@ -163,7 +163,7 @@ class Structures:
                 blo, bhi = b.lo.astype(np.float64), b.hi.astype(np.float64)
             tree = build_region_tree(np.round(2 * blo).astype(np.int64), np.round(2 * bhi).astype(np.int64),
                                      2 * lo, 2 * hi)
-            vmin, vmax = exact_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, b, method)
+            vmin, vmax = exact_value_ranges(tree, b, method, own_lists=kind == "abr")
             return tree, vmin, vmax
 
         def make():

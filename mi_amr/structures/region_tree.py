@@ -25,16 +25,23 @@ class RegionTree:
     list of input box ids (``list_offset``, ``list_count``, ``items``).
     """
 
-    def __init__(self, axis, split, child, leaf_lo, leaf_hi, lists):
+    def __init__(self, axis, split, child, leaf_lo, leaf_hi, lists, depth: int | None = None):
+        """``lists``: one array of box ids per leaf, or ``(count, items)``
+        (CSR: items of leaf 0 first)."""
         self.axis = np.asarray(axis, dtype=np.uint32)
         self.split = np.asarray(split, dtype=np.float64)
         self.child = np.asarray(child, dtype=np.uint32)
         self.leaf_lo = np.asarray(leaf_lo, dtype=np.float64).reshape(-1, 3)
         self.leaf_hi = np.asarray(leaf_hi, dtype=np.float64).reshape(-1, 3)
-        self.list_count = np.array([len(x) for x in lists], dtype=np.uint32)
+        if isinstance(lists, tuple):
+            count, items = lists
+        else:
+            count = [len(x) for x in lists]
+            items = np.concatenate(lists) if len(lists) else np.zeros(0)
+        self.list_count = np.asarray(count, dtype=np.uint32)
         self.list_offset = np.concatenate([[0], np.cumsum(self.list_count)[:-1]]).astype(np.uint32)
-        self.items = (np.concatenate(lists) if len(lists) else np.zeros(0)).astype(np.uint32)
-        self.depth = _depth(self.axis, self.child)
+        self.items = np.asarray(items).astype(np.uint32)
+        self.depth = _depth(self.axis, self.child) if depth is None else int(depth)
 
     @property
     def n_leaves(self) -> int:
@@ -44,6 +51,32 @@ class RegionTree:
     def nbytes(self) -> int:
         return (self.axis.nbytes + 4 * len(self.split) + self.child.nbytes
                 + 4 * 6 * self.n_leaves + self.list_count.nbytes * 2 + self.items.nbytes)
+
+    def overlapping_leaves(self, box_lo, box_hi):
+        """``(box, leaf)`` index pairs of boxes (K, 3), in the tree's units,
+        and the leaves they overlap (closed intervals), found by descending
+        all boxes through the tree together, one depth at a time."""
+        box_lo, box_hi = np.asarray(box_lo, np.float64), np.asarray(box_hi, np.float64)
+        bi = np.arange(len(box_lo))
+        node = np.zeros(len(box_lo), dtype=np.int64)
+        out_b, out_l = [], []
+        while len(bi):
+            ax = self.axis[node]
+            leaf = ax == 3
+            if leaf.any():
+                lb, ln = bi[leaf], self.child[node[leaf]].astype(np.int64)
+                ok = np.all((box_lo[lb] <= self.leaf_hi[ln]) & (box_hi[lb] >= self.leaf_lo[ln]), axis=1)
+                out_b.append(lb[ok])
+                out_l.append(ln[ok])
+            bi, node, ax = bi[~leaf], node[~leaf], ax[~leaf].astype(np.int64)
+            s = self.split[node]
+            go_l = box_lo[bi, ax] <= s
+            go_r = box_hi[bi, ax] >= s
+            c = self.child[node].astype(np.int64)
+            bi, node = np.concatenate([bi[go_l], bi[go_r]]), np.concatenate([c[go_l], c[go_r] + 1])
+        if not out_b:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.concatenate(out_b), np.concatenate(out_l)
 
     def locate(self, p: np.ndarray) -> np.ndarray:
         """Leaf index of each point (M, 3) (host; ties go right)."""
@@ -61,42 +94,116 @@ class RegionTree:
 
 def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
     """Build the tree over integer boxes ``[box_lo, box_hi]`` (K, 3) inside
-    the root box; see the module docstring."""
+    the root box; see the module docstring.
+
+    Built level by level, all nodes of a depth at once: the (node, box)
+    pairs of the level are the state. A node splits on its longest axis that
+    has an input-box face strictly inside it, at the face nearest its middle
+    (the smaller face on a tie); left takes the boxes starting below the
+    plane, right those ending above it. Children are numbered consecutively
+    (left, left + 1) after all nodes of the previous depths.
+    """
     box_lo = np.asarray(box_lo, dtype=np.int64)
     box_hi = np.asarray(box_hi, dtype=np.int64)
-    axis, split, child = [3], [0.0], [0]
-    leaf_lo, leaf_hi, lists = [], [], []
     root_lo = np.asarray(root_lo, dtype=np.int64)
     root_hi = np.asarray(root_hi, dtype=np.int64)
-    cand0 = np.nonzero(np.all((box_lo < root_hi) & (box_hi > root_lo), axis=1))[0]
-    stack = [(0, root_lo, root_hi, cand0)]
-    while stack:
-        node, lo, hi, cand = stack.pop()
-        best = None
-        if len(cand):
-            # a face strictly inside the node, on its longest axis that has
-            # one, nearest to the middle (balanced, shallow trees)
-            blo, bhi = box_lo[cand], box_hi[cand]
-            for a in np.argsort(-(hi - lo), kind="stable"):
-                faces = np.concatenate([blo[:, a], bhi[:, a]])
-                faces = faces[(faces > lo[a]) & (faces < hi[a])]
-                if len(faces):
-                    mid = 0.5 * (lo[a] + hi[a])
-                    best = (int(a), int(faces[np.argmin(np.abs(faces - mid))]))
-                    break
-        if best is None:
-            axis[node], child[node] = 3, len(leaf_lo)
-            leaf_lo.append(lo)
-            leaf_hi.append(hi)
-            lists.append(cand)
-            continue
-        a, s = best
-        left, (llo, lhi), (rlo, rhi) = split_node(axis, split, child, node, a, s, lo, hi)
-        cl = cand[box_lo[cand, a] < s]
-        cr = cand[box_hi[cand, a] > s]
-        stack.append((left + 1, rlo, rhi, cr))
-        stack.append((left, llo, lhi, cl))
-    return RegionTree(axis, split, child, leaf_lo, leaf_hi, lists)
+    axis, split, child = [None], [None], [None]
+    leaf_nodes, leaf_lo, leaf_hi, leaf_pairs = [], [], [], []
+    # frontier: node ids, boxes; pairs: (frontier index, input box)
+    ids = np.zeros(1, dtype=np.int64)
+    lo, hi = root_lo[None].copy(), root_hi[None].copy()
+    pb = np.nonzero(np.all((box_lo < root_hi) & (box_hi > root_lo), axis=1))[0]
+    pn = np.zeros(len(pb), dtype=np.int64)
+    n_nodes, n_leaves, depth = 1, 0, 0
+    while len(ids):
+        F = len(ids)
+        # ---- Chosen axis: the longest with a face strictly inside ----
+        has = np.zeros((F, 3), dtype=bool)
+        for a in range(3):
+            inside = ((box_lo[pb, a] > lo[pn, a]) & (box_lo[pb, a] < hi[pn, a])) | \
+                     ((box_hi[pb, a] > lo[pn, a]) & (box_hi[pb, a] < hi[pn, a]))
+            has[pn[inside], a] = True
+        order = np.argsort(-(hi - lo), axis=1, kind="stable")        # axes by extent, stable
+        has_sorted = np.take_along_axis(has, order, axis=1)
+        splits = has_sorted.any(axis=1)
+        ax = np.where(splits, order[np.arange(F), np.argmax(has_sorted, axis=1)], 3)
+        # ---- Chosen plane: the inside face nearest the middle ----
+        pa = ax[pn]
+        ok = pa < 3
+        pa_c = np.where(ok, pa, 0)
+        nlo, nhi = lo[pn, pa_c], hi[pn, pa_c]
+        mid2 = nlo + nhi                                            # twice the middle, exact
+        best = np.full(F, np.iinfo(np.int64).max)
+        best_d = np.full(F, np.iinfo(np.int64).max)
+        for faces in (box_lo[pb, pa_c], box_hi[pb, pa_c]):
+            inn = ok & (faces > nlo) & (faces < nhi)
+            d = np.abs(2 * faces - mid2)
+            key_d = np.where(inn, d, np.iinfo(np.int64).max)
+            np.minimum.at(best_d, pn, key_d)
+        for faces in (box_lo[pb, pa_c], box_hi[pb, pa_c]):
+            inn = ok & (faces > nlo) & (faces < nhi) & (np.abs(2 * faces - mid2) == best_d[pn])
+            np.minimum.at(best, pn[inn], faces[inn])
+        # ---- Leaves ----
+        leaf = ~splits
+        if leaf.any():
+            li = np.nonzero(leaf)[0]
+            leaf_index = np.full(F, -1, dtype=np.int64)
+            leaf_index[li] = n_leaves + np.arange(len(li))
+            leaf_nodes.append(ids[li])
+            leaf_lo.append(lo[li])
+            leaf_hi.append(hi[li])
+            sel = leaf[pn]
+            leaf_pairs.append((leaf_index[pn[sel]], pb[sel]))
+            axis.append(np.full(len(li), 3, np.uint32))
+            split.append(np.zeros(len(li)))
+            child.append(leaf_index[li])
+            n_leaves += len(li)
+        # ---- Inner nodes and their children ----
+        si = np.nonzero(splits)[0]
+        if not len(si):
+            break
+        left = n_nodes + 2 * np.arange(len(si))
+        axis.append(ax[si].astype(np.uint32))
+        split.append(best[si].astype(np.float64))
+        child.append(left)
+        leaf_nodes.append(ids[si])                                   # (node ids of these rows)
+        n_nodes += 2 * len(si)
+        slot = np.full(F, -1, dtype=np.int64)
+        slot[si] = np.arange(len(si))
+        s_ax, s_pl = ax[si], best[si]
+        llo, lhi = lo[si].copy(), hi[si].copy()
+        lhi[np.arange(len(si)), s_ax] = s_pl
+        rlo, rhi = lo[si].copy(), hi[si].copy()
+        rlo[np.arange(len(si)), s_ax] = s_pl
+        new_lo = np.empty((2 * len(si), 3), np.int64)
+        new_hi = np.empty((2 * len(si), 3), np.int64)
+        new_lo[0::2], new_hi[0::2], new_lo[1::2], new_hi[1::2] = llo, lhi, rlo, rhi
+        keep = splits[pn]
+        pn_k, pb_k = slot[pn[keep]], pb[keep]
+        a_k, s_k = s_ax[pn_k], s_pl[pn_k]
+        to_left = box_lo[pb_k, a_k] < s_k
+        to_right = box_hi[pb_k, a_k] > s_k
+        pn = np.concatenate([2 * pn_k[to_left], 2 * pn_k[to_right] + 1])
+        pb = np.concatenate([pb_k[to_left], pb_k[to_right]])
+        o = np.argsort(pn, kind="stable")
+        pn, pb = pn[o], pb[o]
+        ids, lo, hi = left.repeat(2) + np.tile([0, 1], len(si)), new_lo, new_hi
+        depth += 1
+    # ---- Node arrays in node-id order (row 0 of the lists is a placeholder) ----
+    node_ids = np.concatenate(leaf_nodes)
+    ax_n = np.full(n_nodes, 3, np.uint32)
+    sp_n = np.zeros(n_nodes)
+    ch_n = np.zeros(n_nodes, np.int64)
+    ax_n[node_ids] = np.concatenate(axis[1:])
+    sp_n[node_ids] = np.concatenate(split[1:])
+    ch_n[node_ids] = np.concatenate(child[1:])
+    leaf_lo = np.concatenate(leaf_lo) if leaf_lo else np.zeros((0, 3))
+    leaf_hi = np.concatenate(leaf_hi) if leaf_hi else np.zeros((0, 3))
+    li = np.concatenate([p[0] for p in leaf_pairs]) if leaf_pairs else np.zeros(0, np.int64)
+    bi = np.concatenate([p[1] for p in leaf_pairs]) if leaf_pairs else np.zeros(0, np.int64)
+    o = np.lexsort((bi, li))
+    lists = (np.bincount(li, minlength=n_leaves), bi[o])
+    return RegionTree(ax_n, sp_n, ch_n, leaf_lo, leaf_hi, lists, depth)
 
 
 def split_node(axis: list, split: list, child: list, node: int, a: int, s, lo, hi):
@@ -150,43 +257,49 @@ def _depth(axis, child) -> int:
     return int(best)
 
 
-def exact_value_ranges(leaf_lo, leaf_hi, bricks, method: str = "tent", chunk: int = 4096):
-    """Exact value range of each leaf box (finest units): min/max over the
-    cells whose tent support (``tent``) or cell box (``nearest``) overlaps
-    the leaf's interior. Candidate bricks come from a conservative domain
-    test; within each brick only the sub-box of cells that reach the leaf
-    is visited (vectorised over all leaf-brick pairs)."""
+def exact_value_ranges(tree: RegionTree, bricks, method: str = "tent", own_lists: bool = False,
+                       chunk: int = 1 << 20):
+    """Exact value range of each leaf of ``tree`` (built over boxes in
+    doubled finest units): min/max over the cells whose tent support
+    (``tent``) or cell box (``nearest``) overlaps the leaf's interior.
+    Candidate bricks are those whose domain overlaps the leaf: the leaves'
+    own lists when the tree was built over the brick domains
+    (``own_lists``, ABRs), else a box query of each domain down the tree
+    (`RegionTree.overlapping_leaves`). Within each brick only the sub-box
+    of cells that reach the leaf is visited (vectorised over all pairs)."""
     from .boxes import enumerate_boxes
-    n = len(leaf_lo)
+    n = tree.n_leaves
+    leaf_lo, leaf_hi = tree.leaf_lo / 2, tree.leaf_hi / 2
     out_min = np.full(n, np.inf, dtype=np.float32)
     out_max = np.full(n, -np.inf, dtype=np.float32)
     dlo, dhi = bricks.domains()
-    order = np.argsort(dlo[:, 0], kind="stable")
     w_all = bricks.width.astype(np.float64)
     ext = (1.5, 0.5) if method == "tent" else (1.0, 0.0)    # support reach below / above, in cells
-    for s in range(0, n, chunk):
-        llo, lhi = leaf_lo[s:s + chunk], leaf_hi[s:s + chunk]
-        a = np.searchsorted(dlo[order, 0], lhi[:, 0].max(), side="right")
-        sel = order[:a][dhi[order[:a], 0] >= llo[:, 0].min()]
-        if not len(sel):
-            continue
-        ov = np.all((dlo[sel][None] <= lhi[:, None]) & (dhi[sel][None] >= llo[:, None]), axis=2)
-        li, bj = np.nonzero(ov)
-        b = sel[bj]
-        w = w_all[b][:, None]
-        lo = bricks.lo[b].astype(np.float64)
-        dims = bricks.dims[b]
-        i0 = np.floor((llo[li] - lo) / w - ext[0]).astype(np.int64) + 1
-        i1 = np.ceil((lhi[li] - lo) / w + ext[1]).astype(np.int64) - 1
-        i0 = np.maximum(i0, 0)
-        i1 = np.minimum(i1, dims - 1)
-        keep = np.all(i0 <= i1, axis=1)
-        li, b, i0, i1, dims = li[keep], b[keep], i0[keep], i1[keep], dims[keep]
-        if not len(li):
-            continue
-        x, y, z, owner = enumerate_boxes(i0, i1)      # every (pair, cell) of the sub-boxes
-        d = dims[owner]
-        v = bricks.values[bricks.offset[b[owner]] + x + d[:, 0] * (y + d[:, 1] * z)]
-        np.minimum.at(out_min, s + li[owner], v)
-        np.maximum.at(out_max, s + li[owner], v)
+    if own_lists:
+        li, b = np.repeat(np.arange(n), tree.list_count), tree.items.astype(np.int64)
+    else:
+        b, li = tree.overlapping_leaves(2 * dlo, 2 * dhi)
+    for s in range(0, len(li), chunk):
+        _fold_pairs(li[s:s + chunk], b[s:s + chunk], leaf_lo, leaf_hi, bricks, w_all, ext,
+                    out_min, out_max, enumerate_boxes)
     return out_min, out_max
+
+
+def _fold_pairs(li, b, leaf_lo, leaf_hi, bricks, w_all, ext, out_min, out_max, enumerate_boxes):
+    """Fold the cells of brick ``b[k]`` that reach leaf ``li[k]`` into its range."""
+    w = w_all[b][:, None]
+    lo = bricks.lo[b].astype(np.float64)
+    dims = bricks.dims[b]
+    i0 = np.floor((leaf_lo[li] - lo) / w - ext[0]).astype(np.int64) + 1
+    i1 = np.ceil((leaf_hi[li] - lo) / w + ext[1]).astype(np.int64) - 1
+    i0 = np.maximum(i0, 0)
+    i1 = np.minimum(i1, dims - 1)
+    keep = np.all(i0 <= i1, axis=1)
+    li, b, i0, i1, dims = li[keep], b[keep], i0[keep], i1[keep], dims[keep]
+    if not len(li):
+        return
+    x, y, z, owner = enumerate_boxes(i0, i1)      # every (pair, cell) of the sub-boxes
+    d = dims[owner]
+    v = bricks.values[bricks.offset[b[owner]] + x + d[:, 0] * (y + d[:, 1] * z)]
+    np.minimum.at(out_min, li[owner], v)
+    np.maximum.at(out_max, li[owner], v)
