@@ -122,11 +122,12 @@ class Structures:
 
     @property
     def cells(self) -> AMRCells:
-        """Per-cell records, for the builders that still need them (bricks,
-        region trees): the `AMRCells` given, or made from the blocks once."""
+        """Per-cell records, for the builders that still need them (bricks):
+        the `AMRCells` given, or made from the blocks for the caller, not
+        kept (the blocks stay the only resident copy)."""
         if self._given_cells is not None:
             return self._given_cells
-        return self._host_cached("cells", self.volume.to_cells)
+        return self.volume.to_cells()
 
     @property
     def grid(self) -> DeviceMacrocellGrid:

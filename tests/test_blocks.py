@@ -9,7 +9,8 @@ import pytest
 import mi_amr
 from mi_amr.data.blocks import BlockVolume
 from mi_amr.data.datasets import make_dataset, write_block_dataset
-from mi_amr.data.io import read_exabricks, read_exabricks_blocks, write_exabricks
+from mi_amr.data.io import (read_exabricks, read_exabricks_blocks, read_npz_blocks, write_exabricks,
+                            write_npz)
 from mi_amr.device.hash_sampler import DeviceReconstruction
 from mi_amr.memory import MemoryLimitError
 from mi_amr.structures.boxes import expand_boxes
@@ -66,7 +67,8 @@ def test02_block_size_follows_the_data(llvm, method):
 
 @pytest.mark.parametrize("chunk", [1000, 1 << 22])
 def test03_streaming_load_equals_in_memory(tmp_path, chunk):
-    """A .cells file read in chunks gives the blocks of the whole data."""
+    """A .cells file or an .npz archive read in chunks gives the blocks of
+    the whole data."""
     cells = DATA["blocks"]()
     write_exabricks(cells, tmp_path / "d.cells")
     streamed = read_exabricks_blocks(tmp_path / "d.cells", chunk=chunk)
@@ -75,6 +77,10 @@ def test03_streaming_load_equals_in_memory(tmp_path, chunk):
     np.testing.assert_array_equal(streamed.level, direct.level)
     np.testing.assert_array_equal(streamed.values, direct.values)
     assert streamed.source.endswith("d.cells") and len(streamed) == len(cells)
+    write_npz(cells, tmp_path / "d.npz")                       # compressed members, streamed too
+    from_npz = read_npz_blocks(tmp_path / "d.npz", chunk=chunk)
+    np.testing.assert_array_equal(from_npz.values, streamed.values)
+    np.testing.assert_array_equal(from_npz.coord, streamed.coord)
 
 
 def test04_streaming_load_finds_overlaps_across_chunks(tmp_path):
@@ -179,7 +185,11 @@ def test08_a_medium_from_a_file_keeps_only_blocks(llvm, tmp_path):
     assert np.isfinite(mi.render(scene, spp=2).numpy()).all()
     med = mi_amr.amr_media(scene)[0]
     assert isinstance(med.volume, BlockVolume) and med.structures._given_cells is None
-    assert "cells" not in med.volume.__dict__.get("_mi_amr_cache", {})
+    # brick structures read per-cell records once while they build, and do not keep them
+    bricked = mi.load_dict({"type": "amr", "filename": str(path), "traversal": "brick", "sampling": "brick"})
+    cache = bricked.volume.__dict__.get("_mi_amr_cache", {})
+    assert "bricks" in bricked.structures.host and cache
+    assert not any(isinstance(v, mi_amr.AMRCells) for v in cache.values())
     assert med.volume.nbytes / len(med.volume) < 4.1
     # besides the blocks: the macrocell grid, and the block hash with (tent)
     # ghost blocks and each block's 7 upper neighbours, small beside the

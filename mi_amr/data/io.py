@@ -131,6 +131,71 @@ def read_npz(path, *, overlap: str = "error") -> AMRCells:
     return AMRCells(pos, level, value, overlap=overlap, source=str(path))
 
 
+def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
+                    chunk: int = 1 << 22) -> BlockVolume:
+    """Stream an ``.npz`` archive into a `BlockVolume`: the three members are
+    decompressed side by side, ``chunk`` cells at a time (no whole-data
+    array is made); validated as strictly as `read_npz`."""
+    path = Path(path)
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = {n.removesuffix(".npy") for n in z.namelist()}
+            missing = {"pos", "level", "value"} - names
+            if missing:
+                raise ValueError(f"{path}: missing arrays {sorted(missing)}")
+            headers = {}
+            for name in ("pos", "level", "value"):
+                with z.open(f"{name}.npy") as f:
+                    version = np.lib.format.read_magic(f)
+                    headers[name] = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
+                                     else np.lib.format.read_array_header_2_0(f))
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        raise ValueError(f"{path}: cannot read .npz archive ({type(e).__name__}: {e})") from e
+    (ps, pfo, pdt), (ls, lfo, ldt), (vs, vfo, vdt) = headers["pos"], headers["level"], headers["value"]
+    if len(ps) != 2 or ps[1] != 3:
+        raise ValueError(f"{path}: pos must have shape (N, 3), got {ps}")
+    n = ps[0]
+    if ls != (n,) or vs != (n,):
+        raise ValueError(f"{path}: inconsistent sizes: pos has {n} cells, level has {ls}, value has {vs}")
+    for name, dt in (("pos", pdt), ("level", ldt)):
+        if not np.issubdtype(dt, np.integer):
+            raise ValueError(f"{path}: array '{name}' must be integer, got {dt}")
+    if pfo or lfo or vfo or _has_objects(pdt, ldt, vdt):     # not streamable: read whole
+        return BlockVolume.from_cells(read_npz(path, overlap=overlap), method=method)
+    if n == 0:
+        raise ValueError(f"{path}: contains no cells")
+    require(load_bytes(n, chunk), f"{path} ({n} cells)", hint="raise the limit to load it")
+
+    def chunks():
+        try:
+            with zipfile.ZipFile(path) as z:
+                members = [z.open(f"{name}.npy") for name in ("pos", "level", "value")]
+                for f in members:                     # skip the headers
+                    version = np.lib.format.read_magic(f)
+                    (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                     else np.lib.format.read_array_header_2_0)(f)
+                for s in range(0, n, chunk):
+                    m = min(chunk, n - s)
+                    out = []
+                    for f, dt, shape in zip(members, (pdt, ldt, vdt), ((m, 3), (m,), (m,))):
+                        nbytes = int(np.prod(shape)) * dt.itemsize
+                        buf = f.read(nbytes)
+                        if len(buf) != nbytes:
+                            raise EOFError("archive member ends early")
+                        out.append(np.frombuffer(buf, dtype=dt).reshape(shape))
+                    yield out[0], out[1], out[2]
+                for f in members:
+                    f.close()
+        except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+            raise ValueError(f"{path}: cannot read .npz archive ({type(e).__name__}: {e})") from e
+    return BlockVolume.from_chunks(chunks, str(path), overlap=overlap, method=method, total=n)
+
+
+def _has_objects(*dtypes) -> bool:
+    """Whether any dtype holds Python objects (never streamed)."""
+    return any(np.dtype(d).hasobject for d in dtypes)
+
+
 def _npy_shape(archive, name: str) -> tuple:
     """Shape of array ``name`` of an open ``.npz`` from its header alone
     (before the data are read: a damaged header must not allocate)."""
@@ -160,11 +225,13 @@ def load_cells(path, scalars=None, *, overlap: str = "error") -> AMRCells:
 
 def load_volume(path, scalars=None, *, overlap: str = "error", method: str = "tent") -> BlockVolume:
     """Load AMR data into its compact resident form: ``.cells`` files are
-    streamed (`read_exabricks_blocks`), ``.npz`` archives read and converted."""
+    streamed (`read_exabricks_blocks`, `read_npz_blocks`)."""
     path = Path(path)
     if path.suffix == ".cells":
         return read_exabricks_blocks(path, scalars, overlap=overlap, method=method)
-    return BlockVolume.from_cells(load_cells(path, scalars, overlap=overlap), method=method)
+    if path.suffix == ".npz":
+        return read_npz_blocks(path, overlap=overlap, method=method)
+    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected .cells or .npz)")
 
 
 def save_cells(cells: AMRCells, path) -> Path:

@@ -17,7 +17,7 @@ import numpy as np
 from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..data.reconstruction import WEIGHT_EPS, check_method
-from ..structures.cell_hash import LevelHash, hash_u32, pack_key
+from ..structures.level_hash import LevelHash, hash_u32, pack_key
 from .ray import in_unit_cube
 from .structs import jit_struct
 
