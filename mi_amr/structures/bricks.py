@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..data.cells import AMRCells
+from ..progress import progress
 
 
 class Bricks:
@@ -32,15 +33,18 @@ class Bricks:
         if max_width < 1:
             raise ValueError(f"max_width must be >= 1, got {max_width}")
         los, dims, levels, members = [], [], [], []
+        bar = progress(len(cells), "bricks")
         for L in cells.levels:
             L = int(L)
             idx = np.nonzero(cells.level == L)[0]
+            bar.update(len(idx))
             q = cells.pos[idx] >> L                        # level coordinates
             lo, dm, mem = _bricks_of_level(q, max_width)
             los.append(lo << L)
             dims.append(dm)
             levels.append(np.full(len(lo), L, dtype=np.int32))
             members.append([idx[m] for m in mem])
+        bar.close()
         self.lo = np.concatenate(los)
         self.dims = np.concatenate(dims)
         self.level = np.concatenate(levels)

@@ -23,6 +23,7 @@ import heapq
 
 import numpy as np
 
+from ..progress import progress
 from .region_tree import RegionTree, split_node
 
 
@@ -77,7 +78,9 @@ def build_sah_kdtree(majorant: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
     if a is not None:
         heapq.heappush(heap, (-g, 0, a, s))        # most expensive leaf first
     n_leaves = 1
+    bar = progress(max_leaves, "SAH kd-tree", unit="leaf")
     while heap and n_leaves < max_leaves:
+        bar.update(1)
         _, node, a, s = heapq.heappop(heap)
         lo, hi = nodes.pop(node)
         left, lbox, rbox = split_node(axis, split, child, node, a, s, lo, hi)
@@ -87,6 +90,7 @@ def build_sah_kdtree(majorant: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
             if ax is not None:
                 heapq.heappush(heap, (-g, nid, ax, sp))
         n_leaves += 1
+    bar.close()
     leaf_ids = sorted(nodes)
     leaf_lo, leaf_hi, lists, lmin, lmax = [], [], [], [], []
     for k, nid in enumerate(leaf_ids):

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..progress import progress
+
 
 class RegionTree:
     """A kd-tree built by `build_region_tree` (host, numpy).
@@ -115,8 +117,10 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
     pb = np.nonzero(np.all((box_lo < root_hi) & (box_hi > root_lo), axis=1))[0]
     pn = np.zeros(len(pb), dtype=np.int64)
     n_nodes, n_leaves, depth = 1, 0, 0
+    bar = progress(None, "region tree", unit="node")
     while len(ids):
         F = len(ids)
+        bar.update(F)
         # ---- Chosen axis: the longest with a face strictly inside ----
         has = np.zeros((F, 3), dtype=bool)
         for a in range(3):
@@ -189,6 +193,7 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
         pn, pb = pn[o], pb[o]
         ids, lo, hi = left.repeat(2) + np.tile([0, 1], len(si)), new_lo, new_hi
         depth += 1
+    bar.close()
     # ---- Node arrays in node-id order (row 0 of the lists is a placeholder) ----
     node_ids = np.concatenate(leaf_nodes)
     ax_n = np.full(n_nodes, 3, np.uint32)
@@ -279,9 +284,11 @@ def exact_value_ranges(tree: RegionTree, bricks, method: str = "tent", own_lists
         li, b = np.repeat(np.arange(n), tree.list_count), tree.items.astype(np.int64)
     else:
         b, li = tree.overlapping_leaves(2 * dlo, 2 * dhi)
-    for s in range(0, len(li), chunk):
-        _fold_pairs(li[s:s + chunk], b[s:s + chunk], leaf_lo, leaf_hi, bricks, w_all, ext,
-                    out_min, out_max, enumerate_boxes)
+    with progress(len(li), "leaf value ranges", unit="pair") as bar:
+        for s in range(0, len(li), chunk):
+            _fold_pairs(li[s:s + chunk], b[s:s + chunk], leaf_lo, leaf_hi, bricks, w_all, ext,
+                        out_min, out_max, enumerate_boxes)
+            bar.update(len(li[s:s + chunk]))
     return out_min, out_max
 
 
