@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.data.io import read_exabricks
+from mi_amr.data.io import read_exabricks, read_exabricks_blocks, read_npz_blocks
 
 from stress_oracles import constant_cells, ratio_tracking
 
@@ -127,8 +127,9 @@ def test16_structures_that_do_not_fit_fail_before_allocating(llvm, tmp_path, mon
         f.truncate(100 << 30)
     with open(tmp_path / "big.scalars", "wb") as f:
         f.truncate(25 << 30)
-    with pytest.raises(MemoryLimitError, match="big.cells"):
-        read_exabricks(big)
+    for reader in (read_exabricks, read_exabricks_blocks):       # per-cell and streaming readers
+        with pytest.raises(MemoryLimitError, match="big.cells"):
+            reader(big)
     # an .npz whose header claims 10^12 values
     npz = tmp_path / "huge.npz"
     import zipfile
@@ -137,7 +138,8 @@ def test16_structures_that_do_not_fit_fail_before_allocating(llvm, tmp_path, mon
             header = {"descr": "<i4", "fortran_order": False, "shape": shape}
             with z.open(f"{name}.npy", "w") as f:
                 np.lib.format.write_array_header_1_0(f, header)
-    with pytest.raises(MemoryLimitError, match="huge.npz"):
-        mi_amr.load_cells(npz)
+    for reader in (mi_amr.load_cells, read_npz_blocks):
+        with pytest.raises(MemoryLimitError, match="huge.npz"):
+            reader(npz)
     assert time.perf_counter() - t0 < 30
 

@@ -6,7 +6,8 @@ A block that holds at least one cell stores all ``B^3`` values, x fastest,
 with NaN where the level has no cell; nothing else is kept per cell (about
 4 bytes per cell on block-structured data, where boxes fill whole blocks).
 Point location hashes the block coordinate of a level (docs/design.md
-section 9); builders read cells back block by block (`BlockVolume.cell_chunks`).
+section 9); builders read the data back block by block (`BlockVolume.block_chunks`)
+or as cell records chunk by chunk (`BlockVolume.cell_chunks`).
 
 Coordinates: finest-level cell units, as in `mi_amr.data.cells`. ``origin``
 is the lower data corner aligned to the coarsest level, so that level and
@@ -76,7 +77,7 @@ class BlockVolume(mi.Object):
         chunks = lambda: ((cells.pos[s:s + CHUNK], cells.level[s:s + CHUNK], cells.value[s:s + CHUNK])  # noqa: E731
                           for s in range(0, len(cells), CHUNK))
         return _build(chunks, lo, hi, int(cells.level.max()), cells.source, "error", block,
-                      lambda: _sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)),
+                      lambda: sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)),
                       method)
 
     @classmethod
@@ -231,7 +232,7 @@ class BlockVolume(mi.Object):
         return value, found
 
 
-def _sample_runs(n: int, read):
+def sample_runs(n: int, read):
     """Eight contiguous runs of `SAMPLE` cells spread over ``n`` cells (all of
     them when that is fewer); ``read(start, stop)`` returns one run."""
     if n <= 8 * SAMPLE:

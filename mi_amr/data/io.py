@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .blocks import BlockVolume, _sample_runs
+from .blocks import BlockVolume, sample_runs
 from .cells import AMRCells
 from ..memory import load_bytes, require, structure_bytes
 
@@ -90,7 +90,7 @@ def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "erro
         r = np.asarray(rec[s:e])
         return r[:, :3], r[:, 3], None
     return BlockVolume.from_chunks(chunks, str(cells_path), overlap=overlap, block=block,
-                                   sample=lambda: _sample_runs(n, read), method=method, total=n)
+                                   sample=lambda: sample_runs(n, read), method=method, total=n)
 
 
 def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Path, Path]:
