@@ -122,9 +122,9 @@ class Structures:
 
     @property
     def cells(self) -> AMRCells:
-        """Per-cell records, for the builders that still need them (bricks):
-        the `AMRCells` given, or made from the blocks for the caller, not
-        kept (the blocks stay the only resident copy)."""
+        """Per-cell records (for tools and tests; no build needs them): the
+        `AMRCells` given, or made from the blocks for the caller, not kept
+        (the blocks stay the only resident copy)."""
         if self._given_cells is not None:
             return self._given_cells
         return self.volume.to_cells()
@@ -148,7 +148,7 @@ class Structures:
     @property
     def bricks(self) -> Bricks:
         size = self.options.brick_size
-        return self._build("bricks", lambda: self._host_cached(("bricks", size), lambda: Bricks(self.cells, size)),
+        return self._build("bricks", lambda: self._host_cached(("bricks", size), lambda: Bricks(self.volume, size)),
                            need=structure_bytes("bricks", len(self.volume)), store=self.host)
 
     def brick_tree(self, kind: str) -> DeviceTree:

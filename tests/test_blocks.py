@@ -178,7 +178,7 @@ def test08_a_medium_from_a_file_keeps_only_blocks(llvm, tmp_path):
     assert np.isfinite(mi.render(scene, spp=2).numpy()).all()
     med = mi_amr.amr_media(scene)[0]
     assert isinstance(med.volume, BlockVolume) and med.structures._given_cells is None
-    # brick structures read per-cell records once while they build, and do not keep them
+    # brick structures build from the blocks, level by level, and keep no per-cell records
     bricked = mi.load_dict({"type": "amr", "filename": str(path), "traversal": "brick", "sampling": "brick"})
     cache = bricked.volume.__dict__.get("_mi_amr_cache", {})
     assert "bricks" in bricked.structures.host and cache

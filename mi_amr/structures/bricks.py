@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..progress import progress
 
@@ -29,31 +30,25 @@ class Bricks:
     vmin, vmax : float32 (B,)  value range of the brick's own cells
     """
 
-    def __init__(self, cells: AMRCells, max_width: int = 8):
+    def __init__(self, data: AMRCells | BlockVolume, max_width: int = 8):
         if max_width < 1:
             raise ValueError(f"max_width must be >= 1, got {max_width}")
-        los, dims, levels, members = [], [], [], []
-        bar = progress(len(cells), "bricks")
-        for L in cells.levels:
-            L = int(L)
-            idx = np.nonzero(cells.level == L)[0]
-            bar.update(len(idx))
-            q = cells.pos[idx] >> L                        # level coordinates
-            lo, dm, mem = _bricks_of_level(q, max_width)
+        los, dims, levels, values = [], [], [], []
+        bar = progress(len(data), "bricks")
+        for L, q, v in _levels(data):
+            bar.update(len(v))
+            lo, dm, order = _bricks_of_level(q, max_width)
             los.append(lo << L)
             dims.append(dm)
             levels.append(np.full(len(lo), L, dtype=np.int32))
-            members.append([idx[m] for m in mem])
+            values.append(v[order])              # x fastest within each brick, bricks in order
         bar.close()
         self.lo = np.concatenate(los)
         self.dims = np.concatenate(dims)
         self.level = np.concatenate(levels)
         counts = self.dims.prod(axis=1)
         self.offset = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        self.values = np.empty(int(counts.sum()), dtype=np.float32)
-        order = np.concatenate([m for ms in members for m in ms])
-        # each brick's members come in x-fastest order from _bricks_of_level
-        self.values[:] = cells.value[order]
+        self.values = np.concatenate(values).astype(np.float32)
         self.vmin = np.minimum.reduceat(self.values, self.offset)
         self.vmax = np.maximum.reduceat(self.values, self.offset)
 
@@ -78,10 +73,31 @@ class Bricks:
         return self.values.nbytes + len(self) * (3 * 8 + 3 * 8 + 4 + 8 + 8)
 
 
+def _levels(data):
+    """Per level present: ``(L, q, value)`` with ``q`` the cells' level
+    coordinates (int64 (m, 3), absolute: ``pos >> L``). From a
+    `BlockVolume` one level's blocks at a time; no record of all cells."""
+    if isinstance(data, BlockVolume):
+        b3 = data.block ** 3
+        local = np.stack(np.unravel_index(np.arange(b3), (data.block,) * 3, order="F"), axis=1)
+        for L in np.unique(data.level):
+            L = int(L)
+            sel = np.nonzero(data.level == L)[0]
+            v = data.values.reshape(-1, b3)[sel]
+            bi, ci = np.nonzero(~np.isnan(v))
+            q = (data.coord[sel][bi].astype(np.int64) << data.log2_block) + local[ci] + (data.origin >> L)
+            yield L, q, v[bi, ci]
+        return
+    for L in data.levels:
+        L = int(L)
+        idx = np.nonzero(data.level == L)[0]
+        yield L, data.pos[idx] >> L, data.value[idx]
+
+
 def _bricks_of_level(q: np.ndarray, max_width: int):
     """Split the cells (level coordinates ``q``) of one level into complete
-    boxes. Returns (lower corners, dims, member index arrays in x-fastest
-    order within each box)."""
+    boxes. Returns (lower corners, dims, member order): the indices of the
+    cells, brick after brick, x fastest within each brick."""
     key = q // max_width
     _, node = np.unique(_row_keys(key), return_inverse=True)
     out_lo, out_dims, out_members = [], [], []
@@ -104,11 +120,10 @@ def _bricks_of_level(q: np.ndarray, max_width: int):
             lin = rel[:, 0] + ext[dn, 0] * (rel[:, 1] + ext[dn, 1] * rel[:, 2])
             order = np.lexsort((lin, dn))
             dn, dc = dn[order], dc[order]
-            starts = np.r_[0, np.nonzero(np.diff(dn))[0] + 1]
-            ids = dn[starts]
+            ids = np.unique(dn)
             out_lo.append(lo[ids])
             out_dims.append(ext[ids])
-            out_members.extend(np.split(dc, starts[1:]))
+            out_members.append(dc)
         cell, node = cell[~done], node[~done]
         if not len(cell):
             break
@@ -116,7 +131,7 @@ def _bricks_of_level(q: np.ndarray, max_width: int):
         mid = (lo[np.arange(n), axis] + hi[np.arange(n), axis]) // 2
         side = q[cell, axis[node]] >= mid[node]
         _, node = np.unique(2 * node + side, return_inverse=True)
-    return np.concatenate(out_lo), np.concatenate(out_dims), out_members
+    return np.concatenate(out_lo), np.concatenate(out_dims), np.concatenate(out_members)
 
 
 def _row_keys(a: np.ndarray) -> np.ndarray:
