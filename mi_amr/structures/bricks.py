@@ -35,13 +35,17 @@ class Bricks:
             raise ValueError(f"max_width must be >= 1, got {max_width}")
         los, dims, levels, values = [], [], [], []
         bar = progress(len(data), "bricks")
-        for L, q, v in _levels(data):
-            bar.update(len(v))
-            lo, dm, order = _bricks_of_level(q, max_width)
+        for L, q, v in _levels(data, max_width):
+            bar.update(len(v) if q is not None else len(v[2]))
+            if q is None:                        # whole bricks already (full blocks): lower corners, values
+                lo, dm, vals = v
+            else:
+                lo, dm, order = _bricks_of_level(q, max_width)
+                vals = v[order]                  # x fastest within each brick, bricks in order
             los.append(lo << L)
             dims.append(dm)
             levels.append(np.full(len(lo), L, dtype=np.int32))
-            values.append(v[order])              # x fastest within each brick, bricks in order
+            values.append(vals)
         bar.close()
         self.lo = np.concatenate(los)
         self.dims = np.concatenate(dims)
@@ -73,20 +77,34 @@ class Bricks:
         return self.values.nbytes + len(self) * (3 * 8 + 3 * 8 + 4 + 8 + 8)
 
 
-def _levels(data):
+def _levels(data, max_width: int):
     """Per level present: ``(L, q, value)`` with ``q`` the cells' level
-    coordinates (int64 (m, 3), absolute: ``pos >> L``). From a
-    `BlockVolume` one level's blocks at a time; no record of all cells."""
+    coordinates (int64 (m, 3), absolute: ``pos >> L``). From a `BlockVolume`
+    one level's blocks at a time, with no record of all cells; blocks that
+    are full and split evenly into ``max_width^3`` bricks come as ``(L,
+    None, (lower corners, dims, values))`` directly."""
     if isinstance(data, BlockVolume):
-        b3 = data.block ** 3
-        local = np.stack(np.unravel_index(np.arange(b3), (data.block,) * 3, order="F"), axis=1)
+        B, b3 = data.block, data.block ** 3
+        local = np.stack(np.unravel_index(np.arange(b3), (B,) * 3, order="F"), axis=1)
         for L in np.unique(data.level):
             L = int(L)
             sel = np.nonzero(data.level == L)[0]
             v = data.values.reshape(-1, b3)[sel]
-            bi, ci = np.nonzero(~np.isnan(v))
-            q = (data.coord[sel][bi].astype(np.int64) << data.log2_block) + local[ci] + (data.origin >> L)
-            yield L, q, v[bi, ci]
+            full = ~np.isnan(v).any(axis=1) if B % max_width == 0 else np.zeros(len(sel), bool)
+            if full.any():
+                m, n = max_width, B // max_width
+                vf = v[full].reshape(-1, n, m, n, m, n, m)          # [block, bz, z, by, y, bx, x]
+                vals = vf.transpose(0, 1, 3, 5, 2, 4, 6).reshape(-1)  # brick after brick, x fastest
+                sub = np.stack(np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij"),
+                               -1).reshape(-1, 3)[:, ::-1] * m          # (bz, by, bx) order -> x, y, z
+                q0 = (data.coord[sel][full].astype(np.int64) << data.log2_block) + (data.origin >> L)
+                lo = (q0[:, None, :] + sub[None]).reshape(-1, 3)
+                yield L, None, (lo, np.full((len(lo), 3), m, np.int64), vals)
+            rest = ~full
+            if rest.any():
+                bi, ci = np.nonzero(~np.isnan(v[rest]))
+                q = (data.coord[sel][rest][bi].astype(np.int64) << data.log2_block) + local[ci] + (data.origin >> L)
+                yield L, q, v[rest][bi, ci]
         return
     for L in data.levels:
         L = int(L)
