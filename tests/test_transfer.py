@@ -105,3 +105,31 @@ def test08_matplotlib_colormap_by_name():
     with pytest.raises(ValueError, match="matplotlib colormap name"):
         TransferFunction.load("not-a-colormap")
 
+
+
+@pytest.mark.parametrize("tf", ["ramp", "two-entry"])
+@pytest.mark.parametrize("method", ["nearest", "tent"])
+def test09_zero_opacity_regions_get_zero_majorants(llvm, tf, method):
+    """A range ending exactly on a table entry does not take the next entry:
+    with the ramp preset (alpha 0 at the lowest value, rising at once) or a
+    2-entry 0 -> 1 table, macrocells that only see zero values get a zero
+    majorant, and a ray through only such macrocells costs no look-up and
+    keeps transmittance 1."""
+    import mi_amr
+    from stress_oracles import ratio_tracking
+    g = np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    value = np.where(g[:, 0] >= 4, 0.25 + 0.75 * np.random.default_rng(0).random(len(g)), 0.0)
+    cells = mi_amr.AMRCells(g, np.zeros(len(g), int), value)
+    table = "ramp" if tf == "ramp" else TransferFunction([[1, 1, 1, 0], [1, 1, 1, 1]], (0.0, 1.0))
+    med = mi.load_dict({"type": "amr", "data": cells, "transfer_function": table, "tf_min": 0.0, "tf_max": 1.0,
+                        "density_scale": 10.0, "reconstruction": method, "grid_resolution": 8})
+    maj = med.majorant_grid                                   # [z, y, x]
+    clear = 4 if method == "nearest" else 3                   # tent supports reach half a cell further
+    assert (maj[:, :, :clear] == 0).all()
+    assert (maj[:, :, 4:] > 0).all()
+    rng = np.random.default_rng(1)
+    n = 2000
+    o = np.column_stack([rng.uniform(0.01, clear / 8 - 0.01, n), np.full(n, -0.5), rng.random(n)])
+    d = np.tile([0.0, 1.0, 0.0], (n, 1))
+    T, counts = ratio_tracking(med, o, d, 1)
+    assert (T == 1.0).all() and counts.lookups.numpy().sum() == 0

@@ -51,11 +51,14 @@ class DeviceTransferFunction:
 
     def range_max_alpha(self, vmin, vmax, active=True):
         """Maximum table alpha over entries ``floor(u_min (N-1)) ..
-        floor(u_max (N-1)) + 1`` (clamped); 0 for an empty range
-        (``vmin > vmax``). O(1) per range via the sparse table."""
+        ceil(u_max (N-1))`` (clamped): the entries whose segments the values
+        of ``[vmin, vmax]`` interpolate between (a range ending exactly on an
+        entry does not reach the next one); 0 for an empty range (``vmin >
+        vmax``). O(1) per range via the sparse table. ``u (N-1)`` is rounded
+        as in `eval`, which keeps every evaluated alpha within the bound."""
         n1 = self.n - 1
         lo = dr.minimum(mi.UInt32(dr.floor(self._u(vmin) * mi.Float(n1))), n1)
-        hi = dr.minimum(mi.UInt32(dr.floor(self._u(vmax) * mi.Float(n1))) + 1, n1)
+        hi = dr.minimum(mi.UInt32(dr.ceil(self._u(vmax) * mi.Float(n1))), n1)
         valid = active & (vmin <= vmax)
         hi = dr.maximum(hi, lo)
         k = 31 - dr.lzcnt(hi - lo + 1)

@@ -77,9 +77,9 @@ class TransferFunction(mi.Object):
         """Table entries ``lo..hi`` (inclusive) covering value ranges
         ``[vmin, vmax]`` under linear interpolation (docs/design.md section 4)."""
         n1 = len(self) - 1
-        lo = np.floor(self.normalize(vmin) * n1).astype(np.int64)
-        hi = np.minimum(np.floor(self.normalize(vmax) * n1).astype(np.int64) + 1, n1)
-        return np.minimum(lo, n1), hi
+        lo = np.minimum(np.floor(self.normalize(vmin) * n1).astype(np.int64), n1)
+        hi = np.minimum(np.ceil(self.normalize(vmax) * n1).astype(np.int64), n1)
+        return lo, np.maximum(hi, lo)
 
     def max_alpha(self, vmin, vmax) -> np.ndarray:
         """Maximum opacity over value ranges (numpy, brute force, for tests)."""
