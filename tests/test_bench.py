@@ -11,11 +11,12 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
     code = main(["--out", str(out), "--cells", "800", "--res", "16", "--spp", "2", "--ref-spp", "16",
                  "--repeats", "2", "--datasets", "cloud", "--tfs", "spiky",
                  "--configs", "reference", "volpath/ray", "amrvolpath/grid/hash", "amrvolpath/abr/brick",
+                 "amrvolpath/default",
                  "--curve-spp", "1", "2", "--sweep", "8", "16"])
     assert code == 0
     records = json.loads((out / "results.json").read_text())
     assert [r["config"] for r in records] == ["reference", "volpath/ray", "amrvolpath/grid/hash",
-                                              "amrvolpath/abr/brick"]
+                                              "amrvolpath/abr/brick", "amrvolpath/default"]
     for r in records:
         for field in ("dataset", "tf", "config", "seconds_per_spp", "rmse", "efficiency",
                       "efficiency_vs_reference", "lookups_per_collision", "structure_bytes"):
@@ -24,6 +25,12 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
         assert len(r["curve"]) == 2
     assert records[0]["efficiency_vs_reference"] == 1.0
     assert records[2]["lookups_per_collision"] >= 1.0
+    # each free-flight look-up is a null or a real collision
+    assert abs(records[2]["null_per_collision"] - (records[2]["lookups_per_collision"] - 1.0)) < 1e-9
+    # the default is exactly what grid/hash builds: same counts with the same seeds
+    assert records[4]["resolved"].startswith("grid/hash")
+    assert records[4]["counters"] == records[2]["counters"]
+    assert "| amrvolpath/default (grid/hash" in (out / "tables.md").read_text()
     assert all(r["structure_bytes"] > 0 for r in records)
     sweep = json.loads((out / "sweep.json").read_text())
     assert sweep[0]["auto_resolution"] in (8, 16, 32, 64, 128) and len(sweep[0]["rows"]) == 2
@@ -34,9 +41,9 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
 
 def test02_config_names():
     names = all_configs()
-    assert names[:3] == ["reference", "volpath/global", "volpath/ray"]
+    assert names[:4] == ["reference", "volpath/global", "volpath/ray", "amrvolpath/default"]
     assert "amrvolpath/grid/abr" in names and "amrvolpath/kdtree/brick" in names
-    assert len(names) == 3 + 4 * 3
+    assert len(names) == 4 + 4 * 3
 
 
 def test03_reference_that_does_not_fit_is_reported(llvm, tmp_path):

@@ -80,10 +80,12 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
 
     def counters(self) -> dict:
         """Totals since the last `reset_counters` (or construction), with
-        ``lookups_per_collision`` = free-flight look-ups / real collisions."""
+        ``lookups_per_collision`` = free-flight look-ups / real collisions and
+        ``null_per_collision`` = free-flight null collisions / real collisions."""
         vals = self._counter_array.numpy()
         out = {k: int(v) for k, v in zip(COUNTER_NAMES, vals)}
         out["lookups_per_collision"] = out["lookups"] / out["real"] if out["real"] else float("nan")
+        out["null_per_collision"] = out["null"] / out["real"] if out["real"] else float("nan")
         return out
 
     def _count(self, free: TrackingCounts, shadow: TrackingCounts):

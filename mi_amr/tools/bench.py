@@ -35,7 +35,9 @@ SCALES = {("cloud", "spiky"): 60.0, ("cloud", "foggy"): 150.0,
 
 
 def all_configs():
-    out = ["reference", "volpath/global", "volpath/ray"]
+    """Configuration names: ``amrvolpath/default`` is what a user gets with
+    no structure options (its record names what it resolved to)."""
+    out = ["reference", "volpath/global", "volpath/ray", "amrvolpath/default"]
     out += [f"amrvolpath/{t}/{s}" for t in TRAVERSALS for s in SAMPLINGS]
     return out
 
@@ -75,7 +77,8 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
         if kind[0] == "volpath":
             medium["majorant"] = kind[1]
         else:
-            medium.update(traversal=kind[1], sampling=kind[2])
+            if kind[1] != "default":
+                medium.update(traversal=kind[1], sampling=kind[2])
             integ = {"type": "amrvolpath", "max_depth": args.max_depth, "counters": True}
     scene = mi.load_dict(bench_scene(medium, args.res, integ))
     build_s = time.perf_counter() - t0
@@ -111,9 +114,11 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
     if hasattr(integrator, "counters"):
         c = integrator.counters()
         rec["lookups_per_collision"] = c["lookups_per_collision"]
+        rec["null_per_collision"] = c["null_per_collision"]
         rec["counters"] = c
     else:
         rec["lookups_per_collision"] = None
+        rec["null_per_collision"] = None
     if kind[0] == "reference":
         rec["structure_bytes"] = dense_bytes(cells)
         rec["majorant_update_s"] = None
@@ -128,6 +133,8 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
             dr.sync_thread()
         rec["majorant_update_s"] = (time.perf_counter() - t0) / 5
         rec["build_detail_s"] = dict(med.build_seconds)
+        rec["resolved"] = (f"{med.options.structures.traversal}/{med.options.structures.sampling}, "
+                           f"grid {'x'.join(str(int(r)) for r in med.grid.res)}")
     return rec, acc / args.repeats
 
 
@@ -392,23 +399,26 @@ def write_tables(records, sweeps, out: Path, tf_timing=None):
         rows = [r for r in records if r["dataset"] == name and not r.get("skipped")]
         tfs = list(dict.fromkeys(r["tf"] for r in rows))
         lines += [f"## {name} ({rows[0]['cells']} cells)", "",
-                  "| configuration | " + " | ".join(f"{t}: ms/spp | {t}: eff. vs ref | {t}: look-ups/coll."
-                                                     for t in tfs) + " | memory MiB |",
-                  "|---|" + "---|---|---|" * len(tfs) + "---|"]
+                  "| configuration | " + " | ".join(f"{t}: ms/spp | {t}: eff. vs ref | {t}: look-ups/coll. | "
+                                                     f"{t}: null/coll." for t in tfs) + " | memory MiB |",
+                  "|---|" + "---|---|---|---|" * len(tfs) + "---|"]
         for config in dict.fromkeys(r["config"] for r in rows):
             cells = []
             mem = None
             for t in tfs:
                 r = next((x for x in rows if x["config"] == config and x["tf"] == t), None)
                 if r is None:
-                    cells += ["", "", ""]
+                    cells += ["", "", "", ""]
                     continue
                 mem = r["structure_bytes"] / 2**20
                 eff = r.get("efficiency_vs_reference")
                 lpc = r.get("lookups_per_collision")
+                npc = r.get("null_per_collision")
                 cells += [f"{r['seconds_per_spp'] * 1e3:.2f}", f"{eff:.2f}x" if eff else "",
-                          f"{lpc:.2f}" if lpc else ""]
-            lines.append(f"| {config} | " + " | ".join(cells) + f" | {mem:.2f} |")
+                          f"{lpc:.2f}" if lpc else "", f"{npc:.2f}" if npc is not None else ""]
+            resolved = next((x.get("resolved") for x in rows if x["config"] == config and x.get("resolved")), None)
+            name = f"{config} ({resolved})" if config.endswith("/default") and resolved else config
+            lines.append(f"| {name} | " + " | ".join(cells) + f" | {mem:.2f} |")
         for r in skipped:
             lines.append(f"\n{r['config']} ({r['tf']}) skipped: {r['skipped']}")
         lines.append("")
