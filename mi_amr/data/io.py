@@ -69,28 +69,29 @@ def read_exabricks(cells_path, scalars_path=None, *, overlap: str = "error") -> 
 
 def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "error",
                           block: int | None = None, chunk: int = 1 << 22, method: str = "tent") -> BlockVolume:
-    """Stream an ExaBricks pair into a `BlockVolume`: both files are
-    memory-mapped and read ``chunk`` cells at a time (twice), validated as
-    strictly as `read_exabricks`; no per-cell array of the whole file is
-    made. ``method``: the reconstruction the blocks will serve (it weighs
-    the block size)."""
+    """Stream an ExaBricks pair into a `BlockVolume`: both files are read
+    ``chunk`` cells at a time (three passes), validated as strictly as
+    `read_exabricks`; no per-cell array of the whole file is made.
+    ``method``: the reconstruction the blocks will serve (it weighs the
+    block size)."""
     cells_path, scalars_path, n = _exabricks_pair(cells_path, scalars_path)
     if n == 0:
         raise ValueError(f"{cells_path}: contains no cells")
     require(load_bytes(n, chunk), f"{cells_path} ({n} cells)", hint="raise the limit to load it")
-    rec = np.memmap(cells_path, dtype="<i4", mode="r", shape=(n, 4))
-    val = np.memmap(scalars_path, dtype="<f4", mode="r", shape=(n,))
+    # chunks are read with plain file reads, not a memory map: mapped pages
+    # of a 2 GB file would count as the process's memory until unmapped
+
+    def read(s, e, values=True):
+        r = np.fromfile(cells_path, dtype="<i4", count=4 * (e - s), offset=16 * s).reshape(-1, 4)
+        v = np.fromfile(scalars_path, dtype="<f4", count=e - s, offset=4 * s) if values else None
+        return r[:, :3], r[:, 3], v
 
     def chunks():
         for s in range(0, n, chunk):
-            r = np.asarray(rec[s:s + chunk])
-            yield r[:, :3], r[:, 3], np.asarray(val[s:s + chunk])
-
-    def read(s, e):
-        r = np.asarray(rec[s:e])
-        return r[:, :3], r[:, 3], None
+            yield read(s, min(n, s + chunk))
     return BlockVolume.from_chunks(chunks, str(cells_path), overlap=overlap, block=block,
-                                   sample=lambda: sample_runs(n, read), method=method, total=n)
+                                   sample=lambda: sample_runs(n, lambda s, e: read(s, e, False)),
+                                   method=method, total=n)
 
 
 def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Path, Path]:

@@ -24,9 +24,6 @@ from ..memory import grid_bytes, require
 from ..progress import progress
 from .boxes import expand_boxes
 
-#: Boxes of more macrocells than this are written as array slices.
-LARGE_BOX = 4096
-
 
 def axis_resolution(longest: int, extent) -> np.ndarray:
     """Per-axis cell counts of a grid over a box of ``extent`` (x, y, z) with
