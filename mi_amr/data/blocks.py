@@ -145,7 +145,7 @@ class BlockVolume(mi.Object):
         cells per chunk), in block order."""
         b3 = self.block ** 3
         step = max(1, max_cells // b3)
-        local = np.stack(np.unravel_index(np.arange(b3), (self.block,) * 3, order="F"), axis=1)
+        local = block_offsets(self.block)
         for s in range(0, len(self.level), step):
             v = self.values[s * b3:(s + step) * b3].reshape(-1, b3)
             blk, cell = np.nonzero(~np.isnan(v))
@@ -180,32 +180,18 @@ class BlockVolume(mi.Object):
         any stencil base with a cell is present or a ghost; ``neighbours[k,
         d - 1]`` is the block at ``coord + d`` (``d = dx + 2 dy + 4 dz``) of
         block k (ghosts numbered after the K blocks), or ``0xFFFFFFFF``."""
-        keys = _block_keys(self.coord, self.level, False)
-        order = np.argsort(keys)
-        offsets = [np.array([d & 1, (d >> 1) & 1, (d >> 2) & 1], dtype=np.int64) for d in range(1, 8)]
+        ghost_coord, ghost_level = ghost_blocks(self.coord, self.level)
         coord = self.coord.astype(np.int64)
-
-        def find(k):
-            i = np.minimum(np.searchsorted(keys, k, sorter=order), len(keys) - 1)
-            return order[i], keys[order[i]] == k
-        ghost_c, ghost_l = [], []
-        for off in offsets:
-            c = coord - off
-            ok = np.all(c >= 0, axis=1)
-            _, present = find(_block_keys(np.where(ok[:, None], c, 0), self.level, False))
-            sel = ok & ~present
-            ghost_c.append(c[sel])
-            ghost_l.append(self.level[sel])
-        gk, first = np.unique(_block_keys(np.concatenate(ghost_c), np.concatenate(ghost_l), False),
-                              return_index=True)
-        ghost_coord = np.concatenate(ghost_c)[first]
-        ghost_level = np.concatenate(ghost_l)[first]
+        keys = _block_keys(coord, self.level, False)
+        order = np.argsort(keys)
         all_coord = np.concatenate([coord, ghost_coord])
         all_level = np.concatenate([self.level, ghost_level])
         neighbours = np.full((len(all_level), 7), 0xFFFFFFFF, dtype=np.uint32)
-        for d, off in enumerate(offsets):
-            idx, hit = find(_block_keys(all_coord + off, all_level, False))
-            neighbours[hit, d] = idx[hit]
+        for d, off in enumerate(UPPER_OFFSETS):
+            k = _block_keys(all_coord + off, all_level, False)
+            i = np.minimum(np.searchsorted(keys, k, sorter=order), len(keys) - 1)
+            hit = keys[order[i]] == k
+            neighbours[hit, d] = order[i][hit]
         return ghost_coord.astype(np.int32), ghost_level, neighbours
 
     def lookup(self, level: int, q: np.ndarray):
@@ -224,8 +210,7 @@ class BlockVolume(mi.Object):
         i = np.minimum(np.searchsorted(keys, qk, sorter=order), len(sel) - 1)
         hit = ok & (keys[order[i]] == qk)
         blk = sel[order[i]]
-        loc = q & (self.block - 1)
-        slot = blk * self.block ** 3 + loc[:, 0] + self.block * (loc[:, 1] + self.block * loc[:, 2])
+        slot = _slot(blk, q, self.block)
         v = self.values[np.where(hit, slot, 0)]
         found = hit & ~np.isnan(v)
         value[found] = v[found]
@@ -256,16 +241,32 @@ def choose_block_size(block_counts: dict, ghost_counts: dict | None = None) -> i
     return min(cost, key=cost.get)
 
 
-def _ghost_count(coord: np.ndarray, level: np.ndarray) -> int:
-    """Missing blocks at ``coord - d``, d in {0,1}^3 \\ 0, of the given blocks."""
+#: Block offsets d = (dx, dy, dz) for d = dx + 2 dy + 4 dz = 1..7.
+UPPER_OFFSETS = [np.array([d & 1, (d >> 1) & 1, (d >> 2) & 1], dtype=np.int64) for d in range(1, 8)]
+
+
+def ghost_blocks(coord: np.ndarray, level: np.ndarray):
+    """The missing blocks at ``coord - d`` (d in `UPPER_OFFSETS`, same level)
+    of the given blocks: ``(coord int64 (G, 3), level (G,))``, distinct."""
+    coord = np.asarray(coord, dtype=np.int64)
     keys = np.unique(_block_keys(coord, level, False))
-    cand = []
-    for d in range(1, 8):
-        c = coord - np.array([d & 1, (d >> 1) & 1, (d >> 2) & 1])
-        ok = np.all(c >= 0, axis=1)
-        cand.append(_block_keys(c[ok], level[ok], False))
-    cand = np.unique(np.concatenate(cand))
-    return int(len(cand) - np.isin(cand, keys).sum())
+    cand_c = np.concatenate([coord - off for off in UPPER_OFFSETS])
+    cand_l = np.tile(level, len(UPPER_OFFSETS))
+    ok = np.all(cand_c >= 0, axis=1)
+    cand_k, first = np.unique(_block_keys(cand_c[ok], cand_l[ok], False), return_index=True)
+    ghost = ~np.isin(cand_k, keys)
+    return cand_c[ok][first[ghost]], cand_l[ok][first[ghost]]
+
+
+def block_offsets(b: int) -> np.ndarray:
+    """Cell offsets (x, y, z) inside a ``b^3`` block, in storage order (x fastest)."""
+    return np.stack(np.unravel_index(np.arange(b ** 3), (b,) * 3, order="F"), axis=1)
+
+
+def _slot(blk, q, b: int):
+    """Index in the values of cell ``q`` (level coordinates) of block ``blk``."""
+    loc = q & (b - 1)
+    return blk * b ** 3 + loc[:, 0] + b * (loc[:, 1] + b * loc[:, 2])
 
 
 #: Bits per axis of a packed int64 block key (5 bits hold the level).
@@ -328,7 +329,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
                 c, L = _unpack_keys(_distinct(block_keys(p, lv, b)), packed)
                 counts[b] += len(L)
                 if method == "tent":
-                    ghosts[b] += _ghost_count(c, L)
+                    ghosts[b] += len(ghost_blocks(c, L)[1])
         b = choose_block_size(counts, ghosts if method == "tent" else None)
     else:
         b = sizes[0]
@@ -351,9 +352,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     for pos, level, value in chunks():
         L = level.astype(np.int64)
         q = (pos.astype(np.int64) - origin) >> L[:, None]
-        blk = np.searchsorted(keys, _block_keys(q // b, L, packed))
-        loc = q & (b - 1)
-        slot = blk * b3 + loc[:, 0] + b * (loc[:, 1] + b * loc[:, 2])
+        slot = _slot(np.searchsorted(keys, _block_keys(q // b, L, packed)), q, b)
         m = len(slot)
         taken = ~np.isnan(values[slot])           # placed by an earlier chunk
         free = np.nonzero(~taken)[0]
@@ -411,7 +410,7 @@ def _remove_overlaps(vol: BlockVolume, overlap: str) -> int:
     levels = vol.levels
     removed = 0
     b, b3 = vol.block, vol.block ** 3
-    local = np.stack(np.unravel_index(np.arange(b3), (b,) * 3, order="F"), axis=1)
+    local = block_offsets(b)
     for Lc in levels[1:]:
         csel = np.nonzero(vol.level == Lc)[0]
         ckeys = _block_keys(vol.coord[csel], np.full(len(csel), Lc), False)
@@ -441,8 +440,7 @@ def _remove_overlaps(vol: BlockVolume, overlap: str) -> int:
                 cb = cq >> vol.log2_block
                 ck = _block_keys(cb, np.full(len(cq), Lc), False)
                 j = csel[corder[np.searchsorted(ckeys, ck, sorter=corder)]]
-                loc = cq & (b - 1)
-                slot = j * b3 + loc[:, 0] + b * (loc[:, 1] + b * loc[:, 2])
+                slot = _slot(j, cq, b)
                 removed += int((~np.isnan(vol.values[slot])).sum())
                 vol.values[slot] = np.nan
     return removed

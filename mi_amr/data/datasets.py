@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .blocks import block_offsets
 from .cells import AMRCells
 
 NAMES = ("cloud", "shell", "stadium", "blocks")
@@ -207,7 +208,7 @@ def block_cells(lo, level, nxb: int, n_fine: int, seed: int, chunk: int = 1 << 2
     the cells of the blocks ``lo``/``level`` (see `block_leaves`), a few
     blocks at a time; the values sample the ``cloud`` field at cell centres."""
     f, _ = _field("cloud", seed)
-    local = np.stack(np.unravel_index(np.arange(nxb ** 3), (nxb,) * 3, order="F"), axis=1)
+    local = block_offsets(nxb)
     step = max(1, chunk // nxb ** 3)
     for s in range(0, len(level), step):
         L = level[s:s + step].astype(np.int64)

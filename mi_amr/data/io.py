@@ -147,9 +147,11 @@ def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
             headers = {}
             for name in ("pos", "level", "value"):
                 with z.open(f"{name}.npy") as f:
-                    version = np.lib.format.read_magic(f)
-                    headers[name] = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
-                                     else np.lib.format.read_array_header_2_0(f))
+                    headers[name] = _npy_header(f)
+    except ValueError as e:
+        if str(path) in str(e):
+            raise
+        raise ValueError(f"{path}: not a valid AMR .npz archive ({e})") from e
     except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
         raise ValueError(f"{path}: cannot read .npz archive ({type(e).__name__}: {e})") from e
     (ps, pfo, pdt), (ls, lfo, ldt), (vs, vfo, vdt) = headers["pos"], headers["level"], headers["value"]
@@ -172,9 +174,7 @@ def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
             with zipfile.ZipFile(path) as z:
                 members = [z.open(f"{name}.npy") for name in ("pos", "level", "value")]
                 for f in members:                     # skip the headers
-                    version = np.lib.format.read_magic(f)
-                    (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                     else np.lib.format.read_array_header_2_0)(f)
+                    _npy_header(f)
                 for s in range(0, n, chunk):
                     m = min(chunk, n - s)
                     out = []
@@ -201,10 +201,15 @@ def _npy_shape(archive, name: str) -> tuple:
     """Shape of array ``name`` of an open ``.npz`` from its header alone
     (before the data are read: a damaged header must not allocate)."""
     with archive.zip.open(f"{name}.npy") as f:
-        version = np.lib.format.read_magic(f)
-        shape, _, _ = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
-                       else np.lib.format.read_array_header_2_0(f))
-    return shape
+        return _npy_header(f)[0]
+
+
+def _npy_header(f) -> tuple:
+    """``(shape, fortran_order, dtype)`` of an open ``.npy`` stream, leaving
+    it at the start of the data."""
+    version = np.lib.format.read_magic(f)
+    return (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
+            else np.lib.format.read_array_header_2_0(f))
 
 
 def write_npz(cells: AMRCells, path) -> Path:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..data.blocks import BlockVolume
+from ..data.blocks import BlockVolume, block_offsets
 from ..data.cells import AMRCells
 from ..progress import progress
 
@@ -85,7 +85,7 @@ def _levels(data, max_width: int):
     None, (lower corners, dims, values))`` directly."""
     if isinstance(data, BlockVolume):
         B, b3 = data.block, data.block ** 3
-        local = np.stack(np.unravel_index(np.arange(b3), (B,) * 3, order="F"), axis=1)
+        local = block_offsets(B)
         for L in np.unique(data.level):
             L = int(L)
             sel = np.nonzero(data.level == L)[0]

@@ -161,9 +161,26 @@ class _RangeSplat:
         _, n = self._dense_shape(L)
         return float(np.prod(n.astype(np.float64))) <= self.DENSE_FACTOR * float(np.prod(self.res))
 
-    def _interval(self, qw, w):
-        """Support of cells with lower corners ``qw`` (finest units relative to lo)."""
-        return (qw - 0.5 * w, qw + 1.5 * w) if self.support == "tent" else (qw, qw + w)
+    def _dense_grid(self, L):
+        """``(qmin, grid)`` of level ``L``: its level grid, NaN where no cell yet."""
+        if L not in self.dense:
+            qmin, n = self._dense_shape(L)
+            self.dense[L] = (qmin, np.full((int(n[2]), int(n[1]), int(n[0])), np.nan, np.float32))
+        return self.dense[L]
+
+    def _macrocells(self, qw, w, axis=slice(None)):
+        """First and last macrocell (``i0``, ``i1``, clipped) that the support
+        of cells with lower corners ``qw`` (finest units relative to lo,
+        along ``axis``, or all three) overlaps; ``w`` the cell width."""
+        a, b = (qw - 0.5 * w, qw + 1.5 * w) if self.support == "tent" else (qw, qw + w)
+        top = self.res[axis] - 1
+        return (np.clip(np.floor(a * self.scale[axis]), 0, top).astype(np.int64),
+                np.clip(np.floor(b * self.scale[axis]), 0, top).astype(np.int64))
+
+    def _level_macrocells(self, q, L, axis):
+        """`_macrocells` of level-``L`` cells at level coordinates ``q`` (any shape) on ``axis``."""
+        qw = (q << L) + (self.origin[axis] - self.lo[axis])
+        return self._macrocells(qw.astype(np.float64), float(1 << L), axis)
 
     def add(self, pos, level, value):
         levels = np.unique(level)
@@ -172,11 +189,9 @@ class _RangeSplat:
             sel = level == L if len(levels) > 1 else slice(None)
             p, v = pos[sel], value[sel]
             if self._is_dense(L):
-                qmin, n = self._dense_shape(L)
-                if L not in self.dense:
-                    self.dense[L] = (qmin, np.full((int(n[2]), int(n[1]), int(n[0])), np.nan, np.float32))
+                qmin, grid = self._dense_grid(L)
                 q = ((p.astype(np.int64) - self.origin) >> L) - qmin
-                self.dense[L][1][q[:, 2], q[:, 1], q[:, 0]] = v
+                grid[q[:, 2], q[:, 1], q[:, 0]] = v
             else:
                 self._fold_cells(p, L, v)
 
@@ -193,10 +208,7 @@ class _RangeSplat:
             q0 = coord[sel].astype(np.int64) << log2_block          # first cell of each block
             v = values[sel]
             if self._is_dense(L):
-                qmin, n = self._dense_shape(L)
-                if L not in self.dense:
-                    self.dense[L] = (qmin, np.full((int(n[2]), int(n[1]), int(n[0])), np.nan, np.float32))
-                grid = self.dense[L][1]
+                qmin, grid = self._dense_grid(L)
                 r = q0 - qmin
                 t = np.arange(B)
                 iz = np.broadcast_to(r[:, 2, None, None, None] + t[None, :, None, None], v.shape)
@@ -210,10 +222,7 @@ class _RangeSplat:
             first = []
             for axis in range(3):                              # x, y, z: array axes 3, 2, 1
                 q = q0[:, axis, None] + np.arange(B)[None]          # (k, B) level coordinates
-                qw = (q << L) + (self.origin[axis] - self.lo[axis])
-                a, b = self._interval(qw.astype(np.float64), float(1 << L))
-                i0 = np.clip(np.floor(a * self.scale[axis]), 0, self.res[axis] - 1).astype(np.int64)
-                i1 = np.clip(np.floor(b * self.scale[axis]), 0, self.res[axis] - 1).astype(np.int64)
+                i0, i1 = self._level_macrocells(q, L, axis)
                 j0 = i0[:, :1]
                 span = int((i1[:, -1:] - j0).max()) + 1
                 j = j0 + np.arange(span)[None]                      # (k, J) macrocells touched
@@ -233,12 +242,8 @@ class _RangeSplat:
             np.bitwise_or.at(self.bits, idx, np.uint32(1 << L))
 
     def _fold_cells(self, pos, L, value):
-        w = float(1 << L)
-        a, b = self._interval(pos.astype(np.float64) - self.lo, w)
         res = self.res
-        i0 = np.clip(np.floor(a * self.scale), 0, res - 1).astype(np.int64)
-        i1 = np.clip(np.floor(b * self.scale), 0, res - 1).astype(np.int64)
-        del a, b
+        i0, i1 = self._macrocells(pos.astype(np.float64) - self.lo, float(1 << L))
         bit = np.uint32(1 << L)
         span = i1 - i0
         near = (span[:, 0] <= 2) & (span[:, 1] <= 2) & (span[:, 2] <= 2)
@@ -280,44 +285,23 @@ class _RangeSplat:
         res = self.res
         shape = (int(res[2]), int(res[1]), int(res[0]))
         for L, (qmin, grid) in self.dense.items():
-            w = float(1 << L)
-            lo_min, lo_max = np.where(np.isnan(grid), np.inf, grid), np.where(np.isnan(grid), -np.inf, grid)
+            # the whole level grid as one block, axis 0 of size 1
+            lo_min = np.where(np.isnan(grid), np.inf, grid)[None]
+            lo_max = np.where(np.isnan(grid), -np.inf, grid)[None]
             del grid
-            for axis in range(3):                  # x, y, z: array axes 2, 1, 0
-                q = qmin[axis] + np.arange(lo_min.shape[2 - axis])
-                qw = (q << L) + (self.origin[axis] - self.lo[axis])
-                a, b = self._interval(qw.astype(np.float64), w)
-                i0 = np.clip(np.floor(a * self.scale[axis]), 0, res[axis] - 1).astype(np.int64)
-                i1 = np.clip(np.floor(b * self.scale[axis]), 0, res[axis] - 1).astype(np.int64)
+            for axis in range(3):                  # x, y, z: array axes 3, 2, 1
+                i0, i1 = self._level_macrocells(qmin[axis] + np.arange(lo_min.shape[3 - axis]), L, axis)
                 j = np.arange(res[axis])
-                qa = np.searchsorted(i1, j, side="left")         # first cell reaching macrocell j
-                qb = np.searchsorted(i0, j, side="right") - 1    # last cell starting at or before j
-                lo_min = _window_reduce(lo_min, 2 - axis, qa, qb, np.minimum, np.inf)
-                lo_max = _window_reduce(lo_max, 2 - axis, qa, qb, np.maximum, -np.inf)
+                qa = np.searchsorted(i1, j, side="left")[None]   # first cell reaching macrocell j
+                qb = np.searchsorted(i0, j, side="right")[None] - 1   # last cell starting at or before j
+                lo_min = _block_window_reduce(lo_min, 3 - axis, qa, qb, np.minimum, np.inf)
+                lo_max = _block_window_reduce(lo_max, 3 - axis, qa, qb, np.maximum, -np.inf)
             lo_min, lo_max = lo_min.reshape(-1), lo_max.reshape(-1)
             assert lo_min.size == int(np.prod(shape))
             np.minimum(self.vmin, lo_min, out=self.vmin)
             np.maximum(self.vmax, lo_max, out=self.vmax)
             self.bits |= np.where(lo_max > -np.inf, np.uint32(1 << L), np.uint32(0))
         self.dense.clear()
-
-
-def _window_reduce(a, axis, qa, qb, op, fill):
-    """``out[..., j, ...] = op`` over ``a[..., qa[j]:qb[j] + 1, ...]`` along
-    ``axis`` (``fill`` for empty windows)."""
-    n = a.shape[axis]
-    width = int(np.max(qb - qa + 1)) if len(qa) else 0
-    out_shape = list(a.shape)
-    out_shape[axis] = len(qa)
-    out = np.full(out_shape, fill, dtype=a.dtype)
-    for k in range(max(width, 0)):
-        idx = qa + k
-        valid = (idx <= qb) & (idx < n)
-        taken = np.take(a, np.clip(idx, 0, n - 1), axis=axis)
-        shape = [1, 1, 1]
-        shape[axis] = len(qa)
-        op(out, np.where(valid.reshape(shape), taken, fill), out=out)
-    return out
 
 
 def _block_window_reduce(a, axis, qa, qb, op, fill):
