@@ -219,3 +219,19 @@ def test09_memory_estimates_within_2x_of_the_measured_peak(llvm, tmp_path, name)
         _, peak = peak_of(lambda: DeviceReconstruction(vol, method))
         est = hash_bytes(len(vol.level), method)
         assert 0.5 < est / peak < 2.0, ("hash", method, est / peak)
+
+
+def test10_media_on_the_same_data_share_one_device_copy(llvm):
+    """Two media (nearest and tent) over one BlockVolume upload its values
+    once, and both still match brute force."""
+    cells = random_amr(7, n=16, levels=3)
+    vol = BlockVolume.from_cells(cells)
+    a, b = DeviceReconstruction(vol, "nearest"), DeviceReconstruction(vol, "tent")
+    assert a.values.index == b.values.index
+    x = np.random.default_rng(4).uniform(0, 16, (2000, 3))
+    bits = mi.UInt32(sum(1 << int(L) for L in cells.levels))
+    for dev, method in ((a, "nearest"), (b, "tent")):
+        ref, ref_found = brute_force(cells, x, method)
+        val, found = dev.eval(mi.Vector3f((x - dev.origin).astype(np.float32).T), bits)
+        np.testing.assert_array_equal(found.numpy(), ref_found)
+        np.testing.assert_allclose(val.numpy(), np.where(ref_found, ref, 0.0), rtol=1e-5, atol=1e-6)

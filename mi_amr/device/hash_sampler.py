@@ -66,12 +66,18 @@ class DeviceReconstruction:
         self.mask = mi.UInt32(self.hash.mask)
         self.max_probe = mi.UInt32(self.hash.max_probe)
         self.payload = mi.UInt32(self.hash.payload)
-        self.values = mi.Float(volume.values)
-        self.neighbours = mi.UInt32(neighbours.ravel())
-        dr.make_opaque(self.keys, self.keys_z, self.payload, self.values, self.offset, self.mask, self.max_probe,
-                       self.neighbours, self.n_blocks)
-        # On the CPU backend the device array is host memory: the volume's
+        # One device array of values per volume (media on the same data
+        # share it). On the CPU backend it is host memory: the volume's
         # builders read it through a view, so the values are kept once.
+        device_values = volume.__dict__.get("_device_values")
+        if not isinstance(device_values, mi.Float):     # none yet, or made for another variant
+            device_values = mi.Float(volume.values)
+            dr.make_opaque(device_values)
+            volume._device_values = device_values
+        self.values = device_values
+        self.neighbours = mi.UInt32(neighbours.ravel())
+        dr.make_opaque(self.keys, self.keys_z, self.payload, self.offset, self.mask, self.max_probe,
+                       self.neighbours, self.n_blocks)
         self.shares_values = dr.backend_v(self.values) == dr.JitBackend.LLVM
         if self.shares_values:
             volume.values = self.values.numpy()
