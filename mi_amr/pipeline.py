@@ -68,13 +68,15 @@ class Structures:
 
     def __init__(self, data: AMRCells | BlockVolume, options: StructureOptions, tf: TransferFunction,
                  density_scale: float, world_scale: float):
-        if isinstance(data, AMRCells):          # blocks of the cells, made once per AMRCells object
+        if isinstance(data, AMRCells):
+            # blocks of the cells, made once per AMRCells object (their block
+            # size weighed for the first medium's reconstruction): media on
+            # the same cells share the blocks and their device copy
             self._given_cells = data
             cache = data.__dict__.setdefault("_mi_amr_cache", {})
-            key = ("volume", options.reconstruction)
-            if key not in cache:
-                cache[key] = BlockVolume.from_cells(data, method=options.reconstruction)
-            data = cache[key]
+            if "volume" not in cache:
+                cache["volume"] = BlockVolume.from_cells(data, method=options.reconstruction)
+            data = cache["volume"]
         else:
             self._given_cells = None
         self.volume = data
