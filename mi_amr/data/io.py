@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import zipfile
 import zlib
@@ -111,21 +112,14 @@ def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Pat
 def read_npz(path, *, overlap: str = "error") -> AMRCells:
     """Read an ``.npz`` archive with ``pos``, ``level`` and ``value`` arrays."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            missing = {"pos", "level", "value"} - set(z.files)
-            if missing:
-                raise ValueError(f"{path}: missing arrays {sorted(missing)}")
-            n = max(int(np.prod(_npy_shape(z, name), dtype=np.float64)) for name in ("pos", "level", "value"))
-            require(structure_bytes("cells", n), f"{path} ({n} values per array)",
-                    hint="raise the limit to load it")
-            pos, level, value = z["pos"], z["level"], z["value"]
-    except ValueError as e:
-        if str(path) in str(e):
-            raise
-        raise ValueError(f"{path}: not a valid AMR .npz archive ({e})") from e
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-        raise ValueError(f"{path}: cannot read .npz archive ({type(e).__name__}: {e})") from e
+    with _npz_errors(path), np.load(path, allow_pickle=False) as z:
+        missing = {"pos", "level", "value"} - set(z.files)
+        if missing:
+            raise ValueError(f"{path}: missing arrays {sorted(missing)}")
+        n = max(int(np.prod(_npy_shape(z, name), dtype=np.float64)) for name in ("pos", "level", "value"))
+        require(structure_bytes("cells", n), f"{path} ({n} values per array)",
+                hint="raise the limit to load it")
+        pos, level, value = z["pos"], z["level"], z["value"]
     for name, arr in (("pos", pos), ("level", level)):
         if not np.issubdtype(arr.dtype, np.integer):
             raise ValueError(f"{path}: array '{name}' must be integer, got {arr.dtype}")
@@ -138,22 +132,15 @@ def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
     decompressed side by side, ``chunk`` cells at a time (no whole-data
     array is made); validated as strictly as `read_npz`."""
     path = Path(path)
-    try:
-        with zipfile.ZipFile(path) as z:
-            names = {n.removesuffix(".npy") for n in z.namelist()}
-            missing = {"pos", "level", "value"} - names
-            if missing:
-                raise ValueError(f"{path}: missing arrays {sorted(missing)}")
-            headers = {}
-            for name in ("pos", "level", "value"):
-                with z.open(f"{name}.npy") as f:
-                    headers[name] = _npy_header(f)
-    except ValueError as e:
-        if str(path) in str(e):
-            raise
-        raise ValueError(f"{path}: not a valid AMR .npz archive ({e})") from e
-    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-        raise ValueError(f"{path}: cannot read .npz archive ({type(e).__name__}: {e})") from e
+    with _npz_errors(path), zipfile.ZipFile(path) as z:
+        names = {n.removesuffix(".npy") for n in z.namelist()}
+        missing = {"pos", "level", "value"} - names
+        if missing:
+            raise ValueError(f"{path}: missing arrays {sorted(missing)}")
+        headers = {}
+        for name in ("pos", "level", "value"):
+            with z.open(f"{name}.npy") as f:
+                headers[name] = _npy_header(f)
     (ps, pfo, pdt), (ls, lfo, ldt), (vs, vfo, vdt) = headers["pos"], headers["level"], headers["value"]
     if len(ps) != 2 or ps[1] != 3:
         raise ValueError(f"{path}: pos must have shape (N, 3), got {ps}")
@@ -170,31 +157,41 @@ def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
     require(load_bytes(n, chunk), f"{path} ({n} cells)", hint="raise the limit to load it")
 
     def chunks():
-        try:
-            with zipfile.ZipFile(path) as z:
-                members = [z.open(f"{name}.npy") for name in ("pos", "level", "value")]
-                for f in members:                     # skip the headers
-                    _npy_header(f)
-                for s in range(0, n, chunk):
-                    m = min(chunk, n - s)
-                    out = []
-                    for f, dt, shape in zip(members, (pdt, ldt, vdt), ((m, 3), (m,), (m,))):
-                        nbytes = int(np.prod(shape)) * dt.itemsize
-                        buf = f.read(nbytes)
-                        if len(buf) != nbytes:
-                            raise EOFError("archive member ends early")
-                        out.append(np.frombuffer(buf, dtype=dt).reshape(shape))
-                    yield out[0], out[1], out[2]
-                for f in members:
-                    f.close()
-        except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-            raise ValueError(f"{path}: cannot read .npz archive ({type(e).__name__}: {e})") from e
+        with _npz_errors(path), zipfile.ZipFile(path) as z:
+            members = [z.open(f"{name}.npy") for name in ("pos", "level", "value")]
+            for f in members:                     # skip the headers
+                _npy_header(f)
+            for s in range(0, n, chunk):
+                m = min(chunk, n - s)
+                out = []
+                for f, dt, shape in zip(members, (pdt, ldt, vdt), ((m, 3), (m,), (m,))):
+                    nbytes = int(np.prod(shape)) * dt.itemsize
+                    buf = f.read(nbytes)
+                    if len(buf) != nbytes:
+                        raise EOFError("archive member ends early")
+                    out.append(np.frombuffer(buf, dtype=dt).reshape(shape))
+                yield out[0], out[1], out[2]
+            for f in members:
+                f.close()
     return BlockVolume.from_chunks(chunks, str(path), overlap=overlap, method=method, total=n)
 
 
 def _has_objects(*dtypes) -> bool:
     """Whether any dtype holds Python objects (never streamed)."""
     return any(np.dtype(d).hasobject for d in dtypes)
+
+
+@contextlib.contextmanager
+def _npz_errors(path: Path):
+    """Errors of a damaged or foreign ``.npz`` as ``ValueError`` naming the file."""
+    try:
+        yield
+    except ValueError as e:
+        if str(path) in str(e):
+            raise
+        raise ValueError(f"{path}: not a valid AMR .npz archive ({e})") from e
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        raise ValueError(f"{path}: cannot read .npz archive ({type(e).__name__}: {e})") from e
 
 
 def _npy_shape(archive, name: str) -> tuple:
