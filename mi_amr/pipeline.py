@@ -154,26 +154,31 @@ class Structures:
                            need=structure_bytes("bricks", len(self.volume)), store=self.host)
 
     def brick_tree(self, kind: str) -> DeviceTree:
-        """kd-tree over brick domains (``abr``) or brick bounds (``brick``)."""
+        """kd-tree over the bricks' supports (``abr``: the regions their cells
+        reconstruct, so domains for ``tent`` and bounds for ``nearest``) or
+        over their bounds (``brick``). With ``nearest`` both are one tree."""
         method = self.options.reconstruction
+        over_domains = kind == "abr" and method == "tent"
 
         def make_host():
             b = self.bricks
             lo, hi = self.volume.bounds
-            if kind == "abr":
+            if over_domains:
                 blo, bhi = b.domains()
             else:
                 blo, bhi = b.lo.astype(np.float64), b.hi.astype(np.float64)
             tree = build_region_tree(np.round(2 * blo).astype(np.int64), np.round(2 * bhi).astype(np.int64),
                                      2 * lo, 2 * hi)
-            vmin, vmax = exact_value_ranges(tree, b, method, own_lists=kind == "abr")
+            vmin, vmax = exact_value_ranges(tree, b, method, own_lists=over_domains)
             return tree, vmin, vmax
+
+        key = "abr_tree" if over_domains else "brick_tree"
 
         def make():
             lo, hi = self.volume.bounds
-            tree, vmin, vmax = self._host_cached((f"{kind}_tree", self.options.brick_size, method), make_host)
+            tree, vmin, vmax = self._host_cached((key, self.options.brick_size, method), make_host)
             return DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), vmin, vmax)
-        return self._build(f"{kind}_tree", make)
+        return self._build(key, make)
 
     def kdtree(self) -> DeviceTree:
         """SAH kd-tree built for the current TF over a macrocell grid four
@@ -215,7 +220,8 @@ class Structures:
             return HashSampler(table, grid, self.offset, self.extent)
         bricks = self._build("device_bricks", lambda: DeviceBricks(self.bricks, self.origin))
         if sampling == "abr":
-            return BrickSampler(bricks, method, self.offset, self.extent, abr_tree=self.brick_tree("abr"))
+            return BrickSampler(bricks, method, self.offset, self.extent, abr_tree=self.brick_tree("abr"),
+                                over_bounds=method == "nearest")
         lo, hi = self.volume.bounds
         res = _list_grid_resolution(self.volume)
         lists = self._build("brick_lists", lambda: DeviceBrickLists(BrickLists(

@@ -8,7 +8,8 @@
 Within a brick, ``tent`` is trilinear interpolation over the 2x2x2 cells
 around the point with the weights of cells outside the brick dropped; the
 weights of all visited bricks are summed and normalised (docs/design.md
-section 3). ``nearest`` takes the finest brick whose bounds contain the point.
+section 3). ``nearest`` takes the finest brick whose bounds contain the point;
+its ABRs are built over the brick bounds, one brick per leaf.
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ class DeviceBricks:
         dr.make_opaque(self.lo, self.dims, self.width, self.offset, self.values)
 
     def contribution(self, b, x, tent: bool, active):
-        """``(sum_w, sum_wv, inside)`` of brick ``b`` at point ``x``."""
+        """``(sum_w, sum_wv, inside)`` of brick ``b`` at point ``x``; for
+        ``nearest``: ``(cell width, value of the brick's cell nearest x, inside)``."""
         lo = dr.gather(mi.Vector3f, self.lo, b, active)
         dims = dr.gather(mi.Vector3i, self.dims, b, active)
         w = dr.gather(mi.Float, self.width, b, active)
@@ -47,9 +49,10 @@ class DeviceBricks:
         xb = (x - lo) * dr.rcp(w)
         inside = active & dr.all((xb >= 0.0) & (xb < mi.Vector3f(dims)))
         if not tent:
+            # the nearest cell of the brick (clamped into it); ``inside`` says whether it contains x
             i = dr.clip(mi.Vector3i(dr.floor(xb)), 0, dims - 1)
-            v = dr.gather(mi.Float, self.values, off + mi.UInt32(i.x + dims.x * (i.y + dims.y * i.z)), inside)
-            return dr.select(inside, w, 0.0), dr.select(inside, v, 0.0), inside
+            v = dr.gather(mi.Float, self.values, off + mi.UInt32(i.x + dims.x * (i.y + dims.y * i.z)), active)
+            return w, v, inside
         xc = xb - 0.5
         base = mi.Vector3i(dr.floor(xc))
         sum_w = mi.Float(0.0)
@@ -89,9 +92,15 @@ class BrickSampler:
     (``lists``) point location. A view over device structs: it owns no
     Dr.Jit arrays of its own."""
 
-    def __init__(self, bricks: DeviceBricks, method: str, offset, extent, abr_tree=None, lists=None):
+    def __init__(self, bricks: DeviceBricks, method: str, offset, extent, abr_tree=None, lists=None,
+                 over_bounds: bool = False):
+        """``over_bounds``: ``abr_tree`` was built over the brick bounds
+        (``nearest``), so a leaf's list is the one brick that contains the
+        whole leaf: its cell is taken even where float rounding puts the
+        point a hair outside the brick."""
         self.bricks = bricks
         self.tent = method == "tent"
+        self.over_bounds = over_bounds and abr_tree is not None and not self.tent
         self.offset, self.extent = offset, extent
         self.abr = abr_tree
         self.lists = lists
@@ -116,6 +125,7 @@ class BrickSampler:
             count = dr.gather(mi.UInt32, self.lists.count, cell, active)
             items = self.lists.items
         count = dr.select(active, count, 0)
+        in_domain = dr.all((u >= 0.0) & (u < 1.0))          # cells are half-open
         i = mi.UInt32(0)
         sum_w = mi.Float(0.0)
         sum_wv = mi.Float(0.0)
@@ -127,6 +137,8 @@ class BrickSampler:
                 sum_w += w
                 sum_wv += wv
             else:
+                if dr.hint(self.over_bounds, mode="scalar"):      # the leaf lies in its brick
+                    inside = (i < count) & in_domain
                 finer = inside & (w < best_w)          # finest containing brick wins
                 best_w = dr.select(finer, w, best_w)
                 sum_wv = dr.select(finer, wv, sum_wv)

@@ -99,54 +99,66 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
     the root box; see the module docstring.
 
     Built level by level, all nodes of a depth at once: the (node, box)
-    pairs of the level are the state. A node splits on its longest axis that
-    has an input-box face strictly inside it, at the face nearest its middle
-    (the smaller face on a tie); left takes the boxes starting below the
-    plane, right those ending above it. Children are numbered consecutively
-    (left, left + 1) after all nodes of the previous depths.
+    pairs of the level, sorted by node, are the state. A node splits on its
+    longest axis that has an input-box face strictly inside it, at the face
+    nearest its middle (the smaller face on a tie); left takes the boxes
+    starting below the plane, right those ending above it. Children are
+    numbered consecutively (left, left + 1) after all nodes of the previous
+    depths. Coordinates are int32 when they fit (halves the memory traffic).
     """
-    box_lo = np.asarray(box_lo, dtype=np.int64)
-    box_hi = np.asarray(box_hi, dtype=np.int64)
-    root_lo = np.asarray(root_lo, dtype=np.int64)
-    root_hi = np.asarray(root_hi, dtype=np.int64)
+    span = max(np.abs(np.asarray(a, dtype=np.int64)).max(initial=0) for a in (box_lo, box_hi, root_lo, root_hi))
+    ctype = np.int32 if 2 * span + 2 < 2**31 else np.int64
+    box_lo = np.asarray(box_lo).astype(ctype)
+    box_hi = np.asarray(box_hi).astype(ctype)
+    root_lo = np.asarray(root_lo).astype(ctype)
+    root_hi = np.asarray(root_hi).astype(ctype)
     axis, split, child = [None], [None], [None]
     leaf_nodes, leaf_lo, leaf_hi, leaf_pairs = [], [], [], []
-    # frontier: node ids, boxes; pairs: (frontier index, input box)
+    # frontier: node ids, boxes; pairs: (frontier index, input box), sorted by
+    # frontier index and, within a node, by box
     ids = np.zeros(1, dtype=np.int64)
     lo, hi = root_lo[None].copy(), root_hi[None].copy()
     pb = np.nonzero(np.all((box_lo < root_hi) & (box_hi > root_lo), axis=1))[0]
     pn = np.zeros(len(pb), dtype=np.int64)
     n_nodes, n_leaves, depth = 1, 0, 0
+    never = np.iinfo(np.int64).max
     bar = progress(None, "region tree", unit="node")
     while len(ids):
         F = len(ids)
         bar.update(F)
-        # ---- Chosen axis: the longest with a face strictly inside ----
+        # ---- Faces strictly inside each pair's node, per axis ----
+        per_node = np.bincount(pn, minlength=F)
+        nlo, nhi = np.repeat(lo, per_node, axis=0), np.repeat(hi, per_node, axis=0)
+        blo, bhi = np.take(box_lo, pb, axis=0), np.take(box_hi, pb, axis=0)
+        in_lo = (blo > nlo) & (blo < nhi)
+        in_hi = (bhi > nlo) & (bhi < nhi)
+        starts = np.flatnonzero(np.r_[True, pn[1:] != pn[:-1]]) if len(pn) else np.zeros(0, np.int64)
         has = np.zeros((F, 3), dtype=bool)
-        for a in range(3):
-            inside = ((box_lo[pb, a] > lo[pn, a]) & (box_lo[pb, a] < hi[pn, a])) | \
-                     ((box_hi[pb, a] > lo[pn, a]) & (box_hi[pb, a] < hi[pn, a]))
-            has[pn[inside], a] = True
+        if len(pn):
+            has[pn[starts]] = np.logical_or.reduceat(in_lo | in_hi, starts, axis=0)
+        # ---- Chosen axis: the longest with a face strictly inside ----
         order = np.argsort(-(hi - lo), axis=1, kind="stable")        # axes by extent, stable
         has_sorted = np.take_along_axis(has, order, axis=1)
         splits = has_sorted.any(axis=1)
         ax = np.where(splits, order[np.arange(F), np.argmax(has_sorted, axis=1)], 3)
-        # ---- Chosen plane: the inside face nearest the middle ----
-        pa = ax[pn]
-        ok = pa < 3
-        pa_c = np.where(ok, pa, 0)
-        nlo, nhi = lo[pn, pa_c], hi[pn, pa_c]
-        mid2 = nlo + nhi                                            # twice the middle, exact
-        best = np.full(F, np.iinfo(np.int64).max)
-        best_d = np.full(F, np.iinfo(np.int64).max)
-        for faces in (box_lo[pb, pa_c], box_hi[pb, pa_c]):
-            inn = ok & (faces > nlo) & (faces < nhi)
-            d = np.abs(2 * faces - mid2)
-            key_d = np.where(inn, d, np.iinfo(np.int64).max)
-            np.minimum.at(best_d, pn, key_d)
-        for faces in (box_lo[pb, pa_c], box_hi[pb, pa_c]):
-            inn = ok & (faces > nlo) & (faces < nhi) & (np.abs(2 * faces - mid2) == best_d[pn])
-            np.minimum.at(best, pn[inn], faces[inn])
+        # ---- Chosen plane: the inside face nearest the middle, then the smaller ----
+        best = np.zeros(F, dtype=np.int64)
+        if len(pn):
+            pa = ax[pn]
+            ok = pa < 3
+            pa = np.where(ok, pa, 0)[:, None]
+            a_lo = np.take_along_axis(nlo, pa, 1)[:, 0].astype(np.int64)
+            mid2 = a_lo + np.take_along_axis(nhi, pa, 1)[:, 0]           # twice the middle, exact
+            key = np.full(len(pn), never)
+            for faces, inside in ((blo, in_lo), (bhi, in_hi)):
+                f = np.take_along_axis(faces, pa, 1)[:, 0].astype(np.int64)
+                inn = ok & np.take_along_axis(inside, pa, 1)[:, 0]
+                # (distance, face) compared as one integer: face - node lo < 2^32
+                np.minimum(key, np.where(inn, (np.abs(2 * f - mid2) << 32) | (f - a_lo), never), out=key)
+            k = np.minimum.reduceat(key, starts)
+            node = pn[starts]
+            good = k < never
+            best[node[good]] = (k[good] & 0xFFFFFFFF) + lo[node[good], ax[node[good]]]
         # ---- Leaves ----
         leaf = ~splits
         if leaf.any():
@@ -174,19 +186,17 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
         n_nodes += 2 * len(si)
         slot = np.full(F, -1, dtype=np.int64)
         slot[si] = np.arange(len(si))
-        s_ax, s_pl = ax[si], best[si]
-        llo, lhi = lo[si].copy(), hi[si].copy()
-        lhi[np.arange(len(si)), s_ax] = s_pl
-        rlo, rhi = lo[si].copy(), hi[si].copy()
-        rlo[np.arange(len(si)), s_ax] = s_pl
-        new_lo = np.empty((2 * len(si), 3), np.int64)
-        new_hi = np.empty((2 * len(si), 3), np.int64)
-        new_lo[0::2], new_hi[0::2], new_lo[1::2], new_hi[1::2] = llo, lhi, rlo, rhi
-        keep = splits[pn]
+        s_ax, s_pl = ax[si], best[si].astype(ctype)
+        rows = np.arange(len(si))
+        new_lo = np.repeat(lo[si], 2, axis=0)
+        new_hi = np.repeat(hi[si], 2, axis=0)
+        new_hi[2 * rows, s_ax] = s_pl                                # left child ends at the plane
+        new_lo[2 * rows + 1, s_ax] = s_pl                            # right child starts there
+        keep = np.flatnonzero(splits[pn])
         pn_k, pb_k = slot[pn[keep]], pb[keep]
         a_k, s_k = s_ax[pn_k], s_pl[pn_k]
-        to_left = box_lo[pb_k, a_k] < s_k
-        to_right = box_hi[pb_k, a_k] > s_k
+        to_left = np.take(box_lo.ravel(), 3 * pb_k + a_k) < s_k
+        to_right = np.take(box_hi.ravel(), 3 * pb_k + a_k) > s_k
         pn = np.concatenate([2 * pn_k[to_left], 2 * pn_k[to_right] + 1])
         pb = np.concatenate([pb_k[to_left], pb_k[to_right]])
         o = np.argsort(pn, kind="stable")
@@ -206,8 +216,9 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
     leaf_hi = np.concatenate(leaf_hi) if leaf_hi else np.zeros((0, 3))
     li = np.concatenate([p[0] for p in leaf_pairs]) if leaf_pairs else np.zeros(0, np.int64)
     bi = np.concatenate([p[1] for p in leaf_pairs]) if leaf_pairs else np.zeros(0, np.int64)
-    o = np.lexsort((bi, li))
-    lists = (np.bincount(li, minlength=n_leaves), bi[o])
+    # leaves are numbered in the order their pairs were appended, and a
+    # node's boxes stay in ascending order through every split: no sort
+    lists = (np.bincount(li, minlength=n_leaves), bi)
     return RegionTree(ax_n, sp_n, ch_n, leaf_lo, leaf_hi, lists, depth)
 
 
