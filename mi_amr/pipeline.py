@@ -54,6 +54,13 @@ class StructureOptions:
     brick_size: int = 8
     kdtree_leaves: int = 4096
     memory_limit: float | None = None
+    value_masks: bool = True
+
+    @property
+    def grid_masks(self) -> bool:
+        """Whether macrocell grids carry value masks (``nearest`` only:
+        docs/design.md section 4)."""
+        return self.value_masks and self.reconstruction == "nearest"
 
 
 @jit_struct(offset="Vector3f", extent="Vector3f", global_majorant="Float", device=dict)
@@ -138,13 +145,15 @@ class Structures:
             if res is None:                 # cost model of the data and the TF
                 grids = {}
                 res, _ = auto_resolution(self.volume, self._tf, self._density_scale,
-                                         self.world_scale, self.options.reconstruction, grids=grids)
+                                         self.world_scale, self.options.reconstruction, grids=grids,
+                                         masks=self.options.grid_masks)
                 for g in grids.values():    # the chosen grid from the finest one, if they tile
                     pooled = g.pooled(res)
                     if pooled is not None:
                         return DeviceMacrocellGrid(pooled)
             return DeviceMacrocellGrid(MacrocellGrid(self.volume, res, support=self.options.reconstruction,
-                                                     memory_limit=self.options.memory_limit))
+                                                     memory_limit=self.options.memory_limit,
+                                                     masks=self.options.grid_masks))
         return self._build("grid", make)
 
     @property

@@ -50,7 +50,8 @@ def _structure(ir: str) -> str:
     return re.sub(r"%[A-Za-z_]*\d+(?:_[A-Za-z0-9]+)*", "%r", ir)
 
 
-def test02_tf_change_recompiles_no_kernel(llvm):
+@pytest.mark.parametrize("reconstruction", ["tent", "nearest"])
+def test02_tf_change_recompiles_no_kernel(llvm, reconstruction):
     """Change the TF of a loaded scene: the next render launches only kernels
     whose code equals that of kernels before the change (no TF value is
     baked into code, so nothing needs compiling: Dr.Jit's kernel cache has
@@ -59,9 +60,11 @@ def test02_tf_change_recompiles_no_kernel(llvm):
     on the initial TF.
 
     Register and kernel names are compared away (they follow the order in
-    which Dr.Jit meets variables); the code itself must be the same."""
+    which Dr.Jit meets variables); the code itself must be the same.
+    ``nearest`` grids also carry value masks (per-bin maxima and byte tables
+    are recomputed on the change)."""
     cells = random_amr(4)
-    base = {"type": "amr", "data": cells, "grid_resolution": 8}
+    base = {"type": "amr", "data": cells, "grid_resolution": 8, "reconstruction": reconstruction}
     import gc
     gc.collect()
     dr.eval()                 # nothing left over from earlier tests joins the kernels below

@@ -141,6 +141,13 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
      * - brick_size, kdtree_leaves
        - |int|
        - Largest brick side in cells (8); leaf budget of the kd-tree (4096).
+     * - value_masks
+       - |bool|
+       - With ``nearest``: the macrocell grid also records which of 64
+         value bins its cells take, and its majorants are the smaller of
+         the range's and the bins' (8 bytes per macrocell). Default: true.
+         (``tent`` fields are continuous, so a macrocell takes every value
+         of an interval and bins add nothing there: not built.)
      * - overlap
        - |string|
        - ``error`` (default) rejects overlapping cells; ``finest`` keeps the

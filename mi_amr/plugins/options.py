@@ -18,7 +18,7 @@ from ..data.blocks import BlockVolume
 from ..data.io import load_volume
 from ..data.reconstruction import METHODS
 from ..memory import default_memory_limit
-from ..params import ParameterError, check_known, get_float, get_int, get_string
+from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
 from ..pipeline import SAMPLINGS, TRAVERSALS, StructureOptions
 from ..transfer.function import TransferFunction
 
@@ -34,7 +34,7 @@ MAX_CONDITION = 1e7
 KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
          "density_scale", "reconstruction", "majorant", "grid_resolution",
          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
-         "kdtree_leaves", "max_iterations", "memory_limit"}
+         "kdtree_leaves", "max_iterations", "memory_limit", "value_masks"}
 
 
 @dataclass(frozen=True)
@@ -68,6 +68,7 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
         grid_resolution=get_int(props, "amr", "grid_resolution", None, minimum=1),
         brick_size=get_int(props, "amr", "brick_size", 8, minimum=1, maximum=1024),
         kdtree_leaves=get_int(props, "amr", "kdtree_leaves", 4096, minimum=1),
+        value_masks=get_bool(props, "amr", "value_masks", True),
         memory_limit=get_float(props, "amr", "memory_limit", default_memory_limit(), positive=True))
     return MediumOptions(
         data=data,

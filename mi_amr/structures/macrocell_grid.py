@@ -23,6 +23,7 @@ from ..data.cells import AMRCells
 from ..memory import grid_bytes, require
 from ..progress import progress
 from .boxes import expand_boxes
+from .value_masks import ValueBins, value_masks
 
 
 def axis_resolution(longest: int, extent) -> np.ndarray:
@@ -63,10 +64,13 @@ class MacrocellGrid:
     memory_limit : float, optional
         Bytes; a grid that would need more raises `MemoryLimitError` before
         anything is allocated.
+    masks : bool
+        Also keep per-macrocell value masks (``masks``, uint64; see
+        `mi_amr.structures.value_masks`), else ``masks`` is None.
     """
 
     def __init__(self, cells: AMRCells | BlockVolume, resolution=None, support: str = "tent",
-                 chunk: int = 1 << 20, memory_limit: float | None = None):
+                 chunk: int = 1 << 20, memory_limit: float | None = None, masks: bool = False):
         lo, hi = cells.bounds
         ext = (hi - lo).astype(np.float64)
         if resolution is None:
@@ -101,6 +105,11 @@ class MacrocellGrid:
                     bar.update(len(value))
             splat.finish()
         self.vmin, self.vmax, self.level_bits = vmin, vmax, bits
+        self.masks = self.bins = None
+        if masks:
+            volume = cells if isinstance(cells, BlockVolume) else BlockVolume.from_cells(cells, method=support)
+            self.bins = ValueBins.of(volume)
+            self.masks = value_masks(volume, self, support, self.bins)
 
     def pooled(self, resolution: int) -> "MacrocellGrid | None":
         """The grid of ``resolution`` (longest axis) made by merging blocks of
@@ -120,11 +129,14 @@ class MacrocellGrid:
             return op.reduce(op.reduce(op.reduce(a, axis=5), axis=3), axis=1).reshape(-1)
         g.vmin, g.vmax = pool(self.vmin, np.minimum), pool(self.vmax, np.maximum)
         g.level_bits = pool(self.level_bits, np.bitwise_or)
+        g.masks = None if self.masks is None else pool(self.masks, np.bitwise_or)
+        g.bins = self.bins
         return g
 
     @property
     def nbytes(self) -> int:
-        return self.vmin.nbytes + self.vmax.nbytes + self.level_bits.nbytes + 4 * self.vmin.size
+        masks = 0 if self.masks is None else self.masks.nbytes
+        return self.vmin.nbytes + self.vmax.nbytes + self.level_bits.nbytes + 4 * self.vmin.size + masks
 
 
 
@@ -219,24 +231,11 @@ class _RangeSplat:
                 continue
             vmin = np.where(np.isnan(v), np.inf, v)
             vmax = np.where(np.isnan(v), -np.inf, v)
-            first = []
-            for axis in range(3):                              # x, y, z: array axes 3, 2, 1
-                q = q0[:, axis, None] + np.arange(B)[None]          # (k, B) level coordinates
-                i0, i1 = self._level_macrocells(q, L, axis)
-                j0 = i0[:, :1]
-                span = int((i1[:, -1:] - j0).max()) + 1
-                j = j0 + np.arange(span)[None]                      # (k, J) macrocells touched
-                qa = (i1[:, None, :] < j[:, :, None]).sum(axis=2)   # first cell reaching j
-                qb = (i0[:, None, :] <= j[:, :, None]).sum(axis=2) - 1
-                vmin = _block_window_reduce(vmin, 3 - axis, qa, qb, np.minimum, np.inf)
-                vmax = _block_window_reduce(vmax, 3 - axis, qa, qb, np.maximum, -np.inf)
-                first.append((j0[:, 0], span, i1[:, -1]))
-            (jx0, nx, jx1), (jy0, ny, jy1), (jz0, nz, jz1) = first
-            jz, jy, jx = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
-            gx, gy, gz = jx0[:, None, None, None] + jx, jy0[:, None, None, None] + jy, jz0[:, None, None, None] + jz
-            ok = ((gx <= jx1[:, None, None, None]) & (gy <= jy1[:, None, None, None])
-                  & (gz <= jz1[:, None, None, None]) & (vmax > -np.inf))
-            idx = (gx + self.res[0] * (gy + self.res[1] * gz))[ok]
+            idx, (vmin, vmax), ok = block_windows(
+                q0, B, lambda q, axis: self._level_macrocells(q, L, axis), self.res,
+                [(vmin, np.minimum, np.inf), (vmax, np.maximum, -np.inf)])
+            ok &= vmax > -np.inf
+            idx = idx[ok]
             np.minimum.at(self.vmin, idx, vmin[ok])
             np.maximum.at(self.vmax, idx, vmax[ok])
             np.bitwise_or.at(self.bits, idx, np.uint32(1 << L))
@@ -302,6 +301,37 @@ class _RangeSplat:
             np.maximum(self.vmax, lo_max, out=self.vmax)
             self.bits |= np.where(lo_max > -np.inf, np.uint32(1 << L), np.uint32(0))
         self.dense.clear()
+
+
+def block_windows(q0, B, span, res, arrays):
+    """Reduce blocks of per-cell items onto the macrocells they reach.
+
+    ``q0`` (k, 3): level coordinates of each block's first cell; ``span(q,
+    axis)``: first and last macrocell (``i0``, ``i1``) reached by the items
+    at level coordinates ``q`` (k, B) along ``axis``; ``arrays``: ``(a, op,
+    fill)`` with ``a`` (k, B, B, B) indexed [block, z, y, x]. Each block is
+    reduced axis by axis over the window of items that reach each
+    macrocell. Returns ``(idx, reduced, ok)``: flat macrocell indices (k, nz,
+    ny, nx), the reduced arrays on them, and which entries are macrocells of
+    their block (the others are padding)."""
+    arrays = list(arrays)
+    first = []
+    for axis in range(3):                              # x, y, z: array axes 3, 2, 1
+        q = q0[:, axis, None] + np.arange(B)[None]          # (k, B) level coordinates
+        i0, i1 = span(q, axis)
+        j0 = i0[:, :1]
+        n = int((i1[:, -1:] - j0).max()) + 1
+        j = j0 + np.arange(n)[None]                         # (k, J) macrocells touched
+        qa = (i1[:, None, :] < j[:, :, None]).sum(axis=2)   # first cell reaching j
+        qb = (i0[:, None, :] <= j[:, :, None]).sum(axis=2) - 1
+        arrays = [(_block_window_reduce(a, 3 - axis, qa, qb, op, fill), op, fill) for a, op, fill in arrays]
+        first.append((j0[:, 0], n, i1[:, -1]))
+    (jx0, nx, jx1), (jy0, ny, jy1), (jz0, nz, jz1) = first
+    jz, jy, jx = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    gx, gy, gz = jx0[:, None, None, None] + jx, jy0[:, None, None, None] + jy, jz0[:, None, None, None] + jz
+    ok = ((gx <= jx1[:, None, None, None]) & (gy <= jy1[:, None, None, None])
+          & (gz <= jz1[:, None, None, None]))
+    return gx + res[0] * (gy + res[1] * gz), [a for a, _, _ in arrays], ok
 
 
 def _block_window_reduce(a, axis, qa, qb, op, fill):

@@ -71,7 +71,7 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
                                   memory_limit=int(args.memory_limit * 2**30))
     else:
         medium = {"type": "amr", "data": cells, "transfer_function": tf, "density_scale": scale,
-                  "reconstruction": args.reconstruction}
+                  "reconstruction": args.reconstruction, "value_masks": not args.no_value_masks}
         if grid_resolution is not None:
             medium["grid_resolution"] = int(grid_resolution)
         if kind[0] == "volpath":
@@ -154,6 +154,8 @@ def main(argv=None):
     p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
     p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
     p.add_argument("--reconstruction", default="nearest", choices=("nearest", "tent"))
+    p.add_argument("--no-value-masks", action="store_true",
+                   help="range majorants only (the A/B of the value masks; nearest)")
     p.add_argument("--memory-limit", type=float, default=4.0,
                    help="GiB allowed for the dense reference; larger data sets skip it")
     p.add_argument("--variant", default="llvm_ad_rgb")
@@ -332,7 +334,8 @@ def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
         rows.append({"grid_resolution": r, "efficiency": rec["efficiency"],
                      "seconds_per_spp": rec["seconds_per_spp"],
                      "lookups_per_collision": rec["lookups_per_collision"]})
-    auto, costs = auto_resolution(cells, tf, scale, support=args.reconstruction)
+    auto, costs = auto_resolution(cells, tf, scale, support=args.reconstruction,
+                                  masks=args.reconstruction == "nearest" and not args.no_value_masks)
     rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img, grid_resolution=auto)
     best = max(rows, key=lambda x: x["efficiency"])
     out = {"dataset": name, "tf": tf_name, "rows": rows, "auto_resolution": auto,
