@@ -150,7 +150,7 @@ def main(argv=None):
     p.add_argument("--ref-spp", type=int, default=1024)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--max-depth", type=int, default=64)
-    p.add_argument("--datasets", nargs="*", default=["cloud", "shell", "stadium"])
+    p.add_argument("--datasets", nargs="*", default=["cloud", "shell", "stadium", "blocks"])
     p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
     p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
     p.add_argument("--reconstruction", default="nearest", choices=("nearest", "tent"))
