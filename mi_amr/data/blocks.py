@@ -60,6 +60,10 @@ class BlockVolume(mi.Object):
         self.source = source
         self._update_range()
 
+
+    def __reduce__(self):
+        return (BlockVolume, (self.block, self.level, self.coord, self.values, self.origin, self.lo,
+                              self.hi, self.n_cells, self.source))
     def _update_range(self):
         lo_v, hi_v = np.inf, -np.inf
         for s in range(0, len(self.values), CHUNK):

@@ -59,6 +59,10 @@ class AMRCells(mi.Object):
         if validate:
             self._validate(overlap)
 
+    def __reduce__(self):
+        """Pickled as its arrays (for Dask workers), not validated again."""
+        return (_cells_from_arrays, (self.pos, self.level, self.value, self.source))
+
     # ---- Validation ----------------------------------------------------
     def _validate(self, overlap: str):
         src = self.source
@@ -202,3 +206,8 @@ def cell_keys(q: np.ndarray) -> np.ndarray:
     if q.size == 0 or q.max() < (1 << 21):
         return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
     return q.view(np.dtype((np.void, 24))).ravel()
+
+
+def _cells_from_arrays(pos, level, value, source):
+    """`AMRCells` from arrays that were valid when pickled."""
+    return AMRCells(pos, level, value, source=source, validate=False)

@@ -171,7 +171,23 @@ def main(argv=None):
                    help="configurations of the scale benchmark (default: amrvolpath/grid/hash "
                         "amrvolpath/kdtree/hash)")
     p.add_argument("--data-dir", default="out/data", help="where the scale benchmark keeps its .cells files")
+    p.add_argument("--distributed", action="store_true",
+                   help="speed-up of a Dask LocalCluster over one process (256x256, 256 spp unless "
+                        "--res/--spp are given)")
+    p.add_argument("--workers", type=int, default=2, help="workers of --distributed")
+    p.add_argument("--chunk-spp", type=int, default=32, help="samples per chunk of --distributed")
+    p.add_argument("--dist-scene", default="scenes/demo.xml", help="scene of --distributed")
     args = p.parse_args(argv)
+    if args.distributed:
+        ensure_llvm_path()
+        import mitsuba as mi
+        mi.set_variant(args.variant)
+        from .dist_bench import run_distributed
+        res = 256 if args.res == 128 else args.res
+        spp = 256 if args.spp == 16 else args.spp
+        run_distributed(args.dist_scene, args.workers, res, spp, args.chunk_spp, args.repeats, Path(args.out))
+        print(f"wrote {args.out}/distributed.json and distributed.md")
+        return 0
     if args.scale:
         from .scale_bench import DEFAULT_CONFIGS, run_scale
         res = 64 if args.res == 128 else args.res

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -33,34 +34,68 @@ def cmd_render(args):
     mi = _set_variant(args.variant)
     import drjit as dr
     import numpy as np
-    from tqdm import tqdm
 
+    from .. import distributed
     from .images import write_exr, write_png
-    scene = mi.load_file(str(args.scene), **_scene_params(args))
+    frames = _frames(args)
     spp = args.spp
-    passes = max(1, min(args.passes, spp))
-    per = [spp // passes + (1 if i < spp % passes else 0) for i in range(passes)]
-    acc = None
+    workers = args.workers
+    chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
+    name = Path(args.scene).name
     t0 = time.perf_counter()
-    with tqdm(total=spp, unit="spp", desc=Path(args.scene).name, disable=args.quiet) as bar:
-        for i, n in enumerate(per):
-            img = mi.render(scene, spp=n, seed=args.seed * 1000003 + i)
-            arr = np.array(img, dtype=np.float64) * n
-            acc = arr if acc is None else acc + arr
-            bar.update(n)
-    img = (acc / spp).astype(np.float32)
+    if workers or args.scheduler:
+        client = None
+        if args.scheduler:
+            from dask.distributed import Client
+            client = Client(args.scheduler)
+        elif workers:
+            client = distributed.local_cluster(workers)
+        try:
+            threads = max(1, (os.cpu_count() or 1) // workers) if workers and not args.scheduler else None
+            images = distributed.render_frames([(args.scene, p) for p in frames], spp, client, chunk_spp,
+                                               args.seed, progress=not args.quiet, desc=name,
+                                               drjit_threads=threads)
+        finally:
+            cluster = getattr(client, "cluster", None)
+            client.close()
+            if cluster is not None and not args.scheduler:
+                cluster.close()
+    else:
+        images = [distributed.render_local(args.scene, spp, chunk_spp, args.seed, params=p,
+                                           progress=not args.quiet, desc=name) for p in frames]
     seconds = time.perf_counter() - t0
-    if not np.all(np.isfinite(img)):
-        raise SystemExit(f"mi-amr: the rendered image contains {int((~np.isfinite(img)).sum())} "
-                         "non-finite values")
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(out, img)
-    write_png(out.with_suffix(".png"), img)
+    for k, (params, image) in enumerate(zip(frames, images)):
+        img = np.array(image, dtype=np.float32)
+        if not np.all(np.isfinite(img)):
+            raise SystemExit(f"mi-amr: the rendered image contains {int((~np.isfinite(img)).sum())} "
+                             "non-finite values")
+        path = out if len(frames) == 1 else out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
+        write_exr(path, img)
+        write_png(path.with_suffix(".png"), img)
+        if not args.quiet:
+            what = " ".join(f"{a}={b}" for a, b in params.items() if a in args.varying)
+            print(f"wrote {path} and {path.with_suffix('.png')} ({img.shape[1]}x{img.shape[0]}, "
+                  f"{spp} spp{', ' + what if what else ''})")
     if not args.quiet:
-        print(f"wrote {out} and {out.with_suffix('.png')} ({img.shape[1]}x{img.shape[0]}, "
-              f"{spp} spp, {seconds:.2f} s)")
+        print(f"{len(frames)} frame(s) in {seconds:.2f} s")
     dr.sync_thread()
+
+
+def _frames(args) -> list[dict]:
+    """The ``-D`` parameters of each frame: one frame, or with ``--frames``
+    every combination of the comma-separated values (first name slowest)."""
+    import itertools
+    params = _scene_params(args)
+    args.varying = []
+    if not args.frames:
+        return [params]
+    lists = {k: v.split(",") for k, v in params.items()}
+    args.varying = [k for k, v in lists.items() if len(v) > 1]
+    if not args.varying:
+        raise SystemExit("mi-amr: --frames needs a -D NAME=V1,V2,... with several values")
+    return [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())]
 
 
 # ---- reference / frametime -------------------------------------------------
@@ -255,7 +290,15 @@ def build_parser():
     r.add_argument("--spp", type=int, default=64)
     r.add_argument("--variant", default="llvm_ad_rgb")
     r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--passes", type=int, default=8, help="split the samples into this many passes (progress)")
+    r.add_argument("--chunk-spp", type=int, default=None,
+                   help="samples per chunk (default: spp / max(8, 2 x workers), rounded up)")
+    r.add_argument("--workers", type=int, default=None,
+                   help="render on a local Dask cluster of this many processes (mi-amr[distributed])")
+    r.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="render on the Dask cluster of this scheduler, e.g. tcp://host:8786")
+    r.add_argument("--frames", action="store_true",
+                   help="one frame per combination of comma-separated -D values (e.g. -D tf=spiky,foggy), "
+                        "written as OUTPUT_000.exr, ...; rendered frame-parallel on a cluster")
     r.add_argument("-D", "--define", action="append", metavar="NAME=VALUE",
                    help="set a scene <default> parameter, e.g. -D spp=16 -D tf=spiky")
     r.add_argument("-q", "--quiet", action="store_true")

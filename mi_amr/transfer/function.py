@@ -53,6 +53,9 @@ class TransferFunction(mi.Object):
         self.rgba = rgba.astype(np.float32)
         self.domain = (lo, hi)
 
+    def __reduce__(self):
+        return (TransferFunction, (self.rgba, self.domain))
+
     def __len__(self):
         return self.rgba.shape[0]
 
