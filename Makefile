@@ -7,20 +7,17 @@ RUN   := DRJIT_LIBLLVM_PATH="$$(tools/find-llvm19)" $(PY)
 SPP   ?= 64
 PYTEST_ARGS ?=
 
-.PHONY: setup demo test test-all bench bench-quick bench-scale clean
+.PHONY: setup demo gallery test test-all bench bench-quick bench-scale clean
 
 setup:
 	@tools/setup.sh
 
-GALLERY := cloud shell stadium
-
 demo: setup
-	@mkdir -p out/gallery
 	$(RUN) -m mi_amr.tools.cli render scenes/demo.xml -o out/demo.exr --spp $(SPP)
-	@for s in $(GALLERY); do \
-	    $(RUN) -m mi_amr.tools.cli render scenes/$$s.xml -o out/gallery/$$s.exr --spp 32 -D res=192 -q || exit 1; \
-	    echo "wrote out/gallery/$$s.png"; \
-	done
+
+# the front-page images (docs/images, committed): minutes on 2 cores
+gallery: setup
+	$(RUN) -m mi_amr.tools.gallery
 
 test: setup
 	$(RUN) -m pytest -q $(PYTEST_ARGS)

@@ -56,3 +56,18 @@ def test03_reference_that_does_not_fit_is_reported(llvm, tmp_path):
     assert "GiB" in records[0]["skipped"]
     assert records[1]["efficiency_vs_reference"] is None and records[1]["rmse"] > 0
     assert "skipped" in (out / "tables.md").read_text()
+
+
+def test_curve_styles_tell_every_configuration_apart():
+    """One colour per traversal, one line style per sampling: no two
+    configurations share both; the reference and the default are heaviest."""
+    from mi_amr.tools.bench import all_configs, curve_style
+    styles = {c: curve_style({"config": c, "resolved": "grid/hash, grid 16x16x16"})
+              for c in all_configs() if c != "amrvolpath/default"}
+    assert len({(s["color"], s["ls"]) for s in styles.values()}) == len(styles)
+    default = curve_style({"config": "amrvolpath/default", "resolved": "abr/brick, tree"})
+    assert default["color"] == styles["amrvolpath/abr/brick"]["color"]
+    assert default["ls"] == styles["amrvolpath/abr/brick"]["ls"]
+    heaviest = max(s["lw"] for s in styles.values())
+    assert styles["reference"]["lw"] == heaviest == default["lw"]
+    assert all(s["lw"] < heaviest for c, s in styles.items() if c != "reference")

@@ -140,3 +140,19 @@ def test09_frametime_reports_three_configurations(tmp_path):
     assert [x["config"] for x in rows] == ["amr majorant=ray", "amr majorant=global", "heterogeneous reference"]
     assert all(x["frame_s"] > 0 and np.isfinite(x["mean"]) for x in rows)
     assert rows[-1]["speedup_vs_reference"] == pytest.approx(1.0)
+
+
+def test07_commands_share_render_flags_and_end_help_with_an_example():
+    import argparse
+    from mi_amr.tools.cli import build_parser
+    p = build_parser()
+    sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(sub.choices) >= {"render", "reference", "frametime", "info", "convert", "compare", "dataset", "bench"}
+    for name, sp in list(sub.choices.items()) + [("mi-amr", p)]:
+        lines = sp.format_help().rstrip().splitlines()
+        assert lines[-2] == "example:" and lines[-1].strip().startswith(("mi-amr ", "python ")), name
+    for name in ("render", "reference", "frametime"):
+        out = ["-o", "x.exr"] if name != "frametime" else []
+        args = p.parse_args([name, "s.xml", *out, "-q", "--spp", "3", "--seed", "2", "-D", "a=b",
+                             "--variant", "llvm_ad_rgb"])
+        assert args.quiet and args.spp == 3 and args.seed == 2 and args.define == ["a=b"], name

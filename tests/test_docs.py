@@ -34,3 +34,17 @@ def test02_notebooks_run_top_to_bottom(name, monkeypatch):
     for cell in nb["cells"]:
         if cell["cell_type"] == "code":
             exec(compile("".join(cell["source"]), f"{name}", "exec"), ns)
+
+
+def test03_every_image_the_readme_links_is_in_the_repository():
+    """Markdown images and <img> tags with relative paths; the gallery's
+    PNGs also stay under 200 kB (front-page weight)."""
+    src = (ROOT / "README.md").read_text()
+    links = re.findall(r"!\[[^\]]*\]\(([^)\s]+)\)", src) + re.findall(r'<img[^>]*src="([^"]+)"', src)
+    local = [l for l in links if not l.startswith(("http://", "https://"))]
+    assert len([l for l in local if l.startswith("docs/images/")]) >= 4, local
+    for link in local:
+        path = ROOT / link
+        assert path.is_file(), f"README links {link}, which is not in the repository"
+        if link.startswith("docs/images/"):
+            assert path.stat().st_size < 200_000, f"{link}: {path.stat().st_size} bytes"

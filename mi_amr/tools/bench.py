@@ -140,7 +140,10 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
 
 def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m mi_amr.bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="example:\n  python -m mi_amr.bench --quick --out out/bench-quick\n"
+                                       "  python -m mi_amr.bench --datasets cloud --tfs spiky "
+                                       "--configs reference amrvolpath/default --out out/b")
     p.add_argument("files", nargs="*", help="extra .cells data sets")
     p.add_argument("--out", required=True, help="results folder")
     p.add_argument("--quick", action="store_true", help="small sizes: minutes on 2 cores")
@@ -363,28 +366,55 @@ def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
     return out
 
 
+#: Plot style: one colour per traversal (stock volpath and the reference
+#: apart), one line style per sampling; the reference and the default heaviest.
+TRAVERSAL_COLOURS = {"grid": "tab:blue", "abr": "tab:orange", "brick": "tab:green", "kdtree": "tab:red",
+                     "volpath/ray": "tab:purple", "volpath/global": "tab:brown", "reference": "black"}
+SAMPLING_STYLES = {"hash": "-", "abr": "--", "brick": ":"}
+
+
+def curve_style(record) -> dict:
+    """Matplotlib style of a configuration's curve (see `TRAVERSAL_COLOURS`)."""
+    config = record["config"]
+    if config == "reference" or config.startswith("volpath/"):
+        return {"color": TRAVERSAL_COLOURS[config], "ls": "-." if config != "reference" else "-",
+                "lw": 3.0 if config == "reference" else 1.3, "label": config}
+    if config.endswith("/default"):            # drawn as what it resolved to
+        traversal, sampling = record.get("resolved", "grid/hash").split(",")[0].split("/")
+        return {"color": TRAVERSAL_COLOURS[traversal], "ls": SAMPLING_STYLES[sampling], "lw": 3.0,
+                "label": f"amrvolpath/default (= {traversal}/{sampling})"}
+    _, traversal, sampling = config.split("/")
+    return {"color": TRAVERSAL_COLOURS[traversal], "ls": SAMPLING_STYLES[sampling], "lw": 1.3, "label": config}
+
+
 def plot_curves(records, out: Path):
-    """RMSE against render seconds, log-log, one PNG per data set x TF."""
+    """RMSE against render seconds, log-log, one PNG per data set x TF
+    (styles from `curve_style`; sized for a README column)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
     for key in dict.fromkeys((r["dataset"], r["tf"]) for r in records):
         rows = [r for r in records if (r["dataset"], r["tf"]) == key and r.get("curve")]
         if not rows:
             continue
-        fig, ax = plt.subplots(figsize=(7, 5))
-        for r in rows:
+        fig, ax = plt.subplots(figsize=(7.5, 4.6))
+        for r in sorted(rows, key=lambda r: curve_style(r)["lw"]):     # heavy lines on top
             c = [p for p in r["curve"] if p[2] > 0]
-            style = "-" if r["config"].startswith("amrvolpath") else "--"
-            lw = 2.5 if r["config"] in ("reference", "amrvolpath/grid/hash") else 1.0
-            ax.loglog([p[1] for p in c], [p[2] for p in c], style, marker="o", ms=3, lw=lw, label=r["config"])
+            st = curve_style(r)
+            ax.loglog([p[1] for p in c], [p[2] for p in c], marker="o", ms=2.5, **st)
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())   # no crowded minor labels
         ax.set_xlabel("render time [s]")
         ax.set_ylabel("RMSE vs high-spp image")
-        ax.set_title(f"{key[0]} / {key[1]}: error against time")
+        ax.set_title(f"{key[0]} / {key[1]}: error against time (lower left is better)", fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7, ncol=2)
+        handles, labels = ax.get_legend_handles_labels()
+        order = sorted(range(len(labels)), key=lambda i: labels[i])
+        ax.legend([handles[i] for i in order], [labels[i] for i in order], fontsize=7,
+                  loc="center left", bbox_to_anchor=(1.01, 0.5), title="colour: traversal\nline: sampling",
+                  title_fontsize=7)
         fig.tight_layout()
-        fig.savefig(out / f"curves_{key[0]}_{key[1]}.png", dpi=110)
+        fig.savefig(out / f"curves_{key[0]}_{key[1]}.png", dpi=100)
         plt.close(fig)
 
 

@@ -137,7 +137,8 @@ def cmd_reference(args):
         img = np.array(mi.render(scene, spp=args.spp, seed=args.seed), dtype=np.float32)
     write_exr(args.output, img)
     write_png(Path(args.output).with_suffix(".png"), img)
-    print(f"wrote {args.output} (heterogeneous + gridvolume reference, {args.spp} spp)")
+    if not args.quiet:
+        print(f"wrote {args.output} (heterogeneous + gridvolume reference, {args.spp} spp)")
 
 
 def cmd_frametime(args):
@@ -159,13 +160,14 @@ def cmd_frametime(args):
             t0 = time.perf_counter()
             scene = load()
             load_s = time.perf_counter() - t0
-            sec, comp, img = _timed_render(mi, scene, args.spp, args.repeats, seed=1000 * len(rows))
+            sec, comp, img = _timed_render(mi, scene, args.spp, args.repeats, seed=args.seed + 1000 * len(rows))
             images[name] = img
             rows.append({"config": name, "load_s": load_s, "compile_s": comp, "frame_s": sec})
     ref_t = rows[-1]["frame_s"]
     ref_img = images["heterogeneous reference"]
-    print(f"{args.scene}: {args.spp} spp per frame, median of {args.repeats} frames "
-          f"(after a warm-up frame that compiles the kernels)")
+    if not args.quiet:
+        print(f"{args.scene}: {args.spp} spp per frame, median of {args.repeats} frames "
+              f"(after a warm-up frame that compiles the kernels)")
     print(f"{'configuration':26s} {'load s':>8s} {'compile s':>10s} {'frame s':>9s} "
           f"{'vs reference':>13s} {'mean radiance':>14s}")
     for r in rows:
@@ -174,6 +176,8 @@ def cmd_frametime(args):
         print(f"{r['config']:26s} {r['load_s']:8.2f} {r['compile_s']:10.2f} {r['frame_s']:9.3f} "
               f"{r['speedup_vs_reference']:12.2f}x {r['mean']:14.5f}")
     for name in ("amr majorant=ray", "amr majorant=global"):
+        if args.quiet:
+            break
         st = compare_images(images[name], ref_img)
         print(f"relative RMSE of {name} vs reference at {args.spp} spp (noise of both + bias; "
               f"independent seeds): {st['relative_rmse']:.3%}")
@@ -280,16 +284,33 @@ def cmd_dataset(args):
     print(f"wrote {out}: {cells}")
 
 
+def _render_flags(p, spp: int):
+    """The flags every command that renders takes."""
+    p.add_argument("--spp", type=int, default=spp, help=f"samples per pixel (default {spp})")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--variant", default="llvm_ad_rgb")
+    p.add_argument("-D", "--define", action="append", metavar="NAME=VALUE",
+                   help="set a scene <default> parameter, e.g. -D res=512 -D tf=spiky")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+
+
+def _command(sub, name, help, example, **kw):
+    """A subcommand whose --help ends with an example."""
+    return sub.add_parser(name, help=help, description=help, epilog=f"example:\n  {example}",
+                          formatter_class=argparse.RawDescriptionHelpFormatter, **kw)
+
+
 def build_parser():
-    p = argparse.ArgumentParser(prog="mi-amr", description=__doc__)
+    p = argparse.ArgumentParser(prog="mi-amr", description=__doc__,
+                                epilog="example:\n  mi-amr render scenes/cloud.xml -o out/cloud.exr --spp 64",
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
 
-    r = sub.add_parser("render", help="render a Mitsuba XML scene to EXR (+ PNG preview)")
+    r = _command(sub, "render", "render a Mitsuba XML scene to EXR (+ PNG preview)",
+                 "mi-amr render scenes/cloud.xml -o out/cloud.exr --spp 256 -D tf=spiky --workers 2")
     r.add_argument("scene")
     r.add_argument("-o", "--output", required=True, help="output .exr path")
-    r.add_argument("--spp", type=int, default=64)
-    r.add_argument("--variant", default="llvm_ad_rgb")
-    r.add_argument("--seed", type=int, default=0)
+    _render_flags(r, 64)
     r.add_argument("--chunk-spp", type=int, default=None,
                    help="samples per chunk (default: spp / max(8, 2 x workers), rounded up)")
     r.add_argument("--workers", type=int, default=None,
@@ -299,39 +320,34 @@ def build_parser():
     r.add_argument("--frames", action="store_true",
                    help="one frame per combination of comma-separated -D values (e.g. -D tf=spiky,foggy), "
                         "written as OUTPUT_000.exr, ...; rendered frame-parallel on a cluster")
-    r.add_argument("-D", "--define", action="append", metavar="NAME=VALUE",
-                   help="set a scene <default> parameter, e.g. -D spp=16 -D tf=spiky")
-    r.add_argument("-q", "--quiet", action="store_true")
     r.set_defaults(func=cmd_render)
 
-    f = sub.add_parser("reference", help="render a scene with every amr medium replaced by "
-                                         "heterogeneous + gridvolume (dense resampling)")
+    f = _command(sub, "reference", "render a scene with every amr medium replaced by "
+                                   "heterogeneous + gridvolume (dense resampling)",
+                 "mi-amr reference scenes/cloud.xml -o out/cloud-ref.exr --spp 64")
     f.add_argument("scene")
     f.add_argument("-o", "--output", required=True)
-    f.add_argument("--spp", type=int, default=64)
-    f.add_argument("--seed", type=int, default=0)
-    f.add_argument("--variant", default="llvm_ad_rgb")
-    f.add_argument("-D", "--define", action="append", metavar="NAME=VALUE")
+    _render_flags(f, 64)
     f.set_defaults(func=cmd_reference)
 
-    t = sub.add_parser("frametime", help="frame time of a scene with majorant=ray, =global and "
-                                         "the heterogeneous reference, as ratios")
+    t = _command(sub, "frametime", "frame time of a scene with majorant=ray, =global and "
+                                   "the heterogeneous reference, as ratios",
+                 "mi-amr frametime scenes/cloud.xml --spp 16 --repeats 3 --json out/frametime.json")
     t.add_argument("scene")
-    t.add_argument("--spp", type=int, default=16)
+    _render_flags(t, 16)
     t.add_argument("--repeats", type=int, default=3)
-    t.add_argument("--variant", default="llvm_ad_rgb")
     t.add_argument("--json", help="also write the numbers to this file")
-    t.add_argument("-D", "--define", action="append", metavar="NAME=VALUE")
     t.set_defaults(func=cmd_frametime)
 
-    i = sub.add_parser("info", help="summarise an AMR file")
+    i = _command(sub, "info", "summarise an AMR file", "mi-amr info scenes/data/cloud.cells --json")
     i.add_argument("file")
     i.add_argument("--scalars")
     i.add_argument("--json", action="store_true")
     i.set_defaults(func=cmd_info)
 
-    c = sub.add_parser("convert", help="convert between .npz and .cells, a dense .npy/.raw volume "
-                                       "or a yt-loadable dataset (--field) to AMR")
+    c = _command(sub, "convert", "convert between .npz and .cells, a dense .npy/.raw volume "
+                                 "or a yt-loadable dataset (--field) to AMR",
+                 "mi-amr convert volume.raw volume.cells --shape 256 256 256 --threshold 0.01")
     c.add_argument("input")
     c.add_argument("output")
     c.add_argument("--threshold", type=float, default=0.0, help="max value spread of merged blocks")
@@ -342,18 +358,19 @@ def build_parser():
     c.add_argument("--field", help="field of a yt-loadable dataset, e.g. density or gas,density")
     c.set_defaults(func=cmd_convert)
 
-    m = sub.add_parser("compare", help="error statistics of A.exr against reference B.exr")
+    m = _command(sub, "compare", "error statistics of A.exr against reference B.exr",
+                 "mi-amr compare out/cloud.exr out/cloud-ref.exr --diff out/diff.exr")
     m.add_argument("a")
     m.add_argument("b")
     m.add_argument("--diff", help="write |A - B| to this .exr")
     m.add_argument("--json", action="store_true")
     m.set_defaults(func=cmd_compare)
 
-    sub.add_parser("bench", help="the benchmark: mi-amr bench --quick --out DIR "
-                                 "(same as python -m mi_amr.bench)")
+    _command(sub, "bench", "the benchmark (same as python -m mi_amr.bench; its own --help)",
+             "mi-amr bench --quick --out out/bench")
 
-    d = sub.add_parser("dataset", help="generate a synthetic data set",
-                       epilog="example: mi-amr dataset blocks big.cells --cells 100000000 --levels 5")
+    d = _command(sub, "dataset", "generate a synthetic data set",
+                 "mi-amr dataset blocks big.cells --cells 100000000 --levels 5")
     d.add_argument("name", choices=("cloud", "shell", "stadium", "blocks"), help="octree-like: cloud, shell, stadium; "
                    "block-structured (FLASH-like nxb^3 blocks): blocks")
     d.add_argument("output")
