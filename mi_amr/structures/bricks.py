@@ -122,10 +122,12 @@ def _bricks_of_level(q: np.ndarray, max_width: int):
     cell = np.arange(len(q))
     while len(cell):
         n = int(node.max()) + 1
+        qc = q[cell]
         lo = np.full((n, 3), np.iinfo(np.int64).max)
         hi = np.full((n, 3), np.iinfo(np.int64).min)
-        np.minimum.at(lo, node, q[cell])
-        np.maximum.at(hi, node, q[cell] + 1)
+        for a in range(3):                      # 1-D reductions (ufunc.at is fast on those)
+            np.minimum.at(lo[:, a], node, qc[:, a])
+            np.maximum.at(hi[:, a], node, qc[:, a] + 1)
         cnt = np.bincount(node, minlength=n)
         ext = hi - lo
         full = cnt == ext.prod(axis=1)
@@ -148,7 +150,10 @@ def _bricks_of_level(q: np.ndarray, max_width: int):
         axis = np.argmax(ext, axis=1)
         mid = (lo[np.arange(n), axis] + hi[np.arange(n), axis]) // 2
         side = q[cell, axis[node]] >= mid[node]
-        _, node = np.unique(2 * node + side, return_inverse=True)
+        half = 2 * node + side                  # dense ids of the halves, in order (no sort)
+        present = np.zeros(2 * n, dtype=bool)
+        present[half] = True
+        node = (np.cumsum(present) - 1)[half]
     return np.concatenate(out_lo), np.concatenate(out_dims), np.concatenate(out_members)
 
 

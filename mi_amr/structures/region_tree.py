@@ -59,22 +59,27 @@ class RegionTree:
         and the leaves they overlap (closed intervals), found by descending
         all boxes through the tree together, one depth at a time."""
         box_lo, box_hi = np.asarray(box_lo, np.float64), np.asarray(box_hi, np.float64)
+        flat_lo, flat_hi = box_lo.ravel(), box_hi.ravel()
+        axis, split, child = self.axis.astype(np.int64), self.split, self.child.astype(np.int64)
         bi = np.arange(len(box_lo))
         node = np.zeros(len(box_lo), dtype=np.int64)
         out_b, out_l = [], []
         while len(bi):
-            ax = self.axis[node]
+            ax = np.take(axis, node)
             leaf = ax == 3
             if leaf.any():
-                lb, ln = bi[leaf], self.child[node[leaf]].astype(np.int64)
-                ok = np.all((box_lo[lb] <= self.leaf_hi[ln]) & (box_hi[lb] >= self.leaf_lo[ln]), axis=1)
+                lb, ln = bi[leaf], np.take(child, node[leaf])
+                ok = np.all((np.take(box_lo, lb, axis=0) <= np.take(self.leaf_hi, ln, axis=0))
+                            & (np.take(box_hi, lb, axis=0) >= np.take(self.leaf_lo, ln, axis=0)), axis=1)
                 out_b.append(lb[ok])
                 out_l.append(ln[ok])
-            bi, node, ax = bi[~leaf], node[~leaf], ax[~leaf].astype(np.int64)
-            s = self.split[node]
-            go_l = box_lo[bi, ax] <= s
-            go_r = box_hi[bi, ax] >= s
-            c = self.child[node].astype(np.int64)
+                inner = ~leaf
+                bi, node, ax = bi[inner], node[inner], ax[inner]
+            s = np.take(split, node)
+            at = 3 * bi + ax
+            go_l = np.take(flat_lo, at) <= s
+            go_r = np.take(flat_hi, at) >= s
+            c = np.take(child, node)
             bi, node = np.concatenate([bi[go_l], bi[go_r]]), np.concatenate([c[go_l], c[go_r] + 1])
         if not out_b:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -305,11 +310,11 @@ def exact_value_ranges(tree: RegionTree, bricks, method: str = "tent", own_lists
 
 def _fold_pairs(li, b, leaf_lo, leaf_hi, bricks, w_all, ext, out_min, out_max, enumerate_boxes):
     """Fold the cells of brick ``b[k]`` that reach leaf ``li[k]`` into its range."""
-    w = w_all[b][:, None]
-    lo = bricks.lo[b].astype(np.float64)
-    dims = bricks.dims[b]
-    i0 = np.floor((leaf_lo[li] - lo) / w - ext[0]).astype(np.int64) + 1
-    i1 = np.ceil((leaf_hi[li] - lo) / w + ext[1]).astype(np.int64) - 1
+    w = np.take(w_all, b)[:, None]
+    lo = np.take(bricks.lo, b, axis=0).astype(np.float64)
+    dims = np.take(bricks.dims, b, axis=0)
+    i0 = np.floor((np.take(leaf_lo, li, axis=0) - lo) / w - ext[0]).astype(np.int64) + 1
+    i1 = np.ceil((np.take(leaf_hi, li, axis=0) - lo) / w + ext[1]).astype(np.int64) - 1
     i0 = np.maximum(i0, 0)
     i1 = np.minimum(i1, dims - 1)
     keep = np.all(i0 <= i1, axis=1)
@@ -317,7 +322,9 @@ def _fold_pairs(li, b, leaf_lo, leaf_hi, bricks, w_all, ext, out_min, out_max, e
     if not len(li):
         return
     x, y, z, owner = enumerate_boxes(i0, i1)      # every (pair, cell) of the sub-boxes
-    d = dims[owner]
-    v = bricks.values[bricks.offset[b[owner]] + x + d[:, 0] * (y + d[:, 1] * z)]
-    np.minimum.at(out_min, li[owner], v)
-    np.maximum.at(out_max, li[owner], v)
+    # value index = offset + x + dx (y + dy z), with per-pair strides
+    sy, sz, base = dims[:, 0], dims[:, 0] * dims[:, 1], np.take(bricks.offset, b)
+    v = np.take(bricks.values, np.take(base, owner) + x + np.take(sy, owner) * y + np.take(sz, owner) * z)
+    leaf = np.take(li, owner)
+    np.minimum.at(out_min, leaf, v)
+    np.maximum.at(out_max, leaf, v)
