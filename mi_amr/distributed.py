@@ -39,10 +39,9 @@ DEFAULT_CHUNK_SPP = 16
 @dataclass(frozen=True)
 class SceneSpec:
     """What a worker needs to load a scene: an XML file with ``-D``-style
-    parameters, or the key of a scene dictionary already sent to it."""
+    parameters (``path`` None: the scene dictionary sent with the task)."""
     path: str | None = None
     params: tuple = ()
-    dict_key: str | None = None
     variant: str = "llvm_ad_rgb"
     sensor: int = 0
     drjit_threads: int | None = None
@@ -80,7 +79,7 @@ def scene_spec(scene, params: dict | None = None, variant: str | None = None, se
     import mitsuba as mi
     variant = variant or mi.variant() or "llvm_ad_rgb"
     if isinstance(scene, dict):
-        return SceneSpec(dict_key="dict", variant=variant, sensor=sensor, drjit_threads=drjit_threads)
+        return SceneSpec(variant=variant, sensor=sensor, drjit_threads=drjit_threads)
     path = Path(scene)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such scene file")

@@ -10,7 +10,7 @@ from mi_amr.data.blocks import BlockVolume
 from mi_amr.structures.host_reconstruction import HostReconstruction
 from mi_amr.structures.macrocell_grid import MacrocellGrid
 from mi_amr.structures.value_masks import ValueBins, byte_tables, mask_max_alpha_host, value_masks
-from mi_amr.transfer.function import TransferFunction, range_majorants_host
+from mi_amr.transfer.function import TransferFunction
 
 from conftest import random_amr
 

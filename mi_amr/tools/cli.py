@@ -31,13 +31,13 @@ def _set_variant(variant: str):
 
 # ---- render ----------------------------------------------------------------
 def cmd_render(args):
-    mi = _set_variant(args.variant)
+    _set_variant(args.variant)
     import drjit as dr
     import numpy as np
 
     from .. import distributed
     from .images import write_exr, write_png
-    frames = _frames(args)
+    frames, varying = _frames(args)
     spp = args.spp
     workers = args.workers
     chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
@@ -75,7 +75,7 @@ def cmd_render(args):
         write_exr(path, img)
         write_png(path.with_suffix(".png"), img)
         if not args.quiet:
-            what = " ".join(f"{a}={b}" for a, b in params.items() if a in args.varying)
+            what = " ".join(f"{a}={b}" for a, b in params.items() if a in varying)
             print(f"wrote {path} and {path.with_suffix('.png')} ({img.shape[1]}x{img.shape[0]}, "
                   f"{spp} spp{', ' + what if what else ''})")
     if not args.quiet:
@@ -83,19 +83,19 @@ def cmd_render(args):
     dr.sync_thread()
 
 
-def _frames(args) -> list[dict]:
-    """The ``-D`` parameters of each frame: one frame, or with ``--frames``
-    every combination of the comma-separated values (first name slowest)."""
+def _frames(args) -> tuple[list[dict], list[str]]:
+    """The ``-D`` parameters of each frame, and the names that vary: one
+    frame, or with ``--frames`` every combination of the comma-separated
+    values (first name slowest)."""
     import itertools
     params = _scene_params(args)
-    args.varying = []
     if not args.frames:
-        return [params]
+        return [params], []
     lists = {k: v.split(",") for k, v in params.items()}
-    args.varying = [k for k, v in lists.items() if len(v) > 1]
-    if not args.varying:
+    varying = [k for k, v in lists.items() if len(v) > 1]
+    if not varying:
         raise SystemExit("mi-amr: --frames needs a -D NAME=V1,V2,... with several values")
-    return [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())]
+    return [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())], varying
 
 
 # ---- reference / frametime -------------------------------------------------
