@@ -272,21 +272,36 @@ def tf_change_timing(mi, args, cells):
     scale = mi.Float(50.0)
     dr.make_opaque(scale)
     out = {"recompute": []}
+    from types import SimpleNamespace
+
+    from ..device.grid import DeviceMacrocellGrid
+    from ..structures.value_masks import ValueBins
     for n in (10**5, 10**6, 10**7):
         a = rng.random(n, dtype=np.float32)
-        vmin = mi.Float(a)
-        vmax = mi.Float(a + rng.random(n, dtype=np.float32) * 0.2)
+        b = a + rng.random(n, dtype=np.float32) * 0.2
+        vmin, vmax = mi.Float(a), mi.Float(b)
         dr.eval(vmin, vmax)
-        times = []
-        for i in range(6):
-            t0 = time.perf_counter()
-            maj = scale * tf.range_max_alpha(vmin, vmax)
-            dr.eval(maj)
-            dr.sync_thread()
-            times.append(time.perf_counter() - t0)
-        ms = 1e3 * statistics.median(times[1:])          # the first includes compilation
-        out["recompute"].append({"leaves": n, "ms": ms, "ms_per_million": ms / (n / 1e6)})
-        print(f"majorant recompute: {n:>9d} leaves {ms:8.2f} ms ({ms / (n / 1e6):.2f} ms per 10^6)", flush=True)
+        # the same ranges as a macrocell grid with value masks (nearest)
+        bins = ValueBins(0.0, 1.2)
+        grid = DeviceMacrocellGrid(SimpleNamespace(res=np.array([n, 1, 1]), vmin=a, vmax=b,
+                                                   level_bits=np.ones(n, np.uint32), masks=bins.bits(a, b),
+                                                   bins=bins))
+        row = {"leaves": n}
+        for key, run in (("ms", lambda: scale * tf.range_max_alpha(vmin, vmax)),
+                         ("ms_masked", lambda: (grid.update_majorants(tf, scale), grid.majorant)[1])):
+            times = []
+            for i in range(6):
+                t0 = time.perf_counter()
+                dr.eval(run())
+                dr.sync_thread()
+                times.append(time.perf_counter() - t0)
+            row[key] = 1e3 * statistics.median(times[1:])          # the first includes compilation
+        row["ms_per_million"] = row["ms"] / (n / 1e6)
+        row["ms_masked_per_million"] = row["ms_masked"] / (n / 1e6)
+        out["recompute"].append(row)
+        print(f"majorant recompute: {n:>9d} leaves {row['ms']:8.2f} ms ({row['ms_per_million']:.2f} ms per 10^6); "
+              f"with value masks {row['ms_masked']:8.2f} ms ({row['ms_masked_per_million']:.2f} ms per 10^6)",
+              flush=True)
     if cells is not None:
         scene = mi.load_dict(bench_scene({"type": "amr", "data": cells, "transfer_function": "foggy",
                                           "density_scale": 150.0}, args.res,
@@ -479,10 +494,12 @@ def write_tables(records, sweeps, out: Path, tf_timing=None):
                          f"{sw['auto_resolution']} | {sw['auto_vs_best']:.0%} |")
         lines.append("")
     if tf_timing:
-        lines += ["## Transfer-function change", "", "| leaves | majorant recompute ms | ms per 10^6 leaves |",
-                  "|---|---|---|"]
+        lines += ["## Transfer-function change", "",
+                  "| leaves | majorant recompute ms | ms per 10^6 leaves | with value masks ms | ms per 10^6 |",
+                  "|---|---|---|---|---|"]
         for r in tf_timing["recompute"]:
-            lines.append(f"| {r['leaves']} | {r['ms']:.2f} | {r['ms_per_million']:.2f} |")
+            masked = (f"{r['ms_masked']:.2f} | {r['ms_masked_per_million']:.2f}" if "ms_masked" in r else " | ")
+            lines.append(f"| {r['leaves']} | {r['ms']:.2f} | {r['ms_per_million']:.2f} | {masked} |")
         if "frame" in tf_timing:
             f = tf_timing["frame"]
             lines += ["", f"First frame after a TF change: {f['first_after_change_s']:.3f} s, steady state "
