@@ -156,3 +156,15 @@ def test07_commands_share_render_flags_and_end_help_with_an_example():
         args = p.parse_args([name, "s.xml", *out, "-q", "--spp", "3", "--seed", "2", "-D", "a=b",
                              "--variant", "llvm_ad_rgb"])
         assert args.quiet and args.spp == 3 and args.seed == 2 and args.define == ["a=b"], name
+
+
+def test08_a_scene_that_fails_to_load_gives_one_error_line(tmp_path):
+    """A scene whose data file is missing: exit code 2 and the plugin's
+    error (file named), not a Python traceback."""
+    scene = (ROOT / "scenes" / "cloud.xml").read_text().replace("data/cloud.cells", "missing.cells")
+    (tmp_path / "s.xml").write_text(scene)
+    r = subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "render", str(tmp_path / "s.xml"),
+                        "-o", str(tmp_path / "o.exr"), "--spp", "1", "-q", "-D", "res=8"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2, r.stderr
+    assert "missing.cells: no such file" in r.stderr and "Traceback" not in r.stderr, r.stderr

@@ -393,7 +393,20 @@ def main(argv=None):
     except (ValueError, FileNotFoundError, MemoryError) as e:
         print(f"mi-amr {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except RuntimeError as e:
+        if "failed to instantiate" not in str(e):     # not a scene that failed to load
+            raise
+        print(f"mi-amr {args.command}: error: {_plugin_error(str(e))}", file=sys.stderr)
+        return 2
     return 0
+
+
+def _plugin_error(message: str) -> str:
+    """Mitsuba's "failed to instantiate" message without the plugin's
+    traceback: where it happened and the exception it raised."""
+    where, _, trace = message.partition("Traceback (most recent call last):")
+    lines = [ln for ln in trace.splitlines() if ln.strip()]
+    return f"{where.strip()} {lines[-1].strip()}" if lines else where.strip()
 
 
 if __name__ == "__main__":
