@@ -41,9 +41,9 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
 
 def test02_config_names():
     names = all_configs()
-    assert names[:4] == ["reference", "volpath/global", "volpath/ray", "amrvolpath/default"]
+    assert names[:5] == ["reference", "dense16", "volpath/global", "volpath/ray", "amrvolpath/default"]
     assert "amrvolpath/grid/abr" in names and "amrvolpath/kdtree/brick" in names
-    assert len(names) == 4 + 4 * 3
+    assert len(names) == 5 + 4 * 3
 
 
 def test03_reference_that_does_not_fit_is_reported(llvm, tmp_path):

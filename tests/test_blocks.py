@@ -235,3 +235,22 @@ def test10_media_on_the_same_data_share_one_device_copy(llvm):
         val, found = dev.eval(mi.Vector3f((x - dev.origin).astype(np.float32).T), bits)
         np.testing.assert_array_equal(found.numpy(), ref_found)
         np.testing.assert_allclose(val.numpy(), np.where(ref_found, ref, 0.0), rtol=1e-5, atol=1e-6)
+
+
+def test11_from_dense_is_one_level_of_the_same_field(llvm):
+    """A dense array (NaN: no cell) as one level of 16^3 blocks: the nearest
+    field at random points equals the array's voxel, empty blocks are left
+    out, and the bounds are the array's extent."""
+    from mi_amr.structures.host_reconstruction import HostReconstruction
+    rng = np.random.default_rng(4)
+    dense = rng.random((20, 37, 18)).astype(np.float32)      # [z, y, x], sizes not multiples of 16
+    dense[:, :16, :] = np.nan                                  # a slab without cells
+    v = BlockVolume.from_dense(dense, 16)
+    assert v.n_cells == int(np.count_nonzero(~np.isnan(dense)))
+    assert v.hi.tolist() == [18, 37, 20] and len(v.level) == 2 * 2 * 2   # the y-slab's blocks are gone
+    x = rng.random((5000, 3)) * np.array([18, 37, 20])
+    val, found = HostReconstruction(v)(x, "nearest")
+    i = np.floor(x).astype(np.int64)
+    ref = dense[i[:, 2], i[:, 1], i[:, 0]]
+    np.testing.assert_array_equal(found, ~np.isnan(ref))
+    np.testing.assert_array_equal(val[found], ref[found])

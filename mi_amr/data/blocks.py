@@ -74,6 +74,28 @@ class BlockVolume(mi.Object):
 
     # ---- Construction --------------------------------------------------
     @classmethod
+    def from_dense(cls, values: np.ndarray, block: int = 16, source: str = "dense volume") -> "BlockVolume":
+        """One level of unit cells from a dense array indexed ``[z, y, x]``
+        (NaN: no cell), cut into ``block^3`` blocks; blocks with no cell
+        are left out. Bounds: ``[0, (nx, ny, nz)]``."""
+        v = np.asarray(values, dtype=np.float32)
+        if v.ndim != 3:
+            raise ValueError(f"{source}: a dense volume must be 3-D, got shape {v.shape}")
+        if block not in BLOCK_SIZES:
+            raise ValueError(f"{source}: block must be one of {BLOCK_SIZES}, got {block}")
+        nz, ny, nx = v.shape
+        pad = [(0, (-n) % block) for n in v.shape]
+        v = np.pad(v, pad, constant_values=np.nan)
+        bz, by, bx = (n // block for n in v.shape)
+        blocks = v.reshape(bz, block, by, block, bx, block).transpose(0, 2, 4, 1, 3, 5).reshape(-1, block ** 3)
+        keep = ~np.isnan(blocks).all(axis=1)
+        k = np.nonzero(keep)[0]
+        coord = np.stack([k % bx, (k // bx) % by, k // (bx * by)], axis=1).astype(np.int32)
+        return cls(block, np.zeros(len(k), np.uint8), coord, np.ascontiguousarray(blocks[keep]).reshape(-1),
+                   np.zeros(3, np.int64), np.zeros(3, np.int64), np.array([nx, ny, nz], np.int64),
+                   int(np.count_nonzero(~np.isnan(blocks[keep]))), source)
+
+    @classmethod
     def from_cells(cls, cells: AMRCells, block: int | None = None, method: str = "tent") -> "BlockVolume":
         """Blocks of validated ``cells`` (in memory); ``method``: the
         reconstruction they will serve (it weighs the block size)."""

@@ -37,7 +37,7 @@ SCALES = {("cloud", "spiky"): 60.0, ("cloud", "foggy"): 150.0,
 def all_configs():
     """Configuration names: ``amrvolpath/default`` is what a user gets with
     no structure options (its record names what it resolved to)."""
-    out = ["reference", "volpath/global", "volpath/ray", "amrvolpath/default"]
+    out = ["reference", "dense16", "volpath/global", "volpath/ray", "amrvolpath/default"]
     out += [f"amrvolpath/{t}/{s}" for t in TRAVERSALS for s in SAMPLINGS]
     return out
 
@@ -57,6 +57,26 @@ def bench_scene(medium, res: int, integrator: dict):
                        "bsdf": {"type": "null"}, "interior": medium}}
 
 
+_DENSE = {}
+
+
+def dense_volume(cells, args):
+    """The reference's resampled field (finest resolution, ``nearest``) as a
+    one-level `BlockVolume` of 16^3 blocks, made once per data set."""
+    import numpy as np
+
+    from ..data.blocks import BlockVolume
+    from .reference import resample_dense
+    if args.reconstruction != "nearest":
+        raise ValueError("dense16 resamples the nearest field: run it with --reconstruction nearest")
+    key = id(cells)
+    if key not in _DENSE:
+        value, found = resample_dense(cells, "nearest", memory_limit=int(args.memory_limit * 2**30))
+        _DENSE.clear()                                      # one data set at a time
+        _DENSE[key] = BlockVolume.from_dense(np.where(found, value, np.nan), 16, f"{cells.source} (dense)")
+    return _DENSE[key]
+
+
 def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resolution=None):
     """Measure one configuration; returns (record, image)."""
     import drjit as dr
@@ -69,6 +89,13 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
     if kind[0] == "reference":
         medium = reference_medium(cells, tf, scale, args.reconstruction,
                                   memory_limit=int(args.memory_limit * 2**30))
+    elif kind[0] == "dense16":
+        # the dense-grid renderer: the reference's resampled field as one level,
+        # a fixed 16^3 majorant grid walked by DDA (pbrt-v4's choice)
+        medium = {"type": "amr", "data": dense_volume(cells, args), "transfer_function": tf,
+                  "density_scale": scale, "reconstruction": "nearest", "grid_resolution": 16,
+                  "value_masks": not args.no_value_masks}
+        integ = {"type": "amrvolpath", "max_depth": args.max_depth, "counters": True}
     else:
         medium = {"type": "amr", "data": cells, "transfer_function": tf, "density_scale": scale,
                   "reconstruction": args.reconstruction, "value_masks": not args.no_value_masks}
@@ -384,14 +411,15 @@ def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
 #: Plot style: one colour per traversal (stock volpath and the reference
 #: apart), one line style per sampling; the reference and the default heaviest.
 TRAVERSAL_COLOURS = {"grid": "tab:blue", "abr": "tab:orange", "brick": "tab:green", "kdtree": "tab:red",
-                     "volpath/ray": "tab:purple", "volpath/global": "tab:brown", "reference": "black"}
+                     "volpath/ray": "tab:purple", "volpath/global": "tab:brown", "reference": "black",
+                     "dense16": "tab:gray"}
 SAMPLING_STYLES = {"hash": "-", "abr": "--", "brick": ":"}
 
 
 def curve_style(record) -> dict:
     """Matplotlib style of a configuration's curve (see `TRAVERSAL_COLOURS`)."""
     config = record["config"]
-    if config == "reference" or config.startswith("volpath/"):
+    if config in ("reference", "dense16") or config.startswith("volpath/"):
         return {"color": TRAVERSAL_COLOURS[config], "ls": "-." if config != "reference" else "-",
                 "lw": 3.0 if config == "reference" else 1.3, "label": config}
     if config.endswith("/default"):            # drawn as what it resolved to
