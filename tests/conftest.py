@@ -83,3 +83,17 @@ def volume_scene(medium, res=32, integrator="volpath", max_depth=32, emitters="e
         scene["sun"] = {"type": "directional", "direction": [-0.5, -1, -0.3],
                         "irradiance": {"type": "rgb", "value": 2.0}}
     return scene
+
+
+def cloud_scene_xml(tmp_path, cells: str = "d.cells", data=None):
+    """The bundled ``scenes/cloud.xml`` written to ``tmp_path/s.xml`` with its
+    data file replaced by ``cells`` (relative to ``tmp_path``); ``data``
+    (AMRCells) is written there first, or nothing is (a missing file)."""
+    from pathlib import Path
+    from mi_amr.data.io import write_exabricks
+    if data is not None:
+        write_exabricks(data, tmp_path / cells)
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "scenes" / "cloud.xml").read_text().replace("data/cloud.cells", cells)
+    (tmp_path / "s.xml").write_text(text)
+    return tmp_path / "s.xml"

@@ -16,7 +16,7 @@ from mi_amr.data.io import write_exabricks
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.tools.reference import reference_medium, resample_dense
 
-from conftest import random_amr, volume_scene
+from conftest import cloud_scene_xml, random_amr, volume_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -68,14 +68,15 @@ def test03_compare_reports_rmse_and_writes_difference(tmp_path, capsys):
     assert main(["compare", str(tmp_path / "bad.exr"), str(tmp_path / "b.exr")]) == 2
 
 
+def _render_cli(scene, out, *extra):
+    """``mi-amr render SCENE -o OUT -q EXTRA`` in a subprocess."""
+    return subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "render", str(scene), "-o", str(out),
+                           "-q", *extra], capture_output=True, text=True, timeout=300)
+
+
 def test04_render_writes_exr_and_png(tmp_path):
-    c = random_amr(2, levels=3)
-    write_exabricks(c, tmp_path / "d.cells")
-    scene = (ROOT / "scenes" / "cloud.xml").read_text().replace("data/cloud.cells", "d.cells")
-    (tmp_path / "s.xml").write_text(scene)
-    r = subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "render", str(tmp_path / "s.xml"),
-                        "-o", str(tmp_path / "o.exr"), "--spp", "4", "-q", "-D", "res=24"],
-                       capture_output=True, text=True, timeout=300)
+    xml = cloud_scene_xml(tmp_path, data=random_amr(2, levels=3))
+    r = _render_cli(xml, tmp_path / "o.exr", "--spp", "4", "-D", "res=24")
     assert r.returncode == 0, r.stderr
     img = read_exr(tmp_path / "o.exr")
     assert img.shape == (24, 24, 3) and np.isfinite(img).all() and img.std() > 0
@@ -161,10 +162,7 @@ def test07_commands_share_render_flags_and_end_help_with_an_example():
 def test08_a_scene_that_fails_to_load_gives_one_error_line(tmp_path):
     """A scene whose data file is missing: exit code 2 and the plugin's
     error (file named), not a Python traceback."""
-    scene = (ROOT / "scenes" / "cloud.xml").read_text().replace("data/cloud.cells", "missing.cells")
-    (tmp_path / "s.xml").write_text(scene)
-    r = subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "render", str(tmp_path / "s.xml"),
-                        "-o", str(tmp_path / "o.exr"), "--spp", "1", "-q", "-D", "res=8"],
-                       capture_output=True, text=True, timeout=300)
+    xml = cloud_scene_xml(tmp_path, cells="missing.cells")
+    r = _render_cli(xml, tmp_path / "o.exr", "--spp", "1", "-D", "res=8")
     assert r.returncode == 2, r.stderr
     assert "missing.cells: no such file" in r.stderr and "Traceback" not in r.stderr, r.stderr

@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 
 from mi_amr import distributed as D
-from mi_amr.data.io import write_exabricks
 from mi_amr.testing import block_z_scores
 from mi_amr.tools.images import read_exr
 
-from conftest import random_amr, volume_scene
+from conftest import cloud_scene_xml, random_amr, volume_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 pytest.importorskip("dask.distributed")
@@ -31,12 +30,8 @@ def _scene_dict(res=24, rfilter="box", seed=2):
     return s
 
 
-def _scene_xml(tmp_path, name="s.xml", cells="d.cells", write_data=True):
-    if write_data:
-        write_exabricks(random_amr(2, levels=3), tmp_path / cells)
-    text = (ROOT / "scenes" / "cloud.xml").read_text().replace("data/cloud.cells", cells)
-    (tmp_path / name).write_text(text)
-    return tmp_path / name
+def _scene_xml(tmp_path):
+    return cloud_scene_xml(tmp_path, data=random_amr(2, levels=3))
 
 
 @pytest.fixture(scope="module")
@@ -146,7 +141,7 @@ def test06_a_killed_worker_loses_nothing(llvm, tmp_path):
 
 
 def test07_unreadable_data_fails_with_the_workers_error(llvm, client, tmp_path):
-    xml = _scene_xml(tmp_path, cells="missing.cells", write_data=False)
+    xml = cloud_scene_xml(tmp_path, cells="missing.cells")
     t0 = time.time()
     with pytest.raises(Exception, match="missing.cells"):
         D.render(str(xml), 4, client=client, chunk_spp=2, res="8")
