@@ -23,15 +23,15 @@ import numpy as np
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .device.bricks import BrickSampler, DeviceBrickLists, DeviceBricks
-from .device.grid import DeviceMacrocellGrid
+from .device.grid import DeviceMacrocellGrid, DeviceTwoLevelGrid
 from .device.hash_sampler import DeviceReconstruction, HashSampler
-from .device.segments import GridSegments, TreeSegments
+from .device.segments import GridSegments, TreeSegments, TwoLevelGridSegments
 from .device.structs import jit_struct
 from .device.tree import DeviceTree
 from .memory import hash_bytes, require, structure_bytes
 from .structures.brick_lists import BrickLists
 from .structures.bricks import Bricks
-from .structures.cost_model import auto_resolution
+from .structures.cost_model import REFINEMENTS, GridPlan, auto_grid
 from .structures.kdtree_sah import build_sah_kdtree
 from .structures.macrocell_grid import MacrocellGrid, axis_resolution, default_resolution
 from .structures.region_tree import build_region_tree, exact_value_ranges
@@ -51,6 +51,7 @@ class StructureOptions:
     traversal: str = "grid"
     sampling: str = "hash"
     grid_resolution: int | None = None
+    grid_refinement: int | None = None
     brick_size: int = 8
     kdtree_leaves: int = 4096
     memory_limit: float | None = None
@@ -139,21 +140,27 @@ class Structures:
         return self.volume.to_cells()
 
     @property
-    def grid(self) -> DeviceMacrocellGrid:
+    def grid(self) -> DeviceMacrocellGrid | DeviceTwoLevelGrid:
+        """The macrocell grid: resolution and refinement as given, else from
+        the cost model of the data and the TF (`auto_grid`)."""
         def make():
-            res = self.options.grid_resolution
-            if res is None:                 # cost model of the data and the TF
+            res, f = self.options.grid_resolution, self.options.grid_refinement
+            host = None
+            if res is None:
                 grids = {}
-                res, _ = auto_resolution(self.volume, self._tf, self._density_scale,
-                                         self.world_scale, self.options.reconstruction, grids=grids,
-                                         masks=self.options.grid_masks)
-                for g in grids.values():    # the chosen grid from the finest one, if they tile
-                    pooled = g.pooled(res)
-                    if pooled is not None:
-                        return DeviceMacrocellGrid(pooled)
-            return DeviceMacrocellGrid(MacrocellGrid(self.volume, res, support=self.options.reconstruction,
-                                                     memory_limit=self.options.memory_limit,
-                                                     masks=self.options.grid_masks))
+                plan, _ = auto_grid(self.volume, self._tf, self._density_scale, self.world_scale,
+                                    self.options.reconstruction, grids=grids, masks=self.options.grid_masks,
+                                    refinements=(f,) if f else (1,) + REFINEMENTS)
+                res, f = plan.resolution, plan.refinement
+                # the chosen grid from the finest one, if they tile
+                host = next((p for p in (g.pooled(res) for g in grids.values()) if p is not None), None)
+            f = f or 1
+            if host is None:
+                host = MacrocellGrid(self.volume, res, support=self.options.reconstruction,
+                                     memory_limit=self.options.memory_limit, masks=self.options.grid_masks)
+            if f == 1:
+                return DeviceMacrocellGrid(host)
+            return DeviceTwoLevelGrid(host, f, self.world_scale, GridPlan(int(res), f).step_costs())
         return self._build("grid", make)
 
     @property
@@ -213,7 +220,8 @@ class Structures:
         """The segment walker of the chosen traversal."""
         traversal = self.options.traversal
         if traversal == "grid":
-            return GridSegments(self.grid)
+            grid = self.grid
+            return TwoLevelGridSegments(grid) if isinstance(grid, DeviceTwoLevelGrid) else GridSegments(grid)
         if traversal == "kdtree":
             return TreeSegments(self.kdtree())
         return TreeSegments(self.brick_tree(traversal))

@@ -73,10 +73,10 @@ FULL = [(d, t, tr, s) for d in ("cloud", "shell", "stadium") for t in ("spiky", 
         for tr in ("grid", "abr", "brick", "kdtree") for s in ("abr", "brick", "hash")]
 
 
-def _combo(data_name, tf, traversal, sampling):
+def _combo(data_name, tf, traversal, sampling, **medium):
     cells = dataset(data_name)
     scale = (SCALE_STADIUM if data_name == "stadium" else SCALE)[tf]
-    kw = dict(type="amr", data=cells, transfer_function=tf, density_scale=scale)
+    kw = dict(type="amr", data=cells, transfer_function=tf, density_scale=scale, **medium)
     view = {}
     if data_name == "stadium":                # zoom onto the small object
         lo, hi = cells.bounds
@@ -90,6 +90,13 @@ def _combo(data_name, tf, traversal, sampling):
 @pytest.mark.parametrize("data_name,tf,traversal,sampling", FAST)
 def test02_structures_agree_with_stock_volpath(llvm, data_name, tf, traversal, sampling):
     _combo(data_name, tf, traversal, sampling)
+
+
+@pytest.mark.parametrize("data_name,tf,reconstruction", [("stadium", "spiky", "tent"), ("cloud", "foggy", "nearest")])
+def test02b_two_level_grid_agrees_with_stock_volpath(llvm, data_name, tf, reconstruction):
+    """The two-level grid (coarse macrocells of 4^3 fine ones, refined where
+    the rule says) in amrvolpath, against stock volpath on the same medium."""
+    _combo(data_name, tf, "grid", "hash", grid_refinement=4, reconstruction=reconstruction)
 
 
 @pytest.mark.slow

@@ -39,10 +39,11 @@ def heterogeneous_recordings(integrator):
     return render.n_recordings
 
 
-@pytest.mark.parametrize("integrator,majorant", [("volpath", "ray"), ("volpath", "global"),
-                                                 ("amrvolpath", "ray")])
-def test01_frozen_render_replays_and_follows_tf_changes(variant, integrator, majorant):
-    scene = amr_scene(integrator, majorant)
+@pytest.mark.parametrize("integrator,majorant,refinement", [("volpath", "ray", 1), ("volpath", "global", 1),
+                                                            ("amrvolpath", "ray", 1), ("amrvolpath", "ray", 4),
+                                                            ("volpath", "ray", 4)])
+def test01_frozen_render_replays_and_follows_tf_changes(variant, integrator, majorant, refinement):
+    scene = amr_scene(integrator, majorant, grid_resolution=16, grid_refinement=refinement)
 
     @dr.freeze
     def render(scene, seed):

@@ -50,21 +50,23 @@ def _structure(ir: str) -> str:
     return re.sub(r"%[A-Za-z_]*\d+(?:_[A-Za-z0-9]+)*", "%r", ir)
 
 
-@pytest.mark.parametrize("reconstruction", ["tent", "nearest"])
-def test02_tf_change_recompiles_no_kernel(llvm, reconstruction):
+@pytest.mark.parametrize("reconstruction,refinement", [("tent", 1), ("nearest", 1), ("nearest", 2)])
+def test02_tf_change_recompiles_no_kernel(llvm, reconstruction, refinement):
     """Change the TF of a loaded scene: the next render launches only kernels
     whose code equals that of kernels before the change (no TF value is
     baked into code, so nothing needs compiling: Dr.Jit's kernel cache has
     them), and its image equals a freshly loaded scene with the new TF
     (same seed). The grid resolution is fixed: its automatic choice depends
-    on the initial TF.
+    on the initial TF. A two-level grid (refinement 2) decides again which
+    coarse macrocells to refine, on the device.
 
     Register and kernel names are compared away (they follow the order in
     which Dr.Jit meets variables); the code itself must be the same.
     ``nearest`` grids also carry value masks (per-bin maxima and byte tables
     are recomputed on the change)."""
     cells = random_amr(4)
-    base = {"type": "amr", "data": cells, "grid_resolution": 8, "reconstruction": reconstruction}
+    base = {"type": "amr", "data": cells, "grid_resolution": 8, "reconstruction": reconstruction,
+            "grid_refinement": refinement}
     import gc
     gc.collect()
     dr.eval()                 # nothing left over from earlier tests joins the kernels below

@@ -6,6 +6,8 @@ Macrocell ``(i, j, k)`` of an ``(rx, ry, rz)`` grid spans
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -79,3 +81,117 @@ class DeviceMacrocellGrid:
 
     def flat(self, c: mi.Vector3i) -> mi.UInt32:
         return mi.UInt32(c.x + self.res.x * (c.y + self.res.y * c.z))
+
+    def describe(self) -> str:
+        return "grid " + "x".join(str(int(r)) for r in self.host.res)
+
+    def effective_majorants(self) -> np.ndarray:
+        """The majorant of each macrocell, [z, y, x]."""
+        r = self.host.res
+        return self.majorant.numpy().reshape(r[2], r[1], r[0])
+
+
+@jit_struct(res="Vector3i", coarse_res="Vector3i", fine=DeviceMacrocellGrid, coarse_mu="Float",
+            n_fine="Float", keep_step="Float", refine_step="Float", world_scale="Float")
+class DeviceTwoLevelGrid:
+    """A two-level macrocell grid in Dr.Jit (docs/design.md section 4).
+
+    The fine level is a `MacrocellGrid` of ``res`` macrocells; the coarse
+    level groups them into blocks of ``f^3`` (``coarse_res = ceil(res /
+    f)``, the last block along an axis may reach past the unit cube). The
+    fine macrocells are stored block by block (``f^3`` consecutive entries
+    per coarse macrocell, padded with empty ones), so that per-block maxima
+    and sums are block reductions. On each TF change a coarse macrocell is
+    *refined* (walked through its fine macrocells) where that lowers the
+    expected look-ups plus steps per unit length inside it; ``coarse_mu``
+    holds its majorant, the largest of its fine ones, or -1 where refined.
+    """
+
+    def __init__(self, grid, refinement: int, world_scale: float, step_costs):
+        f = int(refinement)
+        if f < 2 or f & (f - 1):
+            raise ValueError(f"grid refinement must be a power of two >= 2, got {f}")
+        self.host, self.refinement, self.log2f = grid, f, f.bit_length() - 1
+        rf = np.asarray(grid.res, dtype=np.int64)
+        rc = -(-rf // f)
+        self.res = mi.Vector3i(*[int(r) for r in rf])
+        self.coarse_res = mi.Vector3i(*[int(r) for r in rc])
+        self.n_coarse = int(np.prod(rc))
+
+        def blocked(a, fill):
+            a = a.reshape(int(rf[2]), int(rf[1]), int(rf[0]))
+            pad = [(0, int(rc[2] * f - rf[2])), (0, int(rc[1] * f - rf[1])), (0, int(rc[0] * f - rf[0]))]
+            a = np.pad(a, pad, constant_values=fill)
+            a = a.reshape(int(rc[2]), f, int(rc[1]), f, int(rc[0]), f).transpose(0, 2, 4, 1, 3, 5)
+            return np.ascontiguousarray(a).reshape(-1)
+        inside = blocked(np.ones(grid.vmin.size, np.float32), 0.0)
+        view = SimpleNamespace(res=grid.res, vmin=blocked(grid.vmin, np.inf), vmax=blocked(grid.vmax, -np.inf),
+                               level_bits=blocked(grid.level_bits, np.uint32(0)),
+                               masks=None if grid.masks is None else blocked(grid.masks, np.uint64(0)),
+                               bins=grid.bins)
+        self.fine = DeviceMacrocellGrid(view)
+        self.fine.host = grid
+        self.n_fine = dr.block_sum(mi.Float(inside), f ** 3)
+        self.coarse_mu = dr.zeros(mi.Float, self.n_coarse)
+        self.keep_step, self.refine_step = mi.Float(step_costs[0]), mi.Float(step_costs[1])
+        self.world_scale = mi.Float(world_scale)
+        dr.make_opaque(self.res, self.coarse_res, self.n_fine, self.keep_step, self.refine_step,
+                       self.world_scale)
+
+    @property
+    def size(self) -> int:
+        return self.host.vmin.size
+
+    @property
+    def majorant(self) -> mi.Float:
+        """Fine majorants (block order): each bounds the field in its macrocell."""
+        return self.fine.majorant
+
+    @property
+    def level_bits(self) -> mi.UInt32:
+        return self.fine.level_bits
+
+    def update_majorants(self, tf, density_scale):
+        """Fine majorants (ranges and value masks, as `DeviceMacrocellGrid`),
+        coarse ones as their block maxima, and which coarse macrocells to
+        refine (`mi_amr.structures.cost_model.refine_gain` > 0); no host
+        round trip."""
+        from ..structures.cost_model import refine_gain
+        self.fine.update_majorants(tf, density_scale)
+        b = self.refinement ** 3
+        mu = self.fine.majorant * self.world_scale          # inverse local length
+        mu_c = dr.block_reduce(dr.ReduceOp.Max, mu, b)
+        s1 = dr.block_sum(mu, b)
+        gain = refine_gain(self.n_fine, s1, mu_c, self.keep_step, self.refine_step, dr.maximum)
+        self.coarse_mu = dr.select(gain > 0.0, -1.0, mu_c * dr.rcp(self.world_scale))
+        dr.make_opaque(self.coarse_mu)
+
+    def describe(self) -> str:
+        rc = -(-np.asarray(self.host.res) // self.refinement)
+        return (f"two-level grid {'x'.join(str(int(r)) for r in rc)} refined {self.refinement}x "
+                f"in {self.refined_fraction():.0%} of its macrocells")
+
+    def refined_fraction(self) -> float:
+        """Share of the coarse macrocells walked through their fine ones."""
+        return float(dr.count(self.coarse_mu < 0.0)[0]) / self.n_coarse
+
+    def cell_of(self, u: mi.Vector3f) -> mi.Vector3i:
+        """Fine macrocell containing local point ``u`` (clamped to the grid)."""
+        return dr.clip(mi.Vector3i(dr.floor(u * mi.Vector3f(self.res))), 0, self.res - 1)
+
+    def flat(self, c: mi.Vector3i) -> mi.UInt32:
+        """Storage index of fine macrocell ``c`` (block by block)."""
+        cc = c >> self.log2f
+        m = self.refinement - 1
+        block = cc.x + self.coarse_res.x * (cc.y + self.coarse_res.y * cc.z)
+        local = (c.x & m) + self.refinement * ((c.y & m) + self.refinement * (c.z & m))
+        return mi.UInt32(block) * (self.refinement ** 3) + mi.UInt32(local)
+
+    def effective_majorants(self) -> np.ndarray:
+        """The majorant the walk uses in each fine macrocell, [z, y, x]."""
+        f, rf = self.refinement, self.host.res
+        rc = -(-np.asarray(rf) // f)
+        fine = self.fine.majorant.numpy().reshape(rc[2], rc[1], rc[0], f, f, f)
+        coarse = self.coarse_mu.numpy().reshape(rc[2], rc[1], rc[0], 1, 1, 1)
+        eff = np.where(coarse < 0, fine, coarse).transpose(0, 3, 1, 4, 2, 5).reshape(rc[2] * f, rc[1] * f, rc[0] * f)
+        return eff[:rf[2], :rf[1], :rf[0]]

@@ -9,6 +9,8 @@ unit cube). A *segment iterator* has two methods used inside symbolic loops:
   once the ray has left ``[t_lo, t_hi]``.
 
 `GridSegments` walks the macrocell grid with a 3D DDA (Amanatides-Woo);
+`TwoLevelGridSegments` walks a two-level grid by locating the macrocell at
+the current point (the fine one where its coarse one is refined);
 `TreeSegments` walks the leaves of a kd-tree front to back by re-descending
 from the root at the current point ("kd-restart": no stack, exact ties).
 """
@@ -76,6 +78,57 @@ class GridSegments:
         return (cell, t_next, t_cell), Segment(t0, t1, mu, valid)
 
 
+def progress_guard(t, d):
+    """Smallest step along ``o + t d`` for walks that re-locate the point at
+    each step: a few ulps of ``t``, or 1e-7 of the time to cross the unit
+    cube. A point rounded back onto the face it just left still moves on."""
+    return dr.maximum(dr.abs(t) * 5e-7, 1e-7 * dr.rcp(dr.max(dr.abs(d))))
+
+
+class TwoLevelGridSegments:
+    """Front-to-back macrocells of a `DeviceTwoLevelGrid`: at each step the
+    fine macrocell just past the current point is located; where its coarse
+    macrocell is refined, the segment is the fine macrocell, otherwise the
+    whole coarse one. The exit is measured from the located point, so every
+    step moves forward."""
+
+    def __init__(self, grid):
+        self.grid = grid
+
+    def max_steps(self):
+        g = self.grid
+        return g.res.x + g.res.y + g.res.z + g.coarse_res.x + g.coarse_res.y + g.coarse_res.z + 3
+
+    def begin(self, o, d, t_lo, t_hi, active):
+        res_f = mi.Vector3f(self.grid.res)
+        # per ray: t per fine macrocell width along each axis, and the
+        # direction-only part of the progress guard
+        return (mi.Float(t_lo), safe_rcp(d * res_f), 1e-7 * dr.rcp(dr.max(dr.abs(d))))
+
+    def advance(self, o, d, state, t_hi, active):
+        t_cell, inv, guard = state
+        g = self.grid
+        valid = mi.Bool(active) & (t_cell < t_hi)
+        res_f = mi.Vector3f(g.res)
+        t_at = t_cell + dr.maximum(dr.abs(t_cell) * 5e-7, guard)    # as `progress_guard`
+        p = (o + d * t_at) * res_f                          # fine macrocell units
+        cell = dr.clip(mi.Vector3i(dr.floor(p)), 0, g.res - 1)
+        coarse = cell >> g.log2f
+        cflat = coarse.x + g.coarse_res.x * (coarse.y + g.coarse_res.y * coarse.z)
+        mu_c = dr.gather(mi.Float, g.coarse_mu, mi.UInt32(cflat), valid)
+        refined = valid & (mu_c < 0.0)
+        mu_f = dr.gather(mi.Float, g.fine.majorant, g.flat(cell), refined)
+        lo = dr.select(refined, cell, coarse << g.log2f)
+        width = mi.Vector3i(dr.select(refined, 1, g.refinement))
+        far = mi.Vector3f(lo + dr.select(d >= 0, width, 0))
+        # >= t_at: a point rounded past the grid's last face (clamped) moves on too
+        t_exit = t_at + dr.maximum(dr.min((far - p) * inv), 0.0)
+        t1 = dr.minimum(t_exit, t_hi)
+        t0 = t_cell
+        t_cell = dr.select(valid, t1, t_cell)
+        return (t_cell, inv, guard), Segment(t0, t1, dr.select(refined, mu_f, mu_c), valid)
+
+
 class TreeSegments:
     """Front-to-back leaves of a `DeviceTree` (kd-restart)."""
 
@@ -98,9 +151,8 @@ class TreeSegments:
         hi = dr.gather(mi.Vector3f, tree.leaf_hi, leaf, valid)
         far = dr.select(d >= 0, hi, lo)
         t_exit = dr.min((far - o) * safe_rcp(d))
-        # progress guard: p rounded to before the plane re-finds the same
-        # leaf; step a few ulps of t, or 1e-7 of the time to cross the cube
-        t_min = t_cell + dr.maximum(dr.abs(t_cell) * 5e-7, 1e-7 * dr.rcp(dr.max(dr.abs(d))))
+        # progress guard: p rounded to before the plane re-finds the same leaf
+        t_min = t_cell + progress_guard(t_cell, d)
         t1 = dr.minimum(dr.maximum(t_exit, t_min), t_hi)
         mu = dr.gather(mi.Float, tree.majorant, leaf, valid)
         t0 = t_cell

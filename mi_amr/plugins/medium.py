@@ -126,8 +126,16 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
          the whole volume.
      * - grid_resolution
        - |int|
-       - Macrocells along the longest axis. Default: chosen by a cost model
-         of the data and the TF (`mi_amr.structures.macrocell_grid.auto_resolution`).
+       - Macrocells along the longest axis (of the fine level of a
+         two-level grid). Default: chosen by a cost model of the data and
+         the TF (`mi_amr.structures.cost_model.auto_grid`).
+     * - grid_refinement
+       - |int|
+       - 1: a uniform grid walked by DDA; a power of two ``f``: a two-level
+         grid whose coarse macrocells hold ``f^3`` fine ones, each coarse
+         macrocell walked through its fine ones where that saves work for
+         the current TF (decided again on every TF change). Default: chosen
+         by the cost model; ``grid_resolution`` alone means 1.
      * - traversal
        - |string|
        - Segments and majorants for ``amrvolpath`` (and the ray-wise
@@ -257,8 +265,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
     @property
     def majorant_grid(self) -> np.ndarray:
         """Macrocell majorants as a numpy array indexed ``[z, y, x]``."""
-        r = self.grid.res
-        return self.structures.grid.majorant.numpy().reshape(r[2], r[1], r[0])
+        return self.structures.grid.effective_majorants()
 
     def update_majorants(self):
         """Recompute every majorant from the value ranges, TF and scale."""

@@ -32,7 +32,7 @@ MAX_DENSITY_SCALE = 1e30
 #: Largest condition number of to_world's linear part (float32 precision).
 MAX_CONDITION = 1e7
 KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
-         "density_scale", "reconstruction", "majorant", "grid_resolution",
+         "density_scale", "reconstruction", "majorant", "grid_resolution", "grid_refinement",
          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
          "kdtree_leaves", "max_iterations", "memory_limit", "value_masks"}
 
@@ -66,6 +66,7 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
         traversal=get_string(props, "amr", "traversal", "grid", TRAVERSALS),
         sampling=get_string(props, "amr", "sampling", "hash", SAMPLINGS),
         grid_resolution=get_int(props, "amr", "grid_resolution", None, minimum=1),
+        grid_refinement=_refinement(props),
         brick_size=get_int(props, "amr", "brick_size", 8, minimum=1, maximum=1024),
         kdtree_leaves=get_int(props, "amr", "kdtree_leaves", 4096, minimum=1),
         value_masks=get_bool(props, "amr", "value_masks", True),
@@ -100,6 +101,14 @@ def as_transform4f(t) -> "mi.ScalarTransform4f":
     # scales far from 1 (1e-20: the determinant is 1e-60)
     inv_t = np.linalg.inv(m).T
     return mi.ScalarTransform4f(mi.ScalarMatrix4f(m.astype(np.float32)), mi.ScalarMatrix4f(inv_t.astype(np.float32)))
+
+
+def _refinement(props) -> int | None:
+    """``grid_refinement``: 1 (a uniform grid) or a power of two up to 64."""
+    f = get_int(props, "amr", "grid_refinement", None, minimum=1, maximum=64)
+    if f is not None and f & (f - 1):
+        raise ParameterError(f"amr: grid_refinement must be 1 or a power of two (2, 4, ..., 64), got {f}")
+    return f
 
 
 def _load_data(props, method: str) -> AMRCells | BlockVolume:

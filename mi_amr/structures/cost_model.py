@@ -1,10 +1,14 @@
-"""Cost model that picks the macrocell grid resolution for the data and the TF.
+"""Cost model that picks the macrocell grid for the data and the TF: its
+resolution and, where the data are refined in a small part of the domain,
+a two-level layout (docs/design.md section 4).
 
-See `auto_resolution`. Lengths are in the medium's local space (the data
-bounds are the unit cube); majorants in inverse world units.
+See `auto_grid`. Lengths are in the medium's local space (the data bounds
+are the unit cube); majorants in inverse world units unless said otherwise.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -14,18 +18,95 @@ from .macrocell_grid import MacrocellGrid
 from .value_masks import mask_max_alpha_host
 
 
-#: Cost of one DDA step relative to one density look-up (tent/nearest hash
-#: sampling on llvm_ad_rgb), used by `auto_resolution`; calibrated with the
-#: grid-resolution sweep of ``python -m mi_amr.bench``.
-STEP_COST = 0.08
+#: Cost of one DDA step of the uniform grid relative to one density look-up
+#: (hash sampling, llvm_ad_rgb): a fit of ratio-tracking time against steps
+#: and look-ups over uniform and two-level grids gave about 11 ns per step and
+#: 50 ns per look-up (docs/performance/two-level-grid.md).
+STEP_COST = 0.2
+#: Cost of one step of the two-level grid (a point location, one or two
+#: gathers and a slab exit instead of one DDA increment), same units: about
+#: 1.2 DDA steps.
+TWO_LEVEL_STEP_COST = 0.24
 CANDIDATES = (8, 16, 32, 64, 128)
+#: Refinement factors tried for two-level grids (fine macrocells per coarse
+#: one along each axis), and the fewest coarse macrocells along the longest axis.
+REFINEMENTS = (2, 4, 8, 16)
+MIN_COARSE = 4
+#: Steps per unit length of a ray through macrocells of width 1/R: about 1.5 R.
+STEPS_PER_CELL = 1.5
 
 
-def auto_resolution(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.0,
-                    support: str = "tent", candidates=CANDIDATES, grids: dict | None = None,
-                    masks: bool = False):
-    """Grid resolution (longest axis) minimising the expected tracking cost
-    per unit of ray length in the unit cube:
+@dataclass(frozen=True)
+class GridPlan:
+    """A macrocell grid: ``resolution`` macrocells along the longest axis
+    (the fine level of a two-level grid) and ``refinement`` fine macrocells
+    per coarse one along each axis (1: a uniform grid walked by DDA)."""
+    resolution: int
+    refinement: int = 1
+
+    @property
+    def coarse_resolution(self) -> int:
+        return -(-self.resolution // self.refinement)
+
+    def step_costs(self) -> tuple[float, float]:
+        """Step cost per unit local length at the coarse and the fine spacing."""
+        if self.refinement == 1:
+            c = STEP_COST * STEPS_PER_CELL * self.resolution
+            return c, c
+        c = TWO_LEVEL_STEP_COST * STEPS_PER_CELL * self.resolution
+        return c / self.refinement, c
+
+
+def refine_gain(n, s1, mu_c, keep_step, refine_step, maximum):
+    """Look-ups plus steps saved per unit of ray length inside each coarse
+    macrocell by walking it through its fine macrocells (> 0: refine).
+
+    ``n``: its fine macrocells inside the domain; ``s1``: the sum of their
+    majorants and ``mu_c`` the coarse one (inverse local length);
+    ``keep_step``/``refine_step``: step costs per unit length at the coarse
+    and the fine spacing. A ray crossing the macrocell takes ``mu_c``
+    look-ups per unit length when it is kept and the mean fine majorant
+    when it is refined. The rule is local, so it does not depend on where
+    the camera looks, only on the data and the TF. Plain arithmetic: the
+    same code runs on numpy arrays (at build) and on Dr.Jit arrays (on each
+    TF change); ``maximum`` is ``np.maximum`` or ``dr.maximum``."""
+    return keep_step + mu_c - refine_step - s1 / maximum(n, 1.0)
+
+
+def plan_cost(mu: np.ndarray, plan: GridPlan):
+    """Expected tracking cost per unit local length of two-level ``plan``
+    over its fine majorants ``mu`` ([z, y, x], inverse local length), as in
+    `auto_grid`: each coarse macrocell costs ``keep_step + mu_c`` per unit
+    length, or ``refine_step`` plus its mean fine majorant where
+    `refine_gain` refines it; half the rays weigh the macrocells by volume,
+    half by their share of collisions (the sum of their fine majorants).
+    Returns ``(cost, refined)``, ``refined`` the refined coarse macrocells
+    ([z, y, x])."""
+    f = plan.refinement
+    keep_step, refine_step = plan.step_costs()
+    pad = [(0, (-s) % f) for s in mu.shape]
+    inside = np.pad(np.ones(mu.shape, dtype=np.float64), pad)
+    mu = np.pad(mu.astype(np.float64), pad)
+    z, y, x = (s // f for s in mu.shape)
+
+    def blocks(a, op):
+        return op.reduce(op.reduce(op.reduce(a.reshape(z, f, y, f, x, f), axis=5), axis=3), axis=1)
+    n, mu_c, s1 = blocks(inside, np.add), blocks(mu, np.maximum), blocks(mu, np.add)
+    refined = refine_gain(n, s1, mu_c, keep_step, refine_step, np.maximum) > 0
+    per_length = np.where(refined, refine_step + s1 / np.maximum(n, 1.0), keep_step + mu_c)
+    total_s1 = float(s1.sum())
+    cost = 0.5 * float((n * per_length).sum() / n.sum())
+    cost += 0.5 * (float((s1 * per_length).sum()) / total_s1 if total_s1 > 0 else float(keep_step))
+    return cost, refined
+
+
+def auto_grid(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.0,
+              support: str = "tent", candidates=CANDIDATES, grids: dict | None = None,
+              masks: bool = False, refinements=(1,) + REFINEMENTS):
+    """The `GridPlan` of least expected tracking cost per unit of ray
+    length in the unit cube, and ``{plan: cost}``.
+
+    For a uniform grid of resolution R:
 
         cost(R) = STEP_COST * 1.5 R  +  (E[mu_bar] + E[mu_bar^2] / E[mu_bar]) / 2
 
@@ -34,12 +115,20 @@ def auto_resolution(cells: AMRCells, tf, density_scale: float, world_scale: floa
     density look-up). Half the rays are taken as uniform through the volume
     (camera rays: the plain mean over macrocells), half as starting where
     collisions happen (scattered and shadow rays: the mean weighted by
-    ``mu_bar``). ``world_scale`` converts local to world length. The
-    value ranges are splatted once at the finest candidate and max/min-pooled
-    by powers of two for the coarser ones. Returns ``(best, {R: cost})``;
-    ``grids``, when given, receives the finest grid (``grids[R] = grid``),
-    from which `MacrocellGrid.pooled` makes the chosen one. With ``masks``
-    the grids carry value masks and the majorants use them."""
+    ``mu_bar``). A two-level plan has the finest candidate as its fine
+    level and coarse macrocells of ``f^3`` fine ones (`plan_cost`). Refinement is decided per coarse
+    macrocell by the look-ups and steps per unit length inside it, so it
+    does not depend on how much of the domain is empty: a small refined
+    object in a large coarse domain (where the view, unknown here, usually
+    is) gets the finest macrocells. ``refinements``: the factors allowed
+    (``(1,)``: uniform grids only; one factor: that one).
+
+    ``world_scale`` converts local to world length. The value ranges are
+    splatted once at the finest candidate and pooled by powers of two for
+    the coarser ones; ``grids``, when given, receives the finest grid
+    (``grids[R] = grid``), from which `MacrocellGrid.pooled` makes the
+    chosen one. With ``masks`` the grids carry value masks and the
+    majorants use them."""
     lo, hi = cells.bounds
     ext = int((hi - lo).max())
     cands = sorted(c for c in candidates if c <= max(ext, min(candidates)))
@@ -53,20 +142,45 @@ def auto_resolution(cells: AMRCells, tf, density_scale: float, world_scale: floa
     if masks:
         bin_alpha = range_majorants_host(tf, *g.bins.edges(), 1.0)
         mask = g.masks.reshape(shape)
-    costs = {}
-    for c in reversed(cands):
+    mus = {}
+    for c in cands:
         f = max(1, finest // c)
         pmin, pmax = _pool(vmin, f, np.minimum, np.inf), _pool(vmax, f, np.maximum, -np.inf)
         mu = range_majorants_host(tf, pmin.ravel(), pmax.ravel(), density_scale)
         if masks:
             pmask = _pool(mask, f, np.bitwise_or, np.uint64(0)).ravel()
             mu = np.minimum(mu, density_scale * mask_max_alpha_host(bin_alpha, pmask))
-        mu = mu.astype(np.float64) * world_scale
-        m1 = float(mu.mean())
-        m2 = float((mu * mu).mean()) / m1 if m1 > 0 else 0.0
-        costs[c] = STEP_COST * 1.5 * c + 0.5 * (m1 + m2)
-    best = min(costs, key=costs.get)
+        mus[c] = (mu.astype(np.float64) * world_scale).reshape(pmin.shape)
+    costs = {GridPlan(c): _uniform_cost(mus[c], c) for c in cands}
+    for k in refinements:
+        if k > 1 and (finest // k >= MIN_COARSE or len(refinements) == 1):
+            plan = GridPlan(finest, k)
+            cost, refined = plan_cost(mus[finest], plan)
+            if refined.any():       # else it is a uniform grid of the coarse level
+                costs[plan] = cost
+    allowed = [p for p in costs if p.refinement in refinements]
+    if not allowed:                 # a forced factor that refines nothing here
+        allowed = [GridPlan(finest, refinements[0])]
+        costs[allowed[0]] = plan_cost(mus[finest], allowed[0])[0]
+    best = min(allowed, key=lambda p: (costs[p], p.refinement, p.resolution))
     return best, costs
+
+
+def _uniform_cost(mu: np.ndarray, resolution: int) -> float:
+    """cost(R) of `auto_grid` for majorants ``mu`` (inverse local length)."""
+    m1 = float(mu.mean())
+    m2 = float((mu * mu).mean()) / m1 if m1 > 0 else 0.0
+    return STEP_COST * STEPS_PER_CELL * resolution + 0.5 * (m1 + m2)
+
+
+def auto_resolution(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.0,
+                    support: str = "tent", candidates=CANDIDATES, grids: dict | None = None,
+                    masks: bool = False):
+    """The best uniform grid of `auto_grid` (no two-level plans): ``(R,
+    {R: cost})``."""
+    best, costs = auto_grid(cells, tf, density_scale, world_scale, support, candidates, grids,
+                            masks, refinements=(1,))
+    return best.resolution, {p.resolution: c for p, c in costs.items() if p.refinement == 1}
 
 
 def _pool(a: np.ndarray, f: int, op, fill) -> np.ndarray:

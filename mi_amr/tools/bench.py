@@ -77,7 +77,7 @@ def dense_volume(cells, args):
     return _DENSE[key]
 
 
-def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resolution=None):
+def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resolution=None, grid_refinement=1):
     """Measure one configuration; returns (record, image)."""
     import drjit as dr
     import numpy as np
@@ -101,6 +101,9 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
                   "reconstruction": args.reconstruction, "value_masks": not args.no_value_masks}
         if grid_resolution is not None:
             medium["grid_resolution"] = int(grid_resolution)
+            medium["grid_refinement"] = int(grid_refinement)
+        elif args.grid_refinement is not None:
+            medium["grid_refinement"] = args.grid_refinement
         if kind[0] == "volpath":
             medium["majorant"] = kind[1]
         else:
@@ -161,7 +164,7 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
         rec["majorant_update_s"] = (time.perf_counter() - t0) / 5
         rec["build_detail_s"] = dict(med.build_seconds)
         rec["resolved"] = (f"{med.options.structures.traversal}/{med.options.structures.sampling}, "
-                           f"grid {'x'.join(str(int(r)) for r in med.grid.res)}")
+                           f"{med.structures.grid.describe()}")
     return rec, acc / args.repeats
 
 
@@ -184,6 +187,8 @@ def main(argv=None):
     p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
     p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
     p.add_argument("--reconstruction", default="nearest", choices=("nearest", "tent"))
+    p.add_argument("--grid-refinement", type=int, default=None, metavar="F",
+                   help="grid_refinement of every amr medium (1: uniform grids only; default: the cost model's)")
     p.add_argument("--no-value-masks", action="store_true",
                    help="range majorants only (the A/B of the value masks; nearest)")
     p.add_argument("--memory-limit", type=float, default=4.0,
@@ -386,25 +391,29 @@ def frozen_frame_timing(mi, scene, spp: int, rounds: int = 5):
 
 
 def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
-    """Efficiency of amrvolpath/grid/hash over grid resolutions, and of the
-    resolution `auto_resolution` picks (Fig. 8 of the paper)."""
-    from ..structures.cost_model import auto_resolution
+    """Efficiency of amrvolpath/grid/hash over uniform grid resolutions, and
+    of the grid `auto_grid` picks (uniform or two-level; Fig. 8 of the paper)."""
+    from ..structures.cost_model import REFINEMENTS, auto_grid
     rows = []
     for r in args.sweep:
         rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img, grid_resolution=r)
         rows.append({"grid_resolution": r, "efficiency": rec["efficiency"],
                      "seconds_per_spp": rec["seconds_per_spp"],
                      "lookups_per_collision": rec["lookups_per_collision"]})
-    auto, costs = auto_resolution(cells, tf, scale, support=args.reconstruction,
-                                  masks=args.reconstruction == "nearest" and not args.no_value_masks)
-    rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img, grid_resolution=auto)
+    refinements = (1,) + REFINEMENTS if args.grid_refinement is None else (args.grid_refinement,)
+    plan, costs = auto_grid(cells, tf, scale, support=args.reconstruction, refinements=refinements,
+                            masks=args.reconstruction == "nearest" and not args.no_value_masks)
+    auto = str(plan.resolution) if plan.refinement == 1 else f"{plan.resolution}/{plan.refinement} two-level"
+    rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img,
+                        grid_resolution=plan.resolution, grid_refinement=plan.refinement)
     best = max(rows, key=lambda x: x["efficiency"])
-    out = {"dataset": name, "tf": tf_name, "rows": rows, "auto_resolution": auto,
+    out = {"dataset": name, "tf": tf_name, "rows": rows, "auto_resolution": plan.resolution,
+           "auto_refinement": plan.refinement, "auto_plan": auto,
            "auto_efficiency": rec["efficiency"], "best_resolution": best["grid_resolution"],
            "best_efficiency": best["efficiency"], "auto_vs_best": rec["efficiency"] / best["efficiency"],
-           "model_costs": costs}
-    print(f"{name:8s} {tf_name:6s} grid sweep: best R={best['grid_resolution']}, auto R={auto} "
-          f"reaches {out['auto_vs_best']:.0%} of the best efficiency", flush=True)
+           "model_costs": {f"{p.resolution}/{p.refinement}": c for p, c in costs.items()}}
+    print(f"{name:8s} {tf_name:6s} grid sweep: best uniform R={best['grid_resolution']}, auto {auto} "
+          f"reaches {out['auto_vs_best']:.0%} of its efficiency", flush=True)
     return out
 
 
@@ -472,9 +481,11 @@ def plot_sweeps(sweeps, out: Path):
         r = [x["grid_resolution"] for x in sw["rows"]]
         e = [x["efficiency"] / sw["best_efficiency"] for x in sw["rows"]]
         line, = ax.semilogx(r, e, marker="o", label=f"{sw['dataset']}/{sw['tf']}")
-        ax.plot([sw["auto_resolution"]], [sw["auto_vs_best"]], marker="*", ms=14, color=line.get_color())
-    ax.set_xlabel("grid resolution (macrocells along the longest axis)")
-    ax.set_ylabel("efficiency / best of sweep (star: automatic choice)")
+        two_level = sw.get("auto_refinement", 1) > 1
+        ax.plot([sw["auto_resolution"]], [sw["auto_vs_best"]], marker="P" if two_level else "*", ms=14,
+                color=line.get_color())
+    ax.set_xlabel("grid resolution (macrocells along the longest axis; fine level of a two-level grid)")
+    ax.set_ylabel("efficiency / best uniform grid\n(star: automatic uniform choice, plus: two-level)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -516,10 +527,11 @@ def write_tables(records, sweeps, out: Path, tf_timing=None):
         lines.append("")
     if sweeps:
         lines += ["## Grid resolution sweep (amrvolpath/grid/hash)", "",
-                  "| data set | TF | best R | best efficiency | auto R | auto / best |", "|---|---|---|---|---|---|"]
+                  "| data set | TF | best uniform R | best efficiency | auto grid | auto / best |",
+                  "|---|---|---|---|---|---|"]
         for sw in sweeps:
             lines.append(f"| {sw['dataset']} | {sw['tf']} | {sw['best_resolution']} | {sw['best_efficiency']:.4g} | "
-                         f"{sw['auto_resolution']} | {sw['auto_vs_best']:.0%} |")
+                         f"{sw.get('auto_plan', sw['auto_resolution'])} | {sw['auto_vs_best']:.0%} |")
         lines.append("")
     if tf_timing:
         lines += ["## Transfer-function change", "",
