@@ -115,13 +115,16 @@ def auto_grid(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.
     density look-up). Half the rays are taken as uniform through the volume
     (camera rays: the plain mean over macrocells), half as starting where
     collisions happen (scattered and shadow rays: the mean weighted by
-    ``mu_bar``). A two-level plan has the finest candidate as its fine
-    level and coarse macrocells of ``f^3`` fine ones (`plan_cost`). Refinement is decided per coarse
+    ``mu_bar``). A two-level plan keeps the best uniform grid R* as its
+    coarse level and has fine macrocells f times smaller (f R* a candidate),
+    priced by `plan_cost`. Refinement is decided per coarse
     macrocell by the look-ups and steps per unit length inside it, so it
     does not depend on how much of the domain is empty: a small refined
     object in a large coarse domain (where the view, unknown here, usually
-    is) gets the finest macrocells. ``refinements``: the factors allowed
-    (``(1,)``: uniform grids only; one factor: that one).
+    is) gets fine macrocells; and where nothing is refined the walk is as
+    coarse as R*. ``refinements``: the factors allowed (``(1,)``: uniform
+    grids only; one factor f > 1: that one, with the finest candidate as
+    the fine level if f R* is not a candidate).
 
     ``world_scale`` converts local to world length. The value ranges are
     splatted once at the finest candidate and pooled by powers of two for
@@ -152,16 +155,21 @@ def auto_grid(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.
             mu = np.minimum(mu, density_scale * mask_max_alpha_host(bin_alpha, pmask))
         mus[c] = (mu.astype(np.float64) * world_scale).reshape(pmin.shape)
     costs = {GridPlan(c): _uniform_cost(mus[c], c) for c in cands}
+    uniform = min(costs, key=lambda p: (costs[p], p.resolution))
+    forced = len(refinements) == 1 and refinements[0] > 1
     for k in refinements:
-        if k > 1 and (finest // k >= MIN_COARSE or len(refinements) == 1):
-            plan = GridPlan(finest, k)
-            cost, refined = plan_cost(mus[finest], plan)
-            if refined.any():       # else it is a uniform grid of the coarse level
-                costs[plan] = cost
+        if k == 1:
+            continue
+        fine = uniform.resolution * k
+        if fine not in mus:
+            if not forced:
+                continue
+            fine = finest                    # a forced factor: the finest level, coarse = finest / k
+        plan = GridPlan(fine, k)
+        cost, refined = plan_cost(mus[fine], plan)
+        if refined.any() or forced:          # else it is the uniform grid R*, with dearer steps
+            costs[plan] = cost
     allowed = [p for p in costs if p.refinement in refinements]
-    if not allowed:                 # a forced factor that refines nothing here
-        allowed = [GridPlan(finest, refinements[0])]
-        costs[allowed[0]] = plan_cost(mus[finest], allowed[0])[0]
     best = min(allowed, key=lambda p: (costs[p], p.refinement, p.resolution))
     return best, costs
 
