@@ -247,15 +247,17 @@ class Structures:
 
     # ---- Majorants -------------------------------------------------------------
     def update_majorants(self, tf_device, density_scale):
-        """Recompute the majorants of every built structure from its value
-        ranges, the TF and the density scale (one Dr.Jit kernel each), and
-        the global maximum."""
+        """Recompute the majorants and minorants of every built structure
+        from its value ranges, the TF and the density scale (one Dr.Jit
+        kernel each), and the global maximum. Minorants are 0 unless the
+        cells fill their bounding box."""
         self._majorant_inputs = (tf_device, density_scale)
         dr.eval()        # pending work of others stays out of the majorant kernels,
         mus = []         # so that they are the same code at load time and after
+        minorants = self.volume.covers_bounds          # else a point may have no value (sigma_t = 0)
         for name in MAJORANT_STRUCTURES:
             if name in self.device:
-                self.device[name].update_majorants(tf_device, density_scale)
+                self.device[name].update_majorants(tf_device, density_scale, minorants)
                 mus.append(dr.max(self.device[name].majorant))
         g = mus[0] if mus else mi.Float(0.0)
         for m in mus[1:]:

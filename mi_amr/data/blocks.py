@@ -58,6 +58,7 @@ class BlockVolume(mi.Object):
         self.origin, self.lo, self.hi = origin, lo, hi
         self.n_cells = int(n_cells)
         self.source = source
+        self._covers = None
         self._update_range()
 
 
@@ -154,6 +155,21 @@ class BlockVolume(mi.Object):
     @property
     def value_range(self) -> tuple[float, float]:
         return self._range
+
+    @property
+    def covers_bounds(self) -> bool:
+        """Whether the cells fill their bounding box (no holes): their
+        volumes add up to the box's (cells never overlap here), so every
+        point of it has a value. Counted block by block, once."""
+        if self._covers is None:
+            b3 = self.block ** 3
+            total = 0
+            step = max(1, (1 << 22) // b3)
+            for s in range(0, len(self.level), step):
+                present = (~np.isnan(self.values[s * b3:(s + step) * b3].reshape(-1, b3))).sum(axis=1)
+                total += int((present.astype(np.int64) << (3 * self.level[s:s + step].astype(np.int64))).sum())
+            self._covers = total == int(np.prod((self.hi - self.lo).astype(np.int64)))
+        return self._covers
 
     @property
     def nbytes(self) -> int:

@@ -15,12 +15,17 @@ import numpy as np
 from .structs import jit_struct
 
 
+#: Minorants are scaled by this: an interpolated TF alpha may round one ulp
+#: below the smaller of its two table entries.
+MINORANT_SHRINK = 1.0 - 1e-6
+
+
 @jit_struct(res="Vector3i", vmin="Float", vmax="Float", level_bits="UInt32", majorant="Float",
-            mask_lo="UInt32", mask_hi="UInt32", bin_lo="Float", bin_hi="Float")
+            minorant="Float", mask_lo="UInt32", mask_hi="UInt32", bin_lo="Float", bin_hi="Float")
 class DeviceMacrocellGrid:
     """A `MacrocellGrid` in Dr.Jit: ranges, level masks, value masks (when
     the grid has them: ``mask_lo``/``mask_hi`` the low and high 32 bits, and
-    the value bins' edges) and majorants."""
+    the value bins' edges), majorants and minorants (inverse world units)."""
 
     def __init__(self, grid):
         self.host = grid
@@ -29,6 +34,7 @@ class DeviceMacrocellGrid:
         self.vmax = mi.Float(grid.vmax)
         self.level_bits = mi.UInt32(grid.level_bits)
         self.majorant = dr.zeros(mi.Float, grid.vmin.size)
+        self.minorant = dr.zeros(mi.Float, grid.vmin.size)
         self.has_masks = grid.masks is not None
         if self.has_masks:
             self.mask_lo = mi.UInt32((grid.masks & np.uint64(0xFFFFFFFF)).astype(np.uint32))
@@ -45,35 +51,44 @@ class DeviceMacrocellGrid:
     def size(self) -> int:
         return self.host.vmin.size
 
-    def update_majorants(self, tf, density_scale):
+    def update_majorants(self, tf, density_scale, minorants: bool = True):
         """Per-macrocell majorant ``density_scale * max alpha`` over the
         table entries covering the macrocell's value range and, with value
-        masks, over the bins of its mask (the smaller of the two)."""
+        masks, over the bins of its mask (the smaller of the two); minorant
+        ``density_scale * min alpha`` over the same (the larger of the two),
+        or 0 where ``minorants`` is false (data with holes, where a point
+        may have no value)."""
         alpha = tf.range_max_alpha(self.vmin, self.vmax)
+        low = tf.range_min_alpha(self.vmin, self.vmax)
         if self.has_masks:
-            alpha = dr.minimum(alpha, self._mask_max_alpha(tf))
+            alpha = dr.minimum(alpha, self._mask_alpha(tf, dr.maximum))
+            low = dr.maximum(low, self._mask_alpha(tf, dr.minimum))
         self.majorant = density_scale * alpha
-        dr.make_opaque(self.majorant)
+        self.minorant = (density_scale * MINORANT_SHRINK) * low if minorants else dr.zeros(mi.Float, self.size)
+        dr.make_opaque(self.majorant, self.minorant)
 
-    def _mask_max_alpha(self, tf):
-        """Max alpha over the set bins of each value mask: per-bin maxima (64
-        range look-ups), then one 256-entry table per mask byte (8 x 256
-        entries), then one table look-up per byte of each mask."""
-        bin_alpha = tf.range_max_alpha(self.bin_lo, self.bin_hi)
+    def _mask_alpha(self, tf, op):
+        """Max (``op = dr.maximum``) or min (``dr.minimum``) alpha over the
+        set bins of each value mask: per-bin extremes (64 range look-ups),
+        then one 256-entry table per mask byte (8 x 256 entries), then one
+        table look-up per byte of each mask; 0 for an empty mask."""
+        none = 0.0 if op is dr.maximum else float("inf")       # neutral: no bit set
+        bin_range = tf.range_max_alpha if op is dr.maximum else tf.range_min_alpha
+        bin_alpha = bin_range(self.bin_lo, self.bin_hi)
         dr.eval(bin_alpha)
         idx = dr.arange(mi.UInt32, 8 * 256)
         byte, j = idx & 255, idx >> 8
-        table = mi.Float(0.0)
+        table = mi.Float(none)
         for i in range(8):
             a = dr.gather(mi.Float, bin_alpha, 8 * j + i)
-            table = dr.select(((byte >> i) & 1) != 0, dr.maximum(table, a), table)
+            table = dr.select(((byte >> i) & 1) != 0, op(table, a), table)
         dr.eval(table)
-        m = mi.Float(0.0)
+        m = mi.Float(none)
         for j in range(8):
             word = self.mask_lo if j < 4 else self.mask_hi
             b = (word >> (8 * (j % 4))) & 255
-            m = dr.maximum(m, dr.gather(mi.Float, table, 256 * j + b))
-        return m
+            m = op(m, dr.gather(mi.Float, table, 256 * j + b))
+        return dr.select(m == float("inf"), 0.0, m)
 
     def cell_of(self, u: mi.Vector3f) -> mi.Vector3i:
         """Macrocell containing local point ``u`` (clamped to the grid)."""
@@ -92,7 +107,8 @@ class DeviceMacrocellGrid:
 
 
 @jit_struct(res="Vector3i", coarse_res="Vector3i", fine=DeviceMacrocellGrid, coarse_mu="Float",
-            n_fine="Float", keep_step="Float", refine_step="Float", world_scale="Float")
+            coarse_min="Float", fine_inside="Bool", n_fine="Float", keep_step="Float", refine_step="Float",
+            world_scale="Float")
 class DeviceTwoLevelGrid:
     """A two-level macrocell grid in Dr.Jit (docs/design.md section 4).
 
@@ -104,7 +120,8 @@ class DeviceTwoLevelGrid:
     and sums are block reductions. On each TF change a coarse macrocell is
     *refined* (walked through its fine macrocells) where that lowers the
     expected look-ups plus steps per unit length inside it; ``coarse_mu``
-    holds its majorant, the largest of its fine ones, or -1 where refined.
+    holds its majorant, the largest of its fine ones, or -1 where refined;
+    ``coarse_min`` its minorant, the smallest of its fine ones.
     """
 
     def __init__(self, grid, refinement: int, world_scale: float, step_costs):
@@ -131,12 +148,14 @@ class DeviceTwoLevelGrid:
                                bins=grid.bins)
         self.fine = DeviceMacrocellGrid(view)
         self.fine.host = grid
+        self.fine_inside = mi.Bool(inside > 0)
         self.n_fine = dr.block_sum(mi.Float(inside), f ** 3)
         self.coarse_mu = dr.zeros(mi.Float, self.n_coarse)
+        self.coarse_min = dr.zeros(mi.Float, self.n_coarse)
         self.keep_step, self.refine_step = mi.Float(step_costs[0]), mi.Float(step_costs[1])
         self.world_scale = mi.Float(world_scale)
-        dr.make_opaque(self.res, self.coarse_res, self.n_fine, self.keep_step, self.refine_step,
-                       self.world_scale)
+        dr.make_opaque(self.res, self.coarse_res, self.fine_inside, self.n_fine, self.keep_step,
+                       self.refine_step, self.world_scale)
 
     @property
     def size(self) -> int:
@@ -148,23 +167,30 @@ class DeviceTwoLevelGrid:
         return self.fine.majorant
 
     @property
+    def minorant(self) -> mi.Float:
+        """Fine minorants (block order)."""
+        return self.fine.minorant
+
+    @property
     def level_bits(self) -> mi.UInt32:
         return self.fine.level_bits
 
-    def update_majorants(self, tf, density_scale):
-        """Fine majorants (ranges and value masks, as `DeviceMacrocellGrid`),
-        coarse ones as their block maxima, and which coarse macrocells to
-        refine (`mi_amr.structures.cost_model.refine_gain` > 0); no host
+    def update_majorants(self, tf, density_scale, minorants: bool = True):
+        """Fine majorants and minorants (as `DeviceMacrocellGrid`), coarse
+        ones as their block maxima and minima, and which coarse macrocells
+        to refine (`mi_amr.structures.cost_model.refine_gain` > 0); no host
         round trip."""
         from ..structures.cost_model import refine_gain
-        self.fine.update_majorants(tf, density_scale)
+        self.fine.update_majorants(tf, density_scale, minorants)
+        self.coarse_min = dr.block_reduce(dr.ReduceOp.Min, dr.select(self.fine_inside, self.fine.minorant,
+                                                                     float("inf")), self.refinement ** 3)
         b = self.refinement ** 3
         mu = self.fine.majorant * self.world_scale          # inverse local length
         mu_c = dr.block_reduce(dr.ReduceOp.Max, mu, b)
         s1 = dr.block_sum(mu, b)
         gain = refine_gain(self.n_fine, s1, mu_c, self.keep_step, self.refine_step, dr.maximum)
         self.coarse_mu = dr.select(gain > 0.0, -1.0, mu_c * dr.rcp(self.world_scale))
-        dr.make_opaque(self.coarse_mu)
+        dr.make_opaque(self.coarse_mu, self.coarse_min)
 
     def describe(self) -> str:
         rc = -(-np.asarray(self.host.res) // self.refinement)

@@ -24,13 +24,14 @@ from .structs import jit_struct
 from .tree import DeviceTree
 
 
-@jit_struct(t0="Float", t1="Float", mu="Float", valid="Bool")
+@jit_struct(t0="Float", t1="Float", mu="Float", mu_min="Float", valid="Bool")
 class Segment:
     """One piece ``[t0, t1]`` (local ray parameter) of a ray with majorant
-    ``mu`` (inverse world units); ``valid`` is false past the ray's end."""
+    ``mu`` and minorant ``mu_min`` (inverse world units); ``valid`` is false
+    past the ray's end."""
 
-    def __init__(self, t0=None, t1=None, mu=None, valid=None):
-        self.t0, self.t1, self.mu, self.valid = t0, t1, mu, valid
+    def __init__(self, t0=None, t1=None, mu=None, mu_min=None, valid=None):
+        self.t0, self.t1, self.mu, self.mu_min, self.valid = t0, t1, mu, mu_min, valid
 
 
 class GridSegments:
@@ -63,7 +64,9 @@ class GridSegments:
         valid = active & inside & (t_cell < t_hi)
         t0 = t_cell
         t1 = dr.minimum(dr.min(t_next), t_hi)
-        mu = dr.gather(mi.Float, g.majorant, g.flat(dr.clip(cell, 0, g.res - 1)), valid)
+        flat = g.flat(dr.clip(cell, 0, g.res - 1))
+        mu = dr.gather(mi.Float, g.majorant, flat, valid)
+        mu_min = dr.gather(mi.Float, g.minorant, flat, valid)
         ax_x = (t_next.x <= t_next.y) & (t_next.x <= t_next.z)
         ax_y = ~ax_x & (t_next.y <= t_next.z)
         ax_z = ~ax_x & ~ax_y
@@ -75,7 +78,7 @@ class GridSegments:
                              dr.select(mv & ax_y, t_next.y + dt.y, t_next.y),
                              dr.select(mv & ax_z, t_next.z + dt.z, t_next.z))
         t_cell = dr.select(mv, t1, t_cell)
-        return (cell, t_next, t_cell), Segment(t0, t1, mu, valid)
+        return (cell, t_next, t_cell), Segment(t0, t1, mu, mu_min, valid)
 
 
 def progress_guard(t, d):
@@ -117,7 +120,10 @@ class TwoLevelGridSegments:
         cflat = coarse.x + g.coarse_res.x * (coarse.y + g.coarse_res.y * coarse.z)
         mu_c = dr.gather(mi.Float, g.coarse_mu, mi.UInt32(cflat), valid)
         refined = valid & (mu_c < 0.0)
-        mu_f = dr.gather(mi.Float, g.fine.majorant, g.flat(cell), refined)
+        fflat = g.flat(cell)
+        mu_f = dr.gather(mi.Float, g.fine.majorant, fflat, refined)
+        mu_min = dr.select(refined, dr.gather(mi.Float, g.fine.minorant, fflat, refined),
+                           dr.gather(mi.Float, g.coarse_min, mi.UInt32(cflat), valid & ~refined))
         lo = dr.select(refined, cell, coarse << g.log2f)
         width = mi.Vector3i(dr.select(refined, 1, g.refinement))
         far = mi.Vector3f(lo + dr.select(d >= 0, width, 0))
@@ -126,7 +132,7 @@ class TwoLevelGridSegments:
         t1 = dr.minimum(t_exit, t_hi)
         t0 = t_cell
         t_cell = dr.select(valid, t1, t_cell)
-        return (t_cell, inv, guard), Segment(t0, t1, dr.select(refined, mu_f, mu_c), valid)
+        return (t_cell, inv, guard), Segment(t0, t1, dr.select(refined, mu_f, mu_c), mu_min, valid)
 
 
 class TreeSegments:
@@ -155,6 +161,7 @@ class TreeSegments:
         t_min = t_cell + progress_guard(t_cell, d)
         t1 = dr.minimum(dr.maximum(t_exit, t_min), t_hi)
         mu = dr.gather(mi.Float, tree.majorant, leaf, valid)
+        mu_min = dr.gather(mi.Float, tree.minorant, leaf, valid)
         t0 = t_cell
         t_cell = dr.select(valid, t1, t_cell)
-        return (t_cell,), Segment(t0, t1, mu, valid)
+        return (t_cell,), Segment(t0, t1, mu, mu_min, valid)

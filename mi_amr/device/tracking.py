@@ -1,11 +1,33 @@
 """Delta and ratio tracking through local-majorant segments
-(docs/design.md section 5), in one Dr.Jit symbolic loop.
+(docs/design.md section 5), in one Dr.Jit symbolic loop, optionally with the
+segments' minorants as control extinction (section 5b).
 
 Per segment ``[t0, t1]`` with majorant ``mu``: skip it if ``mu == 0`` (no
 density look-up); otherwise ``t -= ln(1 - xi) / mu`` from ``max(t, t0)``;
 past ``t1`` move on to the next segment; a tentative collision at ``t`` is
 real with probability ``sigma_t / mu`` (delta tracking) or multiplies the
 transmittance by ``1 - sigma_t / mu`` (ratio tracking).
+
+With a control extinction ``mu_c`` (the segment's minorant, ``0 <= mu_c <=
+sigma_t``), only the residual ``sigma_t - mu_c`` is tracked, against
+``mu - mu_c``:
+
+* residual ratio tracking (Novak et al. 2014): the transmittance takes the
+  factor ``exp(-mu_c * length)`` of each segment analytically, and each
+  tentative collision (rate ``mu - mu_c``) multiplies it by ``1 - (sigma_t -
+  mu_c) / (mu - mu_c)``;
+* decomposition tracking (Kutz et al. 2017): two exponential clocks run,
+  the control one (rate ``mu_c``) and the residual one (rate ``mu - mu_c``);
+  if the control clock rings first the collision is real with probability
+  one and needs no look-up, otherwise it is real with probability
+  ``(sigma_t - mu_c) / (mu - mu_c)``. A real collision needs the albedo,
+  which for a TF of several colours is itself a look-up: then the control
+  clock would save nothing, and it runs only where the albedo is known
+  without one (``known_albedo``: a TF of one colour; a per-lane flag, so a
+  TF change never changes the kernel).
+
+With ``mu_c = 0`` both take exactly the random numbers and steps of plain
+delta and ratio tracking: the same image for the same seed.
 """
 
 from __future__ import annotations
@@ -35,12 +57,17 @@ class TrackingCounts:
 
 @dr.syntax
 def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: bool,
-                   max_iterations, length_scale=1.0):
+                   max_iterations, length_scale=1.0, control: bool = False, known_albedo=None):
     """Track along the local ray ``o + t d`` over ``[t_lo, t_hi]``.
 
     ``segments``: a segment walker (`mi_amr.device.segments`);
     ``density(u, active) -> (albedo, sigma_t)``; majorants and sigma_t are
     per world length, and ``length_scale`` is local ``t`` per world length.
+    ``control``: use the segments' minorants as control extinction
+    (residual ratio tracking, decomposition tracking); ``known_albedo``:
+    ``(flag, rgb)``, the albedo everywhere when ``flag`` is set (decomposition
+    tracking runs its control clock only then). At a control collision the
+    returned sigma_t is the minorant (no look-up is made).
     Returns ``(collided, t, albedo, sigma_t_or_T, counts)`` (``t`` local):
     for delta tracking the first real collision (``collided``, its ``t``,
     albedo and sigma_t); for ratio tracking ``T`` in the 4th slot. The loop
@@ -50,6 +77,7 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
     t = mi.Float(t_lo)
     seg_end = mi.Float(t_lo)
     mu = mi.Float(0.0)
+    mu_c = mi.Float(0.0)
     collided = mi.Bool(False)
     albedo = mi.Color3f(0.0)
     result = mi.Float(1.0 if ratio else 0.0)
@@ -68,24 +96,52 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
         t = dr.select(need, dr.maximum(t, seg.t0), t)
         steps += dr.select(need & seg.valid, 1, 0)
         alive &= ~need | seg.valid
+        if dr.hint(control and (ratio or known_albedo is not None), mode="scalar"):
+            mu_c_new = dr.clip(seg.mu_min, 0.0, seg.mu)
+            if dr.hint(not ratio, mode="scalar"):
+                # no control clock without a known albedo: plain delta tracking
+                mu_c_new = dr.select(known_albedo[0], mu_c_new, 0.0)
+            mu_c = dr.select(need, mu_c_new, mu_c)
+            if dr.hint(ratio, mode="scalar"):
+                # the control part of this segment's transmittance, analytically
+                enter = need & alive
+                result = dr.select(enter, result * dr.exp(-mu_c * (seg_end - t) * dr.rcp(length_scale)), result)
 
         # ---- Tentative collision in the segment (none if mu == 0) ----
-        go = alive & (mu > 0.0)
+        residual = mu - mu_c
+        go = alive & (residual > 0.0)
         xi = sampler.next_1d(go)
-        t_c = t - dr.log(1.0 - xi) * dr.rcp(dr.select(go, mu, 1.0)) * length_scale
-        inside = go & (t_c < seg_end)
+        t_c = t - dr.log(1.0 - xi) * dr.rcp(dr.select(go, residual, 1.0)) * length_scale
+        t_c = dr.select(go, t_c, float("inf"))
+        by_control = mi.Bool(False)
+        if dr.hint(control and not ratio and known_albedo is not None, mode="scalar"):
+            # decomposition tracking: the control clock (rate mu_c) may ring first
+            ctl = alive & (mu_c > 0.0)
+            xi_c = sampler.next_1d(ctl)
+            t_ctl = t - dr.log(1.0 - xi_c) * dr.rcp(dr.select(ctl, mu_c, 1.0)) * length_scale
+            by_control = ctl & (t_ctl < t_c)
+            t_c = dr.select(by_control, t_ctl, t_c)
+        inside = alive & (t_c < seg_end)
+        by_control &= inside
         t = dr.select(inside, t_c, dr.select(alive, seg_end, t))
-        rgb, sigma_t = density(o + d * t, inside)
-        lookups += dr.select(inside, 1, 0)
+        look = inside & ~by_control
+        rgb, sigma_t = density(o + d * t, look)
+        lookups += dr.select(look, 1, 0)
+        excess = sigma_t - mu_c
+        inv_res = dr.rcp(dr.select(residual > 0.0, residual, 1.0))
         if dr.hint(ratio, mode="scalar"):
-            # Ratio tracking: T *= 1 - sigma_t / mu
-            result = dr.select(inside, result * dr.maximum(1.0 - sigma_t * dr.rcp(mu), 0.0), result)
+            # (Residual) ratio tracking: T *= 1 - (sigma_t - mu_c) / (mu - mu_c)
+            result = dr.select(inside, result * dr.maximum(1.0 - excess * inv_res, 0.0), result)
             n_null += dr.select(inside, 1, 0)
             alive &= result > 0.0
         else:
-            # Delta tracking: real collision with probability sigma_t / mu
-            accept = inside & (sampler.next_1d(inside) * mu < sigma_t)
+            # Delta / decomposition tracking: real with probability
+            # (sigma_t - mu_c) / (mu - mu_c), or 1 at a control collision
+            accept = by_control | (look & (sampler.next_1d(look) * residual < excess))
             collided |= accept
+            if dr.hint(known_albedo is not None, mode="scalar"):
+                rgb = dr.select(by_control, known_albedo[1], rgb)
+                sigma_t = dr.select(by_control, mu_c, sigma_t)
             albedo = dr.select(accept, rgb, albedo)
             result = dr.select(accept, sigma_t, result)
             n_null += dr.select(inside & ~accept, 1, 0)

@@ -11,12 +11,12 @@ from .structs import jit_struct
 
 @jit_struct(axis="UInt32", split="Float", child="UInt32", leaf_lo="Vector3f", leaf_hi="Vector3f",
             vmin="Float", vmax="Float", list_offset="UInt32", list_count="UInt32", items="UInt32",
-            depth="UInt32", majorant="Float")
+            depth="UInt32", majorant="Float", minorant="Float")
 class DeviceTree:
     """A `RegionTree` (or SAH kd-tree) in Dr.Jit, in local coordinates.
 
     ``to_local(x) = (x - lo) * scale`` maps the tree's host units to the unit
-    cube. Leaves carry value ranges (``vmin``/``vmax``) and majorants.
+    cube. Leaves carry value ranges (``vmin``/``vmax``), majorants and minorants.
     """
 
     def __init__(self, tree, lo, scale, vmin, vmax, majorant=None):
@@ -42,17 +42,23 @@ class DeviceTree:
         self.depth = mi.UInt32(tree.depth + 1)
         self.majorant = mi.Float(np.zeros(tree.n_leaves, np.float32) if majorant is None
                                  else np.asarray(majorant, dtype=np.float32))
+        self.minorant = dr.zeros(mi.Float, tree.n_leaves)
         dr.make_opaque(self.axis, self.split, self.child, self.leaf_lo, self.leaf_hi,
                        self.vmin, self.vmax, self.list_offset, self.list_count, self.items,
-                       self.depth, self.majorant)
+                       self.depth, self.majorant, self.minorant)
 
     @property
     def n_leaves(self) -> int:
         return self.host.n_leaves
 
-    def update_majorants(self, tf, density_scale):
+    def update_majorants(self, tf, density_scale, minorants: bool = True):
+        """Leaf majorants and minorants from the value ranges (minorants 0
+        unless ``minorants``; see `DeviceMacrocellGrid.update_majorants`)."""
+        from .grid import MINORANT_SHRINK
         self.majorant = density_scale * tf.range_max_alpha(self.vmin, self.vmax)
-        dr.make_opaque(self.majorant)
+        self.minorant = ((density_scale * MINORANT_SHRINK) * tf.range_min_alpha(self.vmin, self.vmax)
+                         if minorants else dr.zeros(mi.Float, self.n_leaves))
+        dr.make_opaque(self.majorant, self.minorant)
 
     @dr.syntax
     def locate(self, p: mi.Vector3f, d: mi.Vector3f, active=True):

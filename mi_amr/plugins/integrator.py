@@ -20,12 +20,13 @@ from ..params import ParameterError, check_known, get_bool, get_int
 from .medium import AMRMedium, require_jit_rgb_variant, scene_media
 from .variant_class import VariantPlugin
 
-#: Free-flight look-ups, null and real collisions, traversal steps, loops
-#: stopped by the iteration bound; then the same for shadow rays.
 #: Bound on the surfaces and media one shadow ray crosses (blocked beyond).
 MAX_SHADOW_CROSSINGS = 4096
+#: Free-flight look-ups, null and real collisions, traversal steps, loops
+#: stopped by the iteration bound; then for shadow rays: look-ups, steps,
+#: stopped loops and crossings of an amr medium (transmittance estimates).
 COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped",
-                 "shadow_lookups", "shadow_steps", "shadow_capped")
+                 "shadow_lookups", "shadow_steps", "shadow_capped", "shadow_crossings")
 
 
 def _mitsuba_helpers():
@@ -59,12 +60,23 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
        - |bool|
        - Count density look-ups, null and real collisions and traversal
          steps per render (see `counters()`). Default: false (no cost).
+     * - residual_ratio_tracking
+       - |bool|
+       - Shadow rays track only the residual above each segment's
+         minorant; the minorant's part of the transmittance is exact.
+         Default: true (with zero minorants it is plain ratio tracking).
+     * - decomposition_tracking
+       - |bool|
+       - Free flights sample collisions with the minorant analytically
+         (real with probability one) and track only the residual. Default:
+         true (with zero minorants it is plain delta tracking).
     """
 
     def __init__(self, props: mi.Properties):
         require_jit_rgb_variant("the 'amrvolpath' integrator")
         type(self).__base__.__init__(self, props)
-        check_known(props, "amrvolpath", {"max_depth", "rr_depth", "hide_emitters", "counters"})
+        check_known(props, "amrvolpath", {"max_depth", "rr_depth", "hide_emitters", "counters",
+                                          "residual_ratio_tracking", "decomposition_tracking"})
         md = get_int(props, "amrvolpath", "max_depth", -1)
         if md < -1:
             raise ParameterError(f"amrvolpath: max_depth must be -1 (infinite) or >= 0, got {md}")
@@ -72,6 +84,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         self.rr_depth = get_int(props, "amrvolpath", "rr_depth", 5, minimum=1)
         self.hide_emitters = get_bool(props, "amrvolpath", "hide_emitters", False)
         self.counters_enabled = get_bool(props, "amrvolpath", "counters", False)
+        self.residual = get_bool(props, "amrvolpath", "residual_ratio_tracking", True)
+        self.decomposition = get_bool(props, "amrvolpath", "decomposition_tracking", True)
         self._counter_array = dr.zeros(mi.UInt64, len(COUNTER_NAMES))
 
     # ---- Counters ------------------------------------------------------------
@@ -80,19 +94,23 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
 
     def counters(self) -> dict:
         """Totals since the last `reset_counters` (or construction), with
-        ``lookups_per_collision`` = free-flight look-ups / real collisions and
-        ``null_per_collision`` = free-flight null collisions / real collisions."""
+        ``lookups_per_collision`` = free-flight look-ups / real collisions,
+        ``null_per_collision`` = free-flight null collisions / real collisions
+        and ``lookups_per_shadow_ray`` = shadow look-ups / crossings of an amr
+        medium by shadow rays."""
         vals = self._counter_array.numpy()
         out = {k: int(v) for k, v in zip(COUNTER_NAMES, vals)}
         out["lookups_per_collision"] = out["lookups"] / out["real"] if out["real"] else float("nan")
         out["null_per_collision"] = out["null"] / out["real"] if out["real"] else float("nan")
+        out["lookups_per_shadow_ray"] = (out["shadow_lookups"] / out["shadow_crossings"]
+                                         if out["shadow_crossings"] else float("nan"))
         return out
 
     def _count(self, free: TrackingCounts, shadow: TrackingCounts):
         if not self.counters_enabled:
             return
         values = (free.lookups, free.null, free.real, free.steps, free.capped,
-                  shadow.lookups, shadow.steps, shadow.capped)
+                  shadow.lookups, shadow.steps, shadow.capped, shadow.real)
         for i, v in enumerate(values):
             dr.scatter_reduce(dr.ReduceOp.Add, self._counter_array, mi.UInt64(v), mi.UInt32(i))
 
@@ -149,7 +167,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             # ---- amr media: delta tracking through local majorants ----
             for k in range(len(amr_media)):
                 is_k = active_medium & (medium == amr_ptrs[k])
-                hit, t, albedo, sigma_t, c = amr_media[k].free_flight(ray, si.t, sampler, is_k)
+                hit, t, albedo, sigma_t, c = amr_media[k].free_flight(ray, si.t, sampler, is_k, self.decomposition)
                 counts = counts + c
                 real = is_k & hit
                 mei[real] = self._medium_interaction(ray, t, albedo, sigma_t, amr_ptrs[k])
@@ -295,7 +313,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             moved = mi.Bool(False)
             for k in range(len(amr_media)):
                 is_k = in_medium & (medium == amr_ptrs[k])
-                Tk, c = amr_media[k].transmittance(ray, seg, sampler, is_k)
+                Tk, c = amr_media[k].transmittance(ray, seg, sampler, is_k, self.residual)
+                c.real = mi.UInt32(dr.select(is_k, 1, 0))      # shadow counts: crossings
                 counts = counts + c
                 T[is_k] *= Tk
             if dr.hint(has_other, mode="scalar"):

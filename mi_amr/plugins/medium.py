@@ -293,18 +293,20 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         s = m * dr.norm(d * dr.rcp(m))
         return o, flush_tiny(d * dr.rcp(s)), s
 
-    def free_flight(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active):
+    def free_flight(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active, control: bool = False):
         """Delta tracking through local-majorant segments along ``ray`` up to
-        ``t_max``. Returns ``(collided, t, albedo, sigma_t, counts)``."""
-        return self._track(ray, t_max, sampler, active, ratio=False)
+        ``t_max`` (decomposition tracking against the minorants with
+        ``control``). Returns ``(collided, t, albedo, sigma_t, counts)``."""
+        return self._track(ray, t_max, sampler, active, ratio=False, control=control)
 
-    def transmittance(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active):
+    def transmittance(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active, control: bool = False):
         """Ratio-tracking estimate of transmittance along ``ray`` over
-        ``[0, t_max]``. Returns ``(T, counts)``."""
-        _, _, _, T, counts = self._track(ray, t_max, sampler, active, ratio=True)
+        ``[0, t_max]`` (residual ratio tracking against the minorants with
+        ``control``). Returns ``(T, counts)``."""
+        _, _, _, T, counts = self._track(ray, t_max, sampler, active, ratio=True, control=control)
         return T, counts
 
-    def _track(self, ray, t_max, sampler, active, ratio):
+    def _track(self, ray, t_max, sampler, active, ratio, control=False):
         o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
         t_lo = dr.maximum(t0, 0.0)
@@ -312,7 +314,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         active = mi.Bool(active) & hit & (s > 0.0) & (t_lo < t_hi) & (self.structures.global_majorant > 0.0)
         collided, t, albedo, result, counts = track_segments(
             self.structures.segments(), self.eval_local, o, d, t_lo, t_hi, sampler, active, ratio,
-            self._max_iterations, s)
+            self._max_iterations, s, control, (self.tf_device.rgb_constant, self.tf_device.rgb0))
         return collided, t * dr.rcp(dr.select(s > 0.0, s, 1.0)), albedo, result, counts
 
     # ---- Mitsuba medium interface -------------------------------------------

@@ -1,4 +1,4 @@
-"""Dr.Jit side of a transfer function: evaluation and range majorants.
+"""Dr.Jit side of a transfer function: evaluation, range majorants and minorants.
 
 All table data, the domain and the table size are opaque Dr.Jit variables,
 so loading a different TF (other values, domain or size) changes no kernel.
@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
+
 from ..device.structs import jit_struct
 from .function import TransferFunction
 
 
-@jit_struct(rgba="Float", sparse="Float", n="UInt32", lo="Float", inv_width="Float")
+@jit_struct(rgba="Float", sparse="Float", sparse_min="Float", n="UInt32", lo="Float", inv_width="Float",
+            rgb_constant="Bool", rgb0="Color3f")
 class DeviceTransferFunction:
     """A `TransferFunction` uploaded for use in Dr.Jit kernels."""
 
@@ -25,10 +28,16 @@ class DeviceTransferFunction:
         n = len(tf)
         self.rgba = mi.Float(tf.rgba.ravel())
         self.sparse = mi.Float(tf.sparse_table().ravel())
+        self.sparse_min = mi.Float(tf.sparse_table(np.minimum).ravel())
         self.n = mi.UInt32(n)
         self.lo = mi.Float(tf.domain[0])
         self.inv_width = mi.Float(1.0 / (tf.domain[1] - tf.domain[0]))
-        dr.make_opaque(self.rgba, self.sparse, self.n, self.lo, self.inv_width)
+        # one colour for every value: the albedo is known without a look-up
+        rgb = tf.rgba[:, :3]
+        self.rgb_constant = mi.Bool(bool(np.all(rgb == rgb[0])))
+        self.rgb0 = mi.Color3f(*[float(c) for c in rgb[0]])
+        dr.make_opaque(self.rgba, self.sparse, self.sparse_min, self.n, self.lo, self.inv_width,
+                       self.rgb_constant, self.rgb0)
 
     def _u(self, v):
         return dr.clip((v - self.lo) * self.inv_width, 0.0, 1.0)
@@ -56,6 +65,16 @@ class DeviceTransferFunction:
         entry does not reach the next one); 0 for an empty range (``vmin >
         vmax``). O(1) per range via the sparse table. ``u (N-1)`` is rounded
         as in `eval`, which keeps every evaluated alpha within the bound."""
+        return self._range_alpha(self.sparse, dr.maximum, vmin, vmax, active)
+
+    def range_min_alpha(self, vmin, vmax, active=True):
+        """Minimum table alpha over the same entries as `range_max_alpha`:
+        every alpha `eval` interpolates for a value of ``[vmin, vmax]`` lies
+        between two of them, so it is at least this (up to the rounding of
+        one interpolation); 0 for an empty range."""
+        return self._range_alpha(self.sparse_min, dr.minimum, vmin, vmax, active)
+
+    def _range_alpha(self, table, op, vmin, vmax, active):
         n1 = self.n - 1
         lo = dr.minimum(mi.UInt32(dr.floor(self._u(vmin) * mi.Float(n1))), n1)
         hi = dr.minimum(mi.UInt32(dr.ceil(self._u(vmax) * mi.Float(n1))), n1)
@@ -63,6 +82,6 @@ class DeviceTransferFunction:
         hi = dr.maximum(hi, lo)
         k = 31 - dr.lzcnt(hi - lo + 1)
         row = k * self.n
-        m0 = dr.gather(mi.Float, self.sparse, row + lo, valid)
-        m1 = dr.gather(mi.Float, self.sparse, row + hi + 1 - (mi.UInt32(1) << k), valid)
-        return dr.select(valid, dr.maximum(m0, m1), 0.0)
+        m0 = dr.gather(mi.Float, table, row + lo, valid)
+        m1 = dr.gather(mi.Float, table, row + hi + 1 - (mi.UInt32(1) << k), valid)
+        return dr.select(valid, op(m0, m1), 0.0)

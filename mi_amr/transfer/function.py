@@ -90,9 +90,10 @@ class TransferFunction(mi.Object):
         a = self.rgba[:, 3]
         return np.array([a[l:h + 1].max() for l, h in zip(lo, hi)], dtype=np.float32)
 
-    def sparse_table(self) -> np.ndarray:
+    def sparse_table(self, op=np.maximum) -> np.ndarray:
         """Range-maximum sparse table of alpha, shape (K, N), K = floor(log2 N) + 1:
-        row k holds ``max(alpha[i : i + 2**k])`` (clamped at the end)."""
+        row k holds ``max(alpha[i : i + 2**k])`` (clamped at the end); with
+        ``op=np.minimum`` the range-minimum table."""
         a = self.rgba[:, 3].astype(np.float32)
         rows = [a]
         k = 1
@@ -101,7 +102,7 @@ class TransferFunction(mi.Object):
             half = 1 << (k - 1)
             shifted = np.concatenate([prev[half:], np.full(half, prev[-1])])
             shifted[len(a) - half:] = prev[len(a) - half:]
-            rows.append(np.maximum(prev, shifted))
+            rows.append(op(prev, shifted))
             k += 1
         return np.stack(rows)
 
