@@ -1,7 +1,6 @@
 """Minorants and the estimators that use them: residual ratio tracking and
 decomposition tracking (docs/design.md section 5b)."""
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
