@@ -11,12 +11,13 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
     code = main(["--out", str(out), "--cells", "800", "--res", "16", "--spp", "2", "--ref-spp", "16",
                  "--repeats", "2", "--datasets", "cloud", "--tfs", "spiky",
                  "--configs", "reference", "volpath/ray", "amrvolpath/grid/hash", "amrvolpath/abr/brick",
-                 "amrvolpath/default",
+                 "amrvolpath/default", "amrvolpath/default-plain",
                  "--curve-spp", "1", "2", "--sweep", "8", "16"])
     assert code == 0
     records = json.loads((out / "results.json").read_text())
     assert [r["config"] for r in records] == ["reference", "volpath/ray", "amrvolpath/grid/hash",
-                                              "amrvolpath/abr/brick", "amrvolpath/default"]
+                                              "amrvolpath/abr/brick", "amrvolpath/default",
+                                              "amrvolpath/default-plain"]
     for r in records:
         for field in ("dataset", "tf", "config", "seconds_per_spp", "rmse", "efficiency",
                       "efficiency_vs_reference", "lookups_per_collision", "structure_bytes"):
@@ -31,6 +32,9 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
     assert records[4]["resolved"].startswith("grid/hash")
     assert records[4]["counters"] == records[2]["counters"]
     assert "| amrvolpath/default (grid/hash" in (out / "tables.md").read_text()
+    # the estimators off: its own row, with look-ups per shadow ray
+    assert records[5]["counters"]["shadow_crossings"] > 0 and records[5]["lookups_per_shadow_ray"] >= 0
+    assert "look-ups/shadow ray" in (out / "tables.md").read_text()
     assert all(r["structure_bytes"] > 0 for r in records)
     sweep = json.loads((out / "sweep.json").read_text())
     assert sweep[0]["auto_resolution"] in (8, 16, 32, 64, 128) and len(sweep[0]["rows"]) == 2
@@ -43,7 +47,8 @@ def test02_config_names():
     names = all_configs()
     assert names[:5] == ["reference", "dense16", "volpath/global", "volpath/ray", "amrvolpath/default"]
     assert "amrvolpath/grid/abr" in names and "amrvolpath/kdtree/brick" in names
-    assert len(names) == 5 + 4 * 3
+    assert names[5:8] == ["amrvolpath/default-no-rrt", "amrvolpath/default-no-dt", "amrvolpath/default-plain"]
+    assert len(names) == 8 + 4 * 3
 
 
 def test03_reference_that_does_not_fit_is_reported(llvm, tmp_path):

@@ -34,10 +34,16 @@ SCALES = {("cloud", "spiky"): 60.0, ("cloud", "foggy"): 150.0,
           ("stadium", "spiky"): 300.0, ("stadium", "foggy"): 300.0}
 
 
+#: amrvolpath/default with estimators turned off: name -> (residual ratio
+#: tracking, decomposition tracking).
+TRACKING_VARIANTS = {"no-rrt": (False, True), "no-dt": (True, False), "plain": (False, False)}
+
+
 def all_configs():
     """Configuration names: ``amrvolpath/default`` is what a user gets with
     no structure options (its record names what it resolved to)."""
     out = ["reference", "dense16", "volpath/global", "volpath/ray", "amrvolpath/default"]
+    out += [f"amrvolpath/default-{v}" for v in TRACKING_VARIANTS]
     out += [f"amrvolpath/{t}/{s}" for t in TRAVERSALS for s in SAMPLINGS]
     return out
 
@@ -107,9 +113,12 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
         if kind[0] == "volpath":
             medium["majorant"] = kind[1]
         else:
-            if kind[1] != "default":
-                medium.update(traversal=kind[1], sampling=kind[2])
             integ = {"type": "amrvolpath", "max_depth": args.max_depth, "counters": True}
+            if kind[1].startswith("default-"):
+                rrt, dt = TRACKING_VARIANTS[kind[1][len("default-"):]]
+                integ.update(residual_ratio_tracking=rrt, decomposition_tracking=dt)
+            elif kind[1] != "default":
+                medium.update(traversal=kind[1], sampling=kind[2])
     scene = mi.load_dict(bench_scene(medium, args.res, integ))
     build_s = time.perf_counter() - t0
     integrator = scene.integrator()
@@ -145,10 +154,12 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
         c = integrator.counters()
         rec["lookups_per_collision"] = c["lookups_per_collision"]
         rec["null_per_collision"] = c["null_per_collision"]
+        rec["lookups_per_shadow_ray"] = c["lookups_per_shadow_ray"]
         rec["counters"] = c
     else:
         rec["lookups_per_collision"] = None
         rec["null_per_collision"] = None
+        rec["lookups_per_shadow_ray"] = None
     if kind[0] == "reference":
         rec["structure_bytes"] = dense_bytes(cells)
         rec["majorant_update_s"] = None
@@ -419,6 +430,8 @@ def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
 
 #: Plot style: one colour per traversal (stock volpath and the reference
 #: apart), one line style per sampling; the reference and the default heaviest.
+#: Line styles of the default's rows with estimators off (`TRACKING_VARIANTS`).
+VARIANT_STYLES = {"no-rrt": (0, (1, 1)), "no-dt": (0, (3, 1, 1, 1, 1, 1)), "plain": (0, (6, 2))}
 TRAVERSAL_COLOURS = {"grid": "tab:blue", "abr": "tab:orange", "brick": "tab:green", "kdtree": "tab:red",
                      "volpath/ray": "tab:purple", "volpath/global": "tab:brown", "reference": "black",
                      "dense16": "tab:gray"}
@@ -431,10 +444,11 @@ def curve_style(record) -> dict:
     if config in ("reference", "dense16") or config.startswith("volpath/"):
         return {"color": TRAVERSAL_COLOURS[config], "ls": "-." if config != "reference" else "-",
                 "lw": 3.0 if config == "reference" else 1.3, "label": config}
-    if config.endswith("/default"):            # drawn as what it resolved to
+    if config.split("/")[1].startswith("default"):            # drawn as what it resolved to
         traversal, sampling = record.get("resolved", "grid/hash").split(",")[0].split("/")
-        return {"color": TRAVERSAL_COLOURS[traversal], "ls": SAMPLING_STYLES[sampling], "lw": 3.0,
-                "label": f"amrvolpath/default (= {traversal}/{sampling})"}
+        variant = config.split("/")[1][len("default-"):]
+        return {"color": TRAVERSAL_COLOURS[traversal], "ls": VARIANT_STYLES.get(variant, SAMPLING_STYLES[sampling]),
+                "lw": 1.6 if variant else 3.0, "label": f"{config} (= {traversal}/{sampling})"}
     _, traversal, sampling = config.split("/")
     return {"color": TRAVERSAL_COLOURS[traversal], "ls": SAMPLING_STYLES[sampling], "lw": 1.3, "label": config}
 
@@ -503,22 +517,25 @@ def write_tables(records, sweeps, out: Path, tf_timing=None):
         tfs = list(dict.fromkeys(r["tf"] for r in rows))
         lines += [f"## {name} ({rows[0]['cells']} cells)", "",
                   "| configuration | " + " | ".join(f"{t}: ms/spp | {t}: eff. vs ref | {t}: look-ups/coll. | "
-                                                     f"{t}: null/coll." for t in tfs) + " | memory MiB |",
-                  "|---|" + "---|---|---|---|" * len(tfs) + "---|"]
+                                                     f"{t}: null/coll. | {t}: look-ups/shadow ray"
+                                                     for t in tfs) + " | memory MiB |",
+                  "|---|" + "---|---|---|---|---|" * len(tfs) + "---|"]
         for config in dict.fromkeys(r["config"] for r in rows):
             cells = []
             mem = None
             for t in tfs:
                 r = next((x for x in rows if x["config"] == config and x["tf"] == t), None)
                 if r is None:
-                    cells += ["", "", "", ""]
+                    cells += ["", "", "", "", ""]
                     continue
                 mem = r["structure_bytes"] / 2**20
                 eff = r.get("efficiency_vs_reference")
                 lpc = r.get("lookups_per_collision")
                 npc = r.get("null_per_collision")
+                lps = r.get("lookups_per_shadow_ray")
                 cells += [f"{r['seconds_per_spp'] * 1e3:.2f}", f"{eff:.2f}x" if eff else "",
-                          f"{lpc:.2f}" if lpc else "", f"{npc:.2f}" if npc is not None else ""]
+                          f"{lpc:.2f}" if lpc else "", f"{npc:.2f}" if npc is not None else "",
+                          f"{lps:.2f}" if lps is not None and lps == lps else ""]
             resolved = next((x.get("resolved") for x in rows if x["config"] == config and x.get("resolved")), None)
             name = f"{config} ({resolved})" if config.endswith("/default") and resolved else config
             lines.append(f"| {name} | " + " | ".join(cells) + f" | {mem:.2f} |")
