@@ -76,3 +76,24 @@ def test_curve_styles_tell_every_configuration_apart():
     heaviest = max(s["lw"] for s in styles.values())
     assert styles["reference"]["lw"] == heaviest == default["lw"]
     assert all(s["lw"] < heaviest for c, s in styles.items() if c != "reference")
+
+
+def test04_timing_keeps_one_scene_alive(llvm, tmp_path):
+    """The timing loop frees each scene before it loads the next (no amr
+    medium is alive after a run), and refuses to time while another scene
+    is alive: Dr.Jit dispatches over every live instance."""
+    import mitsuba as mi
+    import pytest
+    from mi_amr.plugins.medium import live_media
+    from conftest import random_amr
+    args = ["--out", str(tmp_path / "b"), "--cells", "400", "--res", "8", "--spp", "1", "--ref-spp", "4",
+            "--repeats", "1", "--datasets", "cloud", "--tfs", "spiky", "--sweep", "8", "16",
+            "--curve-spp", "1", "--configs", "amrvolpath/default", "amrvolpath/grid/hash"]
+    assert live_media() == 0
+    assert main(args) == 0
+    assert live_media() == 0
+    other = mi.load_dict({"type": "amr", "data": random_amr(0, 8, 2)})
+    with pytest.raises(RuntimeError, match="alive"):
+        main(args)
+    del other
+    assert live_media() == 0

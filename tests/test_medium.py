@@ -197,3 +197,21 @@ def test10_majorant_bounds_extinction(variant, multilevel):
         assert np.all(st <= maj * (1 + 1e-5) + 1e-6)
         assert st.max() > 0
         assert med.global_majorant == pytest.approx(float(med.majorant_grid.max()))
+
+
+@pytest.mark.parametrize("setting,faster", [({"majorant": "global"}, "majorant='ray'"),
+                                            ({"traversal": "kdtree"}, "traversal='grid'")])
+def test11_slow_settings_warn_once_and_name_the_faster_one(llvm, capfd, setting, faster):
+    """A setting that cannot reach the heterogeneous medium's efficiency
+    (docs/performance/settings.md) warns at load, once per process, and
+    names the faster setting."""
+    from mi_amr.plugins import medium as medium_module
+    medium_module._WARNED.clear()
+    cells = mi_amr.dense_to_amr(np.ones((8, 8, 8), np.float32), 0.0, 1)
+    for _ in range(2):
+        mi.load_dict({"type": "amr", "data": cells, **setting})
+    out = capfd.readouterr()                # Mitsuba's log goes to stdout or stderr
+    assert (out.out + out.err).count(faster) == 1
+    mi.load_dict({"type": "amr", "data": cells})
+    out = capfd.readouterr()
+    assert faster not in out.out + out.err

@@ -88,7 +88,13 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
     import drjit as dr
     import numpy as np
 
+    from ..plugins.medium import live_media
     from .reference import dense_bytes, reference_medium
+    if live_media():
+        # Dr.Jit dispatches virtual calls over every live instance: a second
+        # scene in memory shifts timings (up to 2x measured)
+        raise RuntimeError(f"benchmark: {live_media()} amr media of another scene are alive while "
+                           f"timing {config}; free them first")
     kind = config.split("/")
     integ = {"type": "volpath", "max_depth": args.max_depth}
     t0 = time.perf_counter()
