@@ -21,7 +21,7 @@ from .data import datasets  # noqa: E402
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",
            "read_exabricks", "write_exabricks", "read_npz", "write_npz", "register",
-           "set_transfer_function", "amr_media", "from_yt", "world_transform"]
+           "set_transfer_function", "amr_media", "from_yt", "world_transform", "scene_for"]
 
 
 def register(variant: str | None = None):
@@ -67,6 +67,14 @@ def world_transform(ds):
     """``to_world`` for a yt dataset's domain (see `mi_amr.data.yt_import`)."""
     from .data.yt_import import world_transform as _wt
     return _wt(ds)
+
+
+def scene_for(data, field=None, **options) -> dict:
+    """A scene dictionary for ``mi.load_dict`` made from AMR data alone:
+    camera framing the domain at its true aspect, sun and sky, a TF over
+    the values' distribution (see `mi_amr.autoscene.scene_for`)."""
+    from .autoscene import scene_for as _scene_for
+    return _scene_for(data, field, **options)
 
 
 def amr_media(scene_or_medium) -> list:

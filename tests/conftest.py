@@ -97,3 +97,11 @@ def cloud_scene_xml(tmp_path, cells: str = "d.cells", data=None):
     text = (root / "scenes" / "cloud.xml").read_text().replace("data/cloud.cells", cells)
     (tmp_path / "s.xml").write_text(text)
     return tmp_path / "s.xml"
+
+
+def render_cli(argv):
+    """``mi-amr render ARGV -q`` in a subprocess (``CompletedProcess``)."""
+    import subprocess
+    import sys
+    return subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "render", *[str(a) for a in argv], "-q"],
+                          capture_output=True, text=True, timeout=300)

@@ -16,7 +16,7 @@ from mi_amr.data.io import write_exabricks
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.tools.reference import reference_medium, resample_dense
 
-from conftest import cloud_scene_xml, random_amr, volume_scene
+from conftest import cloud_scene_xml, random_amr, render_cli, volume_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -70,8 +70,7 @@ def test03_compare_reports_rmse_and_writes_difference(tmp_path, capsys):
 
 def _render_cli(scene, out, *extra):
     """``mi-amr render SCENE -o OUT -q EXTRA`` in a subprocess."""
-    return subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "render", str(scene), "-o", str(out),
-                           "-q", *extra], capture_output=True, text=True, timeout=300)
+    return render_cli([scene, "-o", out, *extra])
 
 
 def test04_render_writes_exr_and_png(tmp_path):

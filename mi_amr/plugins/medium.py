@@ -196,6 +196,11 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
          the range's and the bins' (8 bytes per macrocell). Default: true.
          (``tent`` fields are continuous, so a macrocell takes every value
          of an interval and bins add nothing there: not built.)
+     * - value_transform
+       - |string|
+       - ``none`` (default) or ``log10``: the values are replaced by their
+         logarithm once at load (zero and negative values by the smallest
+         positive one first), and ``tf_min``/``tf_max`` are in those units.
      * - overlap
        - |string|
        - ``error`` (default) rejects overlapping cells; ``finest`` keeps the

@@ -17,6 +17,7 @@ from ..data.cells import AMRCells
 from ..data.blocks import BlockVolume
 from ..data.io import load_volume
 from ..data.reconstruction import METHODS
+from ..data.transform import VALUE_TRANSFORMS, apply_value_transform
 from ..memory import default_memory_limit
 from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
 from ..pipeline import SAMPLINGS, TRAVERSALS, StructureOptions
@@ -34,7 +35,7 @@ MAX_CONDITION = 1e7
 KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
          "density_scale", "reconstruction", "majorant", "grid_resolution", "grid_refinement",
          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
-         "kdtree_leaves", "max_iterations", "memory_limit", "value_masks"}
+         "kdtree_leaves", "max_iterations", "memory_limit", "value_masks", "value_transform"}
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,11 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
     """Validate the ``amr`` plugin's properties and load its data."""
     check_known(props, "amr", KNOWN, allow=lambda k, v: isinstance(v, mi.PhaseFunction))
     reconstruction = get_string(props, "amr", "reconstruction", "tent", METHODS)
+    transform = get_string(props, "amr", "value_transform", "none", VALUE_TRANSFORMS)
     data = _load_data(props, reconstruction)
+    # once, at load; the TF domain is in transformed units (a file's volume is
+    # this medium's own, so it is transformed in place)
+    data, _ = apply_value_transform(data, transform, inplace="filename" in props.keys())
     structures = StructureOptions(
         reconstruction=reconstruction,
         traversal=get_string(props, "amr", "traversal", "grid", TRAVERSALS),

@@ -30,6 +30,36 @@ def _set_variant(variant: str):
 
 
 # ---- render ----------------------------------------------------------------
+def _scene_from_data(args):
+    """``mi-amr render DATA --field NAME``: plan a scene from the data alone
+    (`mi_amr.autoscene`), write it as OUT.xml beside the image (yt data are
+    converted to OUT.cells first, so that the XML can load them) and return
+    its path."""
+    from ..autoscene import plan_scene, write_scene_xml
+    from ..data.io import save_cells
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    log = {"log": True, "linear": False}.get(args.scale)
+    plan = plan_scene(args.scene, args.field, tf=args.tf or "foggy", log=log,
+                      value_range=tuple(args.range) if args.range else None)
+    data = Path(args.scene)
+    if data.suffix in (".cells", ".npz") and data.is_file():
+        data_file = data.resolve()
+        if data.suffix == ".cells" and args.field:
+            stem = data.with_suffix("")
+            field_scalars = stem.parent / f"{stem.name}-{args.field}.scalars"
+            if field_scalars.is_file():           # the XML names .cells + scalars: convert to one file
+                data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
+    else:
+        data_file = save_cells(plan.data, out.with_suffix(".cells")).resolve()
+    xml = write_scene_xml(plan, data_file, out.with_suffix(".xml"), res=args.res, spp=args.spp)
+    if not args.quiet:
+        for note in plan.notes:
+            print(note)
+        print(f"wrote {xml} (edit it and run: mi-amr render {xml} -o {out})")
+    return xml
+
+
 def cmd_render(args):
     _set_variant(args.variant)
     import drjit as dr
@@ -37,6 +67,11 @@ def cmd_render(args):
 
     from .. import distributed
     from .images import write_exr, write_png
+    if Path(args.scene).suffix.lower() != ".xml":
+        args.scene = str(_scene_from_data(args))
+    elif args.field or args.tf or args.range or args.scale:
+        raise SystemExit("mi-amr: --field, --tf, --range, --log and --linear are for data files, "
+                         "not XML scenes (set those in the scene)")
     frames, varying = _frames(args)
     spp = args.spp
     workers = args.workers
@@ -223,17 +258,21 @@ def cmd_convert(args):
             vol = np.fromfile(src, dtype=args.dtype).reshape(nz, ny, nx)
         cells = dense_to_amr(vol, args.threshold, args.max_level, source=str(src))
     elif args.field:
-        try:
-            import yt
-        except ImportError:
-            raise SystemExit("mi-amr convert: reading yt datasets needs yt (pip install mi-amr[yt])")
+        from ..autoscene import _yt_load
         from ..data.yt_import import from_yt
-        ds = yt.load(str(src))
+        try:
+            ds = _yt_load(src)
+        except ImportError as e:
+            raise SystemExit(f"mi-amr convert: {e}")
         field = tuple(args.field.split(",")) if "," in args.field else args.field
         cells = from_yt(ds, field, overlap=args.overlap)
     else:
         raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' (expected .cells, "
                          ".npz, .npy or .raw, or a yt-loadable dataset with --field)")
+    if args.log:
+        from ..data.transform import apply_value_transform
+        cells, floor = apply_value_transform(cells, "log10")
+        print(f"values replaced by log10(max(v, {floor:.6g})): {floor:.6g} is the smallest positive value")
     out = save_cells(cells, args.output)
     print(f"wrote {out}: {cells}")
 
@@ -306,9 +345,22 @@ def build_parser():
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
 
-    r = _command(sub, "render", "render a Mitsuba XML scene to EXR (+ PNG preview)",
+    r = _command(sub, "render", "render a Mitsuba XML scene, or AMR data (e.g. mi-amr render "
+                 "DD0018/DD0018 --field density -o out/enzo.exr) with a scene made for them "
+                 "(camera, light, TF over the values, written beside the image as OUT.xml), "
+                 "to EXR (+ PNG preview)",
                  "mi-amr render scenes/cloud.xml -o out/cloud.exr --spp 256 -D tf=spiky --workers 2")
-    r.add_argument("scene")
+    r.add_argument("scene", help="an XML scene, or data: a .cells/.npz file or anything yt can load")
+    r.add_argument("--field", help="data: the field to render (e.g. density, or gas,density)")
+    scale = r.add_mutually_exclusive_group()
+    scale.add_argument("--log", dest="scale", action="store_const", const="log",
+                       help="data: TF over log10 of the values (default: chosen from their dynamic range)")
+    scale.add_argument("--linear", dest="scale", action="store_const", const="linear",
+                       help="data: TF over the values themselves")
+    r.add_argument("--range", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="data: TF domain (in log10 units with --log; default: 1st-99.9th volume percentiles)")
+    r.add_argument("--tf", help="data: TF preset (spiky, foggy, ramp, constant) or .json file (default foggy)")
+    r.add_argument("--res", type=int, default=400, help="data: image width and height (default 400)")
     r.add_argument("-o", "--output", required=True, help="output .exr path")
     _render_flags(r, 64)
     r.add_argument("--chunk-spp", type=int, default=None,
@@ -356,6 +408,9 @@ def build_parser():
     c.add_argument("--dtype", default="float32", help="element type of a .raw volume")
     c.add_argument("--overlap", choices=("error", "finest"), default="error")
     c.add_argument("--field", help="field of a yt-loadable dataset, e.g. density or gas,density")
+    c.add_argument("--log", action="store_true",
+                   help="write log10 of the values (zero and negative ones first raised to the smallest "
+                        "positive value)")
     c.set_defaults(func=cmd_convert)
 
     m = _command(sub, "compare", "error statistics of A.exr against reference B.exr",

@@ -1,0 +1,325 @@
+"""A scene made from AMR data alone, as ``yt.create_scene`` makes one: what
+``mi-amr render DATA --field NAME`` renders.
+
+`plan_scene` looks at the data once: the physical domain (the box the
+medium fills, at its true aspect), the volume-weighted distribution of the
+values (linear or log10 chosen from its dynamic range), a TF preset placed
+over its percentiles and a density scale that makes the volume
+semi-transparent. `scene_for` turns the plan into a dictionary for
+``mi.load_dict``; `write_scene_xml` into an XML scene that references the
+data file, to edit and re-render.
+
+World space: the domain is centred at the origin, its longest side 1 unit,
+and +z is up (simulation codes' convention, and Mitsuba's ``sunsky``: its
+horizon is the plane z = 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from .data.blocks import BlockVolume
+from .data.cells import AMRCells
+from .transfer.function import PRESETS, TransferFunction
+
+#: Percentiles (volume-weighted) that bound the TF domain.
+LOW_PERCENTILE, HIGH_PERCENTILE = 1.0, 99.9
+#: log10 is chosen when the values are positive and these percentiles are
+#: more than `LOG_RATIO` apart.
+LOG_RATIO = 1e3
+#: ... and at least this share of the volume holds positive values (the rest
+#: is floored: `mi_amr.data.transform`).
+MIN_POSITIVE_SHARE = 0.9
+#: Optical depth of the mean extinction across the domain's longest side.
+TARGET_DEPTH = 1.5
+FOV = 35.0
+#: Towards the sun: 50 degrees above the horizon, behind the camera's right.
+SUN_DIRECTION = [0.5, 0.6, 0.9]
+HISTOGRAM_BINS = 4096
+
+
+@dataclass
+class ScenePlan:
+    """Everything `scene_for` and `write_scene_xml` need (world units)."""
+    data: AMRCells | BlockVolume
+    transform: str                    # value_transform: "none" or "log10"
+    tf: str                           # a preset name or a TF .json path
+    tf_range: tuple[float, float]     # in transformed units
+    density_scale: float              # inverse world units
+    extent: np.ndarray                # domain size, world units (longest side 1)
+    origin: np.ndarray                # camera position
+    fov: float = FOV
+    notes: list = dc_field(default_factory=list)
+
+    def floor_height(self) -> float:
+        """The ground plane, just below the domain (z up)."""
+        return float(-0.5 * self.extent[2] - 0.001)
+
+    def to_world_matrix(self) -> np.ndarray:
+        """Unit cube -> the domain box centred at the origin."""
+        m = np.diag([*self.extent, 1.0])
+        m[:3, 3] = -0.5 * self.extent
+        return m
+
+
+def open_data(data, field=None):
+    """``(volume or cells, physical extent (3,), description)`` of ``data``:
+    an `AMRCells`, a `BlockVolume`, a ``.cells``/``.npz`` file, a loaded yt
+    dataset, or any path yt can load (then ``field`` names the field)."""
+    from .data.io import load_volume
+    if isinstance(data, (AMRCells, BlockVolume)):
+        lo, hi = data.bounds
+        return data, (hi - lo).astype(np.float64), data.source
+    if hasattr(data, "index") and hasattr(data, "domain_left_edge"):
+        return _from_yt(data, field)
+    path = Path(str(data))
+    if path.suffix in (".cells", ".npz"):
+        if field is not None and path.suffix == ".cells":
+            stem = path.with_suffix("")
+            candidate = stem.parent / f"{stem.name}-{field}.scalars"
+            scalars = str(candidate) if candidate.is_file() else None
+        else:
+            scalars = None
+        vol = load_volume(path, scalars)
+        lo, hi = vol.bounds
+        return vol, (hi - lo).astype(np.float64), str(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file or directory")
+    return _from_yt(_yt_load(path), field)
+
+
+def _yt_load(path):
+    try:
+        import yt
+    except ImportError as e:
+        raise ImportError(f"{path}: reading this data needs yt: pip install 'mi-amr[yt]' ({e})") from e
+    try:
+        return yt.load(str(path))
+    except ImportError as e:
+        # yt's readers import their own dependencies lazily (h5py for Enzo, FLASH, Athena++)
+        name = getattr(e, "name", None) or "a missing package"
+        raise ImportError(f"{path}: yt's reader for this format needs '{name}': "
+                          f"pip install {name} (or pip install 'mi-amr[yt]', which brings h5py)") from e
+
+
+def _from_yt(ds, field):
+    from .data.yt_import import from_yt
+    if field is None:
+        raise ValueError(f"{ds}: give the field to render (--field NAME), e.g. density")
+    name = tuple(field.split(",")) if isinstance(field, str) and "," in field else field
+    cells = from_yt(ds, name)
+    ext = np.asarray((ds.domain_right_edge - ds.domain_left_edge).to("code_length").d, dtype=np.float64)
+    return cells, ext, f"{ds} field {field}"
+
+
+def _cells_and_weights(data):
+    """Chunks of (values, volume weights) of the present cells."""
+    if isinstance(data, AMRCells):
+        yield data.value.astype(np.float64), np.exp2(3.0 * data.level)
+        return
+    b3 = data.block ** 3
+    step = max(1, (1 << 22) // b3)
+    for s in range(0, len(data.level), step):
+        v = data.values[s * b3:(s + step) * b3].reshape(-1, b3)
+        w = np.broadcast_to(np.exp2(3.0 * data.level[s:s + step].astype(np.float64))[:, None], v.shape)
+        ok = ~np.isnan(v)
+        yield v[ok].astype(np.float64), w[ok]
+
+
+def positive_share(data) -> float:
+    """Share of the volume whose values are above 0."""
+    pos = total = 0.0
+    for v, w in _cells_and_weights(data):
+        pos += float(w[v > 0].sum())
+        total += float(w.sum())
+    return pos / total if total else 0.0
+
+
+def weighted_percentiles(data, qs, log: bool = False) -> list[float]:
+    """Volume-weighted percentiles ``qs`` (0-100) of the values (of their
+    log10 with ``log``, values <= 0 left out), from a histogram of
+    `HISTOGRAM_BINS` bins: within one bin width."""
+    lo, hi = (np.inf, -np.inf)
+    for v, _ in _cells_and_weights(data):
+        if log:
+            v = v[v > 0]
+            if not v.size:
+                continue
+            v = np.log10(v)
+        if v.size:
+            lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
+    if not np.isfinite(lo):
+        raise ValueError("no values to place a transfer function over")
+    if hi <= lo:
+        return [lo for _ in qs]
+    edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
+    hist = np.zeros(HISTOGRAM_BINS)
+    for v, w in _cells_and_weights(data):
+        if log:
+            keep = v > 0
+            v, w = np.log10(v[keep]), w[keep]
+        hist += np.histogram(v, bins=edges, weights=w)[0]
+    cdf = np.cumsum(hist) / hist.sum()
+    return [float(edges[min(int(np.searchsorted(cdf, q / 100.0)) + (q > 0), HISTOGRAM_BINS)]) for q in qs]
+
+
+def plan_scene(data, field=None, *, tf: str = "foggy", log: bool | None = None, value_range=None,
+               density_scale: float | None = None) -> ScenePlan:
+    """Look at the data once and plan a scene (see the module docstring).
+
+    ``log``: None chooses log10 when at least 90% of the volume holds
+    positive values and their 1st and 99.9th volume-weighted percentiles
+    are more than 1000x apart;
+    ``value_range``: the TF domain (in transformed units), else those
+    percentiles; ``tf``: a preset name or a TF .json file."""
+    volume, extent, what = open_data(data, field)
+    notes = [f"data: {what}"]
+    if log is None:
+        share = positive_share(volume)
+        p = weighted_percentiles(volume, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True) if share else None
+        log = bool(share >= MIN_POSITIVE_SHARE and p[1] - p[0] > np.log10(LOG_RATIO))
+        notes.append(f"log10 chosen: values span 10^{p[0]:.3g} to 10^{p[1]:.3g}" if log
+                     else "linear values (positive ones within 1000x, or many values <= 0)")
+    transform = "log10" if log else "none"
+    if value_range is None:
+        value_range = tuple(weighted_percentiles(volume, [LOW_PERCENTILE, HIGH_PERCENTILE], log=log))
+        if value_range[1] <= value_range[0]:
+            pad = max(0.5, 1e-3 * abs(value_range[0]))
+            value_range = (value_range[0] - pad, value_range[1] + pad)
+    value_range = (float(value_range[0]), float(value_range[1]))
+    if not value_range[1] > value_range[0]:
+        raise ValueError(f"the TF range must have LO < HI, got {value_range}")
+    if tf not in PRESETS and not Path(tf).is_file():
+        raise ValueError(f"--tf: '{tf}' is neither a preset ({', '.join(PRESETS)}) nor a TF .json file")
+    world = extent / extent.max()
+    if density_scale is None:
+        density_scale = TARGET_DEPTH / max(_mean_alpha(volume, tf, value_range, log), 1e-6)
+    notes.append(f"TF '{tf}' over [{value_range[0]:.4g}, {value_range[1]:.4g}]"
+                 f"{' (log10 units)' if log else ''}, density_scale {density_scale:.3g}")
+    radius = 0.5 * float(np.linalg.norm(world))
+    direction = np.array([1.5, 1.0, 0.35]) / np.linalg.norm([1.5, 1.0, 0.35])    # just above the horizon
+    origin = direction * radius / np.sin(np.radians(FOV / 2)) * 1.1
+    return ScenePlan(volume, transform, tf, value_range, float(density_scale), world, origin, notes=notes)
+
+
+def _mean_alpha(volume, tf, value_range, log) -> float:
+    """Volume-weighted mean TF opacity of the cells."""
+    fn = TransferFunction.load(tf, value_range)
+    total = weight = 0.0
+    for v, w in _cells_and_weights(volume):
+        if log:      # values <= 0 take the floor, below the range: the TF's low end
+            v = np.log10(np.where(v > 0, v, 1.0)) - np.where(v > 0, 0.0, np.inf)
+        total += float((fn(v)[:, 3] * w).sum())
+        weight += float(w.sum())
+    return total / weight if weight else 0.0
+
+
+def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: str = "amrvolpath",
+              **options) -> dict:
+    """A scene dictionary for ``mi.load_dict`` that shows ``data`` (see
+    `open_data`) with no scene written by hand; ``options`` go to
+    `plan_scene` (``tf``, ``log``, ``value_range``, ``density_scale``)."""
+    import mitsuba as mi
+    plan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **options)
+    T = mi.ScalarTransform4f
+    medium = {"type": "amr", "data": plan.data, "transfer_function": plan.tf,
+              "tf_min": plan.tf_range[0], "tf_max": plan.tf_range[1], "value_transform": plan.transform,
+              "density_scale": plan.density_scale,
+              "to_world": T(mi.ScalarMatrix4f(plan.to_world_matrix().astype(np.float32)))}
+    return {
+        "type": "scene",
+        "integrator": {"type": integrator, "max_depth": 64},
+        "sensor": {"type": "perspective", "fov": plan.fov,
+                   "to_world": T().look_at(plan.origin.tolist(), [0, 0, 0], [0, 0, 1]),
+                   "sampler": {"type": "independent", "sample_count": spp},
+                   "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
+        "sky": {"type": "sunsky", "sun_direction": SUN_DIRECTION, "turbidity": 3.0,
+                "sun_scale": 2.5, "sky_scale": 6.0},
+        "floor": {"type": "rectangle", "to_world": T().translate([0, 0, plan.floor_height()]) @ T().scale(60),
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.45}}},
+        "volume": {"type": "cube", "to_world": T(mi.ScalarMatrix4f(plan.to_world_matrix().astype(np.float32)))
+                   @ T().translate([0.5, 0.5, 0.5]) @ T().scale(0.5),
+                   "bsdf": {"type": "null"}, "interior": medium},
+    }
+
+
+def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int = 64) -> Path:
+    """Write ``plan`` as an XML scene that loads ``data_file`` (``res`` and
+    ``spp`` are its defaults, ``-D res=...`` overrides them)."""
+    path = Path(path)
+    m = plan.to_world_matrix()
+    matrix = " ".join(f"{x:.9g}" for x in m.ravel())
+    cube = m @ np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
+    cube_matrix = " ".join(f"{x:.9g}" for x in cube.ravel())
+    o = ", ".join(f"{x:.6g}" for x in plan.origin)
+    notes = "\n         ".join(plan.notes)
+    text = f"""<scene version="3.0.0">
+    <!-- made by mi-amr from the data alone; edit and re-render with
+         mi-amr render {path.name} -o OUT.exr
+         {notes} -->
+    <default name="spp" value="{spp}"/>
+    <default name="res" value="{res}"/>
+
+    <integrator type="amrvolpath">
+        <integer name="max_depth" value="64"/>
+    </integrator>
+
+    <sensor type="perspective">
+        <float name="fov" value="{plan.fov}"/>
+        <transform name="to_world">
+            <lookat origin="{o}" target="0, 0, 0" up="0, 0, 1"/>
+        </transform>
+        <sampler type="independent">
+            <integer name="sample_count" value="$spp"/>
+        </sampler>
+        <film type="hdrfilm">
+            <integer name="width" value="$res"/>
+            <integer name="height" value="$res"/>
+            <rfilter type="box"/>
+        </film>
+    </sensor>
+
+    <emitter type="sunsky">
+        <vector name="sun_direction" value="{', '.join(str(x) for x in SUN_DIRECTION)}"/>
+        <float name="turbidity" value="3"/>
+        <float name="sun_scale" value="2.5"/>
+        <float name="sky_scale" value="6"/>
+    </emitter>
+
+    <medium type="amr" id="volume">
+        <string name="filename" value={quoteattr(str(data_file))}/>
+        <string name="transfer_function" value={quoteattr(str(plan.tf))}/>
+        <float name="tf_min" value="{plan.tf_range[0]:.9g}"/>
+        <float name="tf_max" value="{plan.tf_range[1]:.9g}"/>
+        <string name="value_transform" value="{plan.transform}"/>
+        <float name="density_scale" value="{plan.density_scale:.9g}"/>
+        <transform name="to_world">
+            <matrix value="{matrix}"/>
+        </transform>
+    </medium>
+
+    <shape type="rectangle">  <!-- the ground, just below the domain -->
+        <transform name="to_world">
+            <scale value="60"/>
+            <translate z="{plan.floor_height():.6g}"/>
+        </transform>
+        <bsdf type="diffuse">
+            <rgb name="reflectance" value="0.45"/>
+        </bsdf>
+    </shape>
+
+    <shape type="cube">
+        <transform name="to_world">
+            <matrix value="{cube_matrix}"/>
+        </transform>
+        <bsdf type="null"/>
+        <ref name="interior" id="volume"/>
+    </shape>
+</scene>
+"""
+    path.write_text(text)
+    return path

@@ -1,0 +1,164 @@
+"""A scene from the data alone: `mi_amr.scene_for` and
+``mi-amr render DATA --field NAME``; value transforms (log10)."""
+
+import json
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_amr
+from mi_amr.autoscene import plan_scene, scene_for, weighted_percentiles
+from mi_amr.data.io import write_exabricks
+
+from conftest import random_amr
+
+
+def cosmology_like(shape=(16, 8, 4), seed=0):
+    """Two levels over an anisotropic box, values from 3e-31 to 3e-26 with
+    some exact zeros: only a log scale makes sense."""
+    rng = np.random.default_rng(seed)
+    dense = 10.0 ** rng.uniform(-30.5, -25.5, size=shape[::-1]).astype(np.float64)
+    dense[0, 0, :3] = 0.0
+    return mi_amr.dense_to_amr(dense.astype(np.float32), 0.0, 1)
+
+
+def test01_log10_transform_floors_non_positive_values(llvm):
+    """value_transform=log10: log10 of each value, zero and negative ones
+    raised to the smallest positive value first; never NaN; the TF domain
+    is in log units; data without a positive value are refused by name."""
+    cells = random_amr(0, 8, 2)
+    v = cells.value.astype(np.float64).copy()
+    v[:4] = 0.0
+    v[4] = -2.0
+    data = mi_amr.AMRCells(cells.pos, cells.level, v, source="mine")
+    med = mi.load_dict({"type": "amr", "data": data, "value_transform": "log10"})
+    floor = v[v > 0].min()
+    assert med.volume.value_range == pytest.approx((np.log10(floor), np.log10(v.max())), rel=1e-6)
+    assert med.tf.domain == pytest.approx(med.volume.value_range)
+    vals = med.volume.values[~np.isnan(med.volume.values)]
+    assert np.isfinite(vals).all() and vals.size == len(v)
+    assert np.all(np.sort(vals) == np.sort(np.log10(np.maximum(v, floor)).astype(np.float32)))
+    bad = mi_amr.AMRCells(cells.pos, cells.level, np.zeros(len(v)), source="all-zero.cells")
+    with pytest.raises(RuntimeError, match="all-zero.cells.*positive"):
+        mi.load_dict({"type": "amr", "data": bad, "value_transform": "log10"})
+    with pytest.raises(RuntimeError, match="value_transform"):
+        mi.load_dict({"type": "amr", "data": data, "value_transform": "ln"})
+
+
+def test02_plan_reads_aspect_percentiles_and_scale(llvm):
+    """The plan keeps the domain's aspect (16:8:4 cells -> 1 : 0.5 : 0.25),
+    chooses log10 for values spanning five decades and places the TF over
+    their 1st-99.9th volume-weighted percentiles; linear data stay linear."""
+    plan = plan_scene(cosmology_like())
+    np.testing.assert_allclose(plan.extent, [1.0, 0.5, 0.25])
+    assert plan.transform == "log10"
+    lo, hi = plan.tf_range
+    assert -31 < lo < -30 and -26 < hi < -25.4
+    # the histogram percentiles against numpy's, weighted by cell volume
+    cells = random_amr(1, 16, 3)
+    w = np.exp2(3.0 * cells.level)
+    order = np.argsort(cells.value)
+    cdf = np.cumsum(w[order]) / w.sum()
+    for q in (1.0, 50.0, 99.9):
+        exact = cells.value[order][np.searchsorted(cdf, q / 100)]
+        got = weighted_percentiles(cells, [q])[0]
+        assert abs(got - exact) <= (cells.value.max() - cells.value.min()) / 4096 * 1.01 + 1e-12
+    linear = plan_scene(cells)
+    assert linear.transform == "none" and linear.density_scale > 0
+
+
+def test03_scene_for_renders_the_data(llvm):
+    """`scene_for` gives a scene dictionary that loads and renders a finite
+    image in which the volume is visible (the image differs from the same
+    scene with the medium made clear)."""
+    scene = scene_for(cosmology_like(), res=24, spp=8)
+    img = np.array(mi.render(mi.load_dict(scene), spp=8, seed=1))
+    assert np.isfinite(img).all()
+    clear = dict(scene)
+    clear["volume"] = dict(scene["volume"], interior=dict(scene["volume"]["interior"], density_scale=0.0))
+    empty = np.array(mi.render(mi.load_dict(clear), spp=8, seed=1))
+    assert np.abs(img - empty).mean() > 0.02 * empty.mean()
+
+
+def test04_cli_renders_a_data_file_and_writes_its_scene(llvm, tmp_path):
+    """``mi-amr render DATA.cells`` writes EXR, PNG and the XML scene it
+    used; the XML loads on its own, with the planned log10 transform and TF
+    range, and renders the same image for the same seed."""
+    from conftest import render_cli
+    data = tmp_path / "cosmo.cells"
+    write_exabricks(cosmology_like(), data)
+    out = tmp_path / "out" / "cosmo.exr"
+    r = render_cli([str(data), "-o", str(out), "--spp", "4", "--res", "20", "--tf", "spiky"])
+    assert r.returncode == 0, r.stderr
+    assert out.is_file() and out.with_suffix(".png").is_file()
+    xml = out.with_suffix(".xml")
+    text = xml.read_text()
+    assert 'name="value_transform" value="log10"' in text and 'value="spiky"' in text
+    scene = mi.load_file(str(xml))
+    med = mi_amr.amr_media(scene)[0]
+    assert med.tf.domain[0] < -30 and med.volume.value_range[1] < -25
+    again = tmp_path / "again.exr"
+    assert render_cli([str(xml), "-o", str(again), "--spp", "4"]).returncode == 0
+    a = np.array(mi.Bitmap(str(out)))
+    b = np.array(mi.Bitmap(str(again)))
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test05_cli_data_options_are_checked(llvm, tmp_path):
+    from conftest import render_cli
+    data = tmp_path / "d.cells"
+    write_exabricks(random_amr(0, 8, 2), data)
+    r = render_cli([str(data), "-o", str(tmp_path / "o.exr"), "--tf", "nosuch", "--spp", "1", "--res", "8"])
+    assert r.returncode != 0 and "nosuch" in r.stderr
+    r = render_cli([str(data), "-o", str(tmp_path / "o.exr"), "--range", "2", "1", "--spp", "1", "--res", "8"])
+    assert r.returncode != 0 and "LO < HI" in r.stderr
+    r = render_cli([str(tmp_path / "missing.plt"), "-o", str(tmp_path / "o.exr"), "--field", "density"])
+    assert r.returncode != 0 and "missing.plt" in r.stderr
+    xml_scene = tmp_path / "s.xml"
+    xml_scene.write_text("<scene version='3.0.0'/>")
+    r = render_cli([str(xml_scene), "-o", str(tmp_path / "o.exr"), "--field", "density"])
+    assert r.returncode != 0 and "for data files" in r.stderr
+
+
+def test06_yt_dataset_keeps_its_domain_shape(llvm):
+    """A yt dataset on an anisotropic domain (2 : 1 : 1 code units, square
+    cells) gets a scene at that aspect."""
+    yt = pytest.importorskip("yt")
+    rng = np.random.default_rng(2)
+    grids = [dict(left_edge=[0.0, 0.0, 0.0], right_edge=[2.0, 1.0, 1.0], level=0, dimensions=[16, 8, 8],
+                  density=rng.random((16, 8, 8)) + 0.1),
+             dict(left_edge=[0.5, 0.25, 0.25], right_edge=[1.0, 0.5, 0.5], level=1, dimensions=[8, 4, 4],
+                  density=rng.random((8, 4, 4)) + 0.1)]
+    ds = yt.load_amr_grids(grids, [16, 8, 8], bbox=np.array([[0.0, 2.0], [0.0, 1.0], [0.0, 1.0]]))
+    plan = plan_scene(ds, "density")
+    np.testing.assert_allclose(plan.extent, [1.0, 0.5, 0.5])
+    scene = mi.load_dict(scene_for(plan, res=16, spp=4))
+    assert np.isfinite(np.array(mi.render(scene, spp=4))).all()
+    with pytest.raises(ValueError, match="field"):
+        plan_scene(ds)
+
+
+def test07_missing_reader_dependency_names_the_package(llvm, tmp_path, monkeypatch):
+    """yt imports a format's reader dependency lazily: its absence gives an
+    error naming the package and the install command."""
+    yt = pytest.importorskip("yt")
+
+    def load(path):
+        raise ModuleNotFoundError("No module named 'h5py'", name="h5py")
+    monkeypatch.setattr(yt, "load", load)
+    (tmp_path / "DD0018").write_text("")
+    with pytest.raises(ImportError, match="'h5py'.*pip install h5py"):
+        plan_scene(tmp_path / "DD0018", "density")
+
+
+def test08_convert_log_writes_log10_values(llvm, tmp_path):
+    from mi_amr.tools.cli import main
+    src = tmp_path / "c.cells"
+    write_exabricks(cosmology_like(), src)
+    assert main(["convert", str(src), str(tmp_path / "l.npz"), "--log"]) == 0
+    cells = mi_amr.load_cells(tmp_path / "l.npz")
+    raw = mi_amr.load_cells(src)
+    floor = raw.value[raw.value > 0].min()
+    order_a, order_b = np.lexsort(cells.pos.T), np.lexsort(raw.pos.T)
+    np.testing.assert_allclose(cells.value[order_a], np.log10(np.maximum(raw.value[order_b], floor)), rtol=1e-6)
