@@ -1,8 +1,6 @@
 """A scene from the data alone: `mi_amr.scene_for` and
 ``mi-amr render DATA --field NAME``; value transforms (log10)."""
 
-import json
-
 import mitsuba as mi
 import numpy as np
 import pytest

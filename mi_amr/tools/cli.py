@@ -180,8 +180,6 @@ def cmd_frametime(args):
     mi = _set_variant(args.variant)
     import tempfile
 
-    import numpy as np
-
     from .images import compare_images
     from .scene_xml import reference_scene, with_amr_parameters
     params = _scene_params(args)
