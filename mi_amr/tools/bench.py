@@ -202,6 +202,10 @@ def main(argv=None):
     p.add_argument("--max-depth", type=int, default=64)
     p.add_argument("--datasets", nargs="*", default=["cloud", "shell", "stadium", "blocks"])
     p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
+    p.add_argument("--data", metavar="PATH",
+                   help="run on this data set instead of the synthetic ones (.cells/.npz or anything yt "
+                        "loads; log10 values and density scale chosen as mi-amr render chooses them)")
+    p.add_argument("--field", help="field of --data (e.g. density)")
     p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
     p.add_argument("--reconstruction", default="nearest", choices=("nearest", "tent"))
     p.add_argument("--grid-refinement", type=int, default=None, metavar="F",
@@ -262,13 +266,29 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     configs = args.configs or all_configs()
-    data = [(n, make_dataset(n, cells=args.cells, levels=7 if n == "stadium" else 4)) for n in args.datasets]
+    domains = {}                                  # TF domain per data set (default: the value range)
+    if args.data:
+        # a user's data set alone (any format `mi-amr render` reads), on its value scale
+        from ..autoscene import plan_scene
+        plan = plan_scene(args.data, args.field)
+        cells = plan.data.to_cells() if hasattr(plan.data, "to_cells") else plan.data
+        if plan.transform == "log10":
+            from ..data.transform import apply_value_transform
+            cells, _ = apply_value_transform(cells, "log10")
+        name = Path(args.data).name + (f"-{args.field}" if args.field else "")
+        data = [(name, cells)]
+        SCALES.update({(name, t): plan.density_scale for t in args.tfs})
+        domains[name] = plan.tf_range
+        print(f"{name}: {len(cells)} cells, {plan.transform} values, density_scale {plan.density_scale:.3g} "
+              f"(as mi-amr render would choose)", flush=True)
+    else:
+        data = [(n, make_dataset(n, cells=args.cells, levels=7 if n == "stadium" else 4)) for n in args.datasets]
     data += [(Path(f).stem, load_cells(f)) for f in args.files]
     records, sweeps = [], []
     t_start = time.perf_counter()
     for name, cells in data:
         for tf_name in args.tfs:
-            tf = mi_amr.TransferFunction.preset(tf_name, cells.value_range)
+            tf = mi_amr.TransferFunction.preset(tf_name, domains.get(name, cells.value_range))
             scale = SCALES.get((name, tf_name), 100.0)
             # High-sample reference image: the default amrvolpath configuration.
             ref_args = argparse.Namespace(**{**vars(args), "spp": args.ref_spp, "repeats": 1})
