@@ -71,9 +71,11 @@ def open_data(data, field=None):
     an `AMRCells`, a `BlockVolume`, a ``.cells``/``.npz`` file, a loaded yt
     dataset, or any path yt can load (then ``field`` names the field)."""
     from .data.io import load_volume
+    from .data.metadata import physical_box
     if isinstance(data, (AMRCells, BlockVolume)):
         lo, hi = data.bounds
-        return data, (hi - lo).astype(np.float64), data.source
+        box = physical_box(data)
+        return data, (hi - lo).astype(np.float64) if box is None else box[1], data.source
     if hasattr(data, "index") and hasattr(data, "domain_left_edge"):
         return _from_yt(data, field)
     path = Path(str(data))
@@ -86,7 +88,8 @@ def open_data(data, field=None):
             scalars = None
         vol = load_volume(path, scalars)
         lo, hi = vol.bounds
-        return vol, (hi - lo).astype(np.float64), str(path)
+        box = physical_box(vol)
+        return vol, (hi - lo).astype(np.float64) if box is None else box[1], str(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
     return _from_yt(_yt_load(path), field)

@@ -160,3 +160,58 @@ def test08_convert_log_writes_log10_values(llvm, tmp_path):
     floor = raw.value[raw.value > 0].min()
     order_a, order_b = np.lexsort(cells.pos.T), np.lexsort(raw.pos.T)
     np.testing.assert_allclose(cells.value[order_a], np.log10(np.maximum(raw.value[order_b], floor)), rtol=1e-6)
+
+
+def anisotropic_ds():
+    """An AMReX-like domain of 2 x 1 x 1 code units in 16^3 root cells
+    (cells of aspect 2 : 1 : 1), with one refined patch."""
+    yt = pytest.importorskip("yt")
+    rng = np.random.default_rng(3)
+    grids = [dict(left_edge=[0.0, 0.0, 0.0], right_edge=[2.0, 1.0, 1.0], level=0, dimensions=[16, 16, 16],
+                  density=rng.random((16, 16, 16)) + 0.1),
+             dict(left_edge=[0.5, 0.25, 0.25], right_edge=[1.0, 0.5, 0.5], level=1, dimensions=[8, 8, 8],
+                  density=rng.random((8, 8, 8)) + 0.1)]
+    return yt.load_amr_grids(grids, [16, 16, 16], bbox=np.array([[0.0, 2.0], [0.0, 1.0], [0.0, 1.0]]))
+
+
+@pytest.mark.parametrize("suffix", [".npz", ".cells"])
+def test09_metadata_travels_with_converted_data(llvm, tmp_path, suffix):
+    """Cells from yt keep their physical domain (anisotropic cells), field
+    and code through a file of either format; a medium loaded from that file
+    with no to_world is placed on the domain, and the scene planned from the
+    file has the shape of the one planned through yt. A log10 conversion is
+    recorded (and not applied twice). Files without metadata keep the unit
+    cube."""
+    ds = anisotropic_ds()
+    cells = mi_amr.from_yt(ds, ("stream", "density"))
+    assert cells.meta["domain_right_edge"] == [2.0, 1.0, 1.0] and cells.meta["domain_cells"] == [32, 32, 32]
+    path = mi_amr.save_cells(cells, tmp_path / f"plt{suffix}")
+    again = mi_amr.load_cells(path)
+    assert again.meta == cells.meta
+    med = mi.load_dict({"type": "amr", "filename": str(path)})
+    m = np.array(med.options.to_world.matrix)
+    np.testing.assert_allclose(np.diag(m)[:3], [2.0, 1.0, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(plan_scene(path).extent, plan_scene(ds, "stream,density").extent)
+    np.testing.assert_allclose(plan_scene(path).extent, [1.0, 0.5, 0.5])
+    logged = mi.load_dict({"type": "amr", "filename": str(path), "value_transform": "log10"})
+    assert logged.volume.meta["value_transform"] == "log10" and logged.volume.meta["log_floor"] > 0
+    from mi_amr.data.transform import apply_value_transform
+    log_cells, _ = apply_value_transform(cells, "log10")
+    with pytest.raises(ValueError, match="already log10"):
+        apply_value_transform(log_cells, "log10")
+    plain = tmp_path / f"plain{suffix}"
+    mi_amr.save_cells(random_amr(0, 8, 2), plain)
+    np.testing.assert_allclose(np.array(mi.load_dict({"type": "amr", "filename": str(plain)}).options.to_world.matrix),
+                               np.eye(4))
+
+
+def test10_bad_metadata_is_refused_by_name(llvm, tmp_path):
+    path = tmp_path / "d.cells"
+    write_exabricks(random_amr(0, 8, 2), path)
+    side = tmp_path / "d.cells.json"
+    side.write_text("{not json")
+    with pytest.raises(ValueError, match="d.cells.json"):
+        mi_amr.load_cells(path)
+    side.write_text('{"domain_left_edge": [0, 0, 0], "domain_right_edge": [1, 1, 0], "domain_cells": [8, 8, 8]}')
+    with pytest.raises(ValueError, match="left < right"):
+        mi_amr.load_cells(path)

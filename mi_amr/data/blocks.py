@@ -48,7 +48,7 @@ class BlockVolume(mi.Object):
     source : str                 name used in error messages
     """
 
-    def __init__(self, block, level, coord, values, origin, lo, hi, n_cells, source):
+    def __init__(self, block, level, coord, values, origin, lo, hi, n_cells, source, meta=None):
         super().__init__()
         self.block = int(block)
         self.log2_block = int(self.block).bit_length() - 1
@@ -58,13 +58,14 @@ class BlockVolume(mi.Object):
         self.origin, self.lo, self.hi = origin, lo, hi
         self.n_cells = int(n_cells)
         self.source = source
+        self.meta = dict(meta or {})         # physical metadata (`mi_amr.data.metadata`)
         self._covers = None
         self._update_range()
 
 
     def __reduce__(self):
         return (BlockVolume, (self.block, self.level, self.coord, self.values, self.origin, self.lo,
-                              self.hi, self.n_cells, self.source))
+                              self.hi, self.n_cells, self.source, self.meta))
     def _update_range(self):
         lo_v, hi_v = np.inf, -np.inf
         for s in range(0, len(self.values), CHUNK):
@@ -103,9 +104,11 @@ class BlockVolume(mi.Object):
         lo, hi = cells.bounds
         chunks = lambda: ((cells.pos[s:s + CHUNK], cells.level[s:s + CHUNK], cells.value[s:s + CHUNK])  # noqa: E731
                           for s in range(0, len(cells), CHUNK))
-        return _build(chunks, lo, hi, int(cells.level.max()), cells.source, "error", block,
-                      lambda: sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)),
-                      method)
+        vol = _build(chunks, lo, hi, int(cells.level.max()), cells.source, "error", block,
+                     lambda: sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)),
+                     method)
+        vol.meta = dict(getattr(cells, "meta", {}))
+        return vol
 
     @classmethod
     def from_chunks(cls, chunks, source: str, overlap: str = "error", block: int | None = None,
@@ -209,8 +212,10 @@ class BlockVolume(mi.Object):
         """All cells as an `AMRCells` (per-cell records: for small data and for
         builders that still need them)."""
         parts = list(self.cell_chunks())
-        return AMRCells(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
-                        np.concatenate([p[2] for p in parts]), source=self.source, validate=False)
+        cells = AMRCells(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                         np.concatenate([p[2] for p in parts]), source=self.source, validate=False)
+        cells.meta = dict(self.meta)
+        return cells
 
     def stencil_index(self):
         """Tables for one-probe tent stencils (docs/design.md section 9).

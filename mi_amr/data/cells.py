@@ -56,12 +56,14 @@ class AMRCells(mi.Object):
         self.pos = np.ascontiguousarray(pos, dtype=np.int64)
         self.level = np.ascontiguousarray(level, dtype=np.int32)
         self.value = np.ascontiguousarray(value, dtype=np.float32)
+        #: physical metadata (`mi_amr.data.metadata`): domain, field, units, code
+        self.meta = {}
         if validate:
             self._validate(overlap)
 
     def __reduce__(self):
         """Pickled as its arrays (for Dask workers), not validated again."""
-        return (_cells_from_arrays, (self.pos, self.level, self.value, self.source))
+        return (_cells_from_arrays, (self.pos, self.level, self.value, self.source, self.meta))
 
     # ---- Validation ----------------------------------------------------
     def _validate(self, overlap: str):
@@ -208,6 +210,8 @@ def cell_keys(q: np.ndarray) -> np.ndarray:
     return q.view(np.dtype((np.void, 24))).ravel()
 
 
-def _cells_from_arrays(pos, level, value, source):
+def _cells_from_arrays(pos, level, value, source, meta=None):
     """`AMRCells` from arrays that were valid when pickled."""
-    return AMRCells(pos, level, value, source=source, validate=False)
+    cells = AMRCells(pos, level, value, source=source, validate=False)
+    cells.meta = dict(meta or {})
+    return cells

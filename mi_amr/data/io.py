@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import zipfile
 import zlib
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import metadata
 from .blocks import BlockVolume, sample_runs
 from .cells import AMRCells
 from ..memory import load_bytes, require, structure_bytes
@@ -65,7 +67,9 @@ def read_exabricks(cells_path, scalars_path=None, *, overlap: str = "error") -> 
     rec = np.fromfile(cells_path, dtype=CELL_DTYPE)
     val = np.fromfile(scalars_path, dtype="<f4")
     pos = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
-    return AMRCells(pos, rec["level"], val, overlap=overlap, source=str(cells_path))
+    cells = AMRCells(pos, rec["level"], val, overlap=overlap, source=str(cells_path))
+    cells.meta = metadata.read_sidecar(cells_path)
+    return cells
 
 
 def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "error",
@@ -90,9 +94,12 @@ def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "erro
     def chunks():
         for s in range(0, n, chunk):
             yield read(s, min(n, s + chunk))
-    return BlockVolume.from_chunks(chunks, str(cells_path), overlap=overlap, block=block,
-                                   sample=lambda: sample_runs(n, lambda s, e: read(s, e, False)),
-                                   method=method, total=n)
+    meta = metadata.read_sidecar(cells_path)
+    vol = BlockVolume.from_chunks(chunks, str(cells_path), overlap=overlap, block=block,
+                                  sample=lambda: sample_runs(n, lambda s, e: read(s, e, False)),
+                                  method=method, total=n)
+    vol.meta = meta
+    return vol
 
 
 def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Path, Path]:
@@ -106,6 +113,11 @@ def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Pat
     rec["level"] = cells.level
     rec.tofile(cells_path)
     cells.value.astype("<f4").tofile(scalars_path)
+    side = metadata.sidecar_path(cells_path)
+    if getattr(cells, "meta", None):
+        side.write_text(json.dumps(cells.meta, indent=1) + "\n")
+    elif side.is_file():
+        side.unlink()                       # no stale metadata from an earlier file of this name
     return cells_path, scalars_path
 
 
@@ -120,10 +132,23 @@ def read_npz(path, *, overlap: str = "error") -> AMRCells:
         require(structure_bytes("cells", n), f"{path} ({n} values per array)",
                 hint="raise the limit to load it")
         pos, level, value = z["pos"], z["level"], z["value"]
+        meta = _npz_meta(z, path)
     for name, arr in (("pos", pos), ("level", level)):
         if not np.issubdtype(arr.dtype, np.integer):
             raise ValueError(f"{path}: array '{name}' must be integer, got {arr.dtype}")
-    return AMRCells(pos, level, value, overlap=overlap, source=str(path))
+    cells = AMRCells(pos, level, value, overlap=overlap, source=str(path))
+    cells.meta = meta
+    return cells
+
+
+def _npz_meta(z, path) -> dict:
+    """The ``meta`` member of an open ``.npz`` (a JSON string), or {}."""
+    if "meta" not in z.files:
+        return {}
+    try:
+        return metadata.check(json.loads(str(z["meta"])), str(path))
+    except ValueError as e:
+        raise ValueError(f"{path}: bad 'meta' member ({e})") from e
 
 
 def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
@@ -173,7 +198,11 @@ def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
                 yield out[0], out[1], out[2]
             for f in members:
                 f.close()
-    return BlockVolume.from_chunks(chunks, str(path), overlap=overlap, method=method, total=n)
+    with _npz_errors(path), np.load(path, allow_pickle=False) as z:
+        meta = _npz_meta(z, path)
+    vol = BlockVolume.from_chunks(chunks, str(path), overlap=overlap, method=method, total=n)
+    vol.meta = meta
+    return vol
 
 
 def _has_objects(*dtypes) -> bool:
@@ -211,8 +240,9 @@ def _npy_header(f) -> tuple:
 
 def write_npz(cells: AMRCells, path) -> Path:
     path = Path(path)
+    extra = {"meta": np.array(json.dumps(cells.meta))} if getattr(cells, "meta", None) else {}
     np.savez_compressed(path, pos=cells.pos.astype(np.int32 if np.abs(cells.pos).max() < 2**31 else np.int64),
-                        level=cells.level, value=cells.value)
+                        level=cells.level, value=cells.value, **extra)
     return path
 
 

@@ -51,11 +51,17 @@ def apply_value_transform(data: AMRCells | BlockVolume, kind: str, inplace: bool
         raise ValueError(f"value_transform must be one of {', '.join(VALUE_TRANSFORMS)}, got {kind!r}")
     if kind == "none":
         return data, None
+    if data.meta.get("value_transform") == "log10":
+        raise ValueError(f"{data.source}: the values are already log10 (metadata says so); "
+                         f"use value_transform='none'")
+    meta = dict(data.meta, value_transform="log10")
     if isinstance(data, AMRCells):
         floor = positive_floor(data.value, data.source)
-        return AMRCells(data.pos, data.level, log10_values(data.value, floor), validate=False,
-                        source=f"log10 of {data.source}"), floor
+        out = AMRCells(data.pos, data.level, log10_values(data.value, floor), validate=False,
+                       source=f"log10 of {data.source}")
+        out.meta = dict(meta, log_floor=floor)
+        return out, floor
     floor = positive_floor(data.values, data.source)
     values = log10_values(data.values, floor, out=data.values if inplace else None)
     return BlockVolume(data.block, data.level, data.coord, values, data.origin, data.lo, data.hi,
-                       data.n_cells, f"log10 of {data.source}"), floor
+                       data.n_cells, f"log10 of {data.source}", dict(meta, log_floor=floor)), floor

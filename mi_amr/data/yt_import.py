@@ -40,8 +40,17 @@ def from_yt(ds, field, *, overlap: str = "error") -> AMRCells:
         value.append(np.asarray(g[field], dtype=np.float64)[mask].astype(np.float32))
     if not pos:
         raise ValueError(f"{ds}: no leaf cells found")
-    return AMRCells(np.concatenate(pos), np.concatenate(level), np.concatenate(value),
-                    overlap=overlap, source=f"yt dataset {ds} field {field}")
+    cells = AMRCells(np.concatenate(pos), np.concatenate(level), np.concatenate(value),
+                     overlap=overlap, source=f"yt dataset {ds} field {field}")
+    try:
+        units = str(ds.field_info[field].units) if field in ds.field_info else ""
+    except Exception:          # yt's field lookup varies by frontend: units are informative only
+        units = ""
+    cells.meta = {"domain_left_edge": dle.tolist(), "domain_right_edge": dre.tolist(),
+                  "domain_cells": (dims0 * (1 << max_level)).tolist(), "length_unit": "code_length",
+                  "field": str(field), "units": units,
+                  "code": str(getattr(ds, "dataset_type", type(ds).__name__))}
+    return cells
 
 
 def world_transform(ds):

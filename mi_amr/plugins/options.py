@@ -83,7 +83,7 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
         majorant=get_string(props, "amr", "majorant", "ray", MAJORANTS),
         max_iterations=get_int(props, "amr", "max_iterations", MAX_TRACKING_ITERATIONS,
                                minimum=1, maximum=2**31),
-        to_world=_to_world(props),
+        to_world=_to_world(props, data),
         structures=structures)
 
 
@@ -156,10 +156,16 @@ def _transfer_function(props, cells: AMRCells | BlockVolume) -> TransferFunction
                          f"or a TransferFunction, got {type(tf).__name__}")
 
 
-def _to_world(props) -> "mi.ScalarTransform4f":
-    """``to_world`` as a finite, invertible ScalarTransform4f."""
+def _to_world(props, data=None) -> "mi.ScalarTransform4f":
+    """``to_world`` as a finite, invertible ScalarTransform4f. Without one,
+    data that carry a physical domain (`mi_amr.data.metadata`) are placed
+    on it, anisotropic cells included; other data fill the unit cube."""
     if "to_world" not in props.keys():
-        return mi.ScalarTransform4f()
+        from ..data.metadata import physical_box
+        box = physical_box(data) if data is not None else None
+        if box is None:
+            return mi.ScalarTransform4f()
+        return as_transform4f(mi.ScalarTransform4d().translate(box[0].tolist()).scale(box[1].tolist()))
     t = props["to_world"]
     if not hasattr(t, "matrix"):
         raise ParameterError(f"amr: to_world must be a transform, got {t!r} ({type(t).__name__})")
