@@ -110,11 +110,11 @@ def _yt_load(path):
 
 
 def _from_yt(ds, field):
-    from .data.yt_import import from_yt
+    from .data.yt_import import from_yt_blocks
     if field is None:
         raise ValueError(f"{ds}: give the field to render (--field NAME), e.g. density")
     name = tuple(field.split(",")) if isinstance(field, str) and "," in field else field
-    cells = from_yt(ds, name)
+    cells = from_yt_blocks(ds, name)
     ext = np.asarray((ds.domain_right_edge - ds.domain_left_edge).to("code_length").d, dtype=np.float64)
     return cells, ext, f"{ds} field {field}"
 

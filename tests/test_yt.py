@@ -86,5 +86,43 @@ def test04_convert_cli_reads_yt_datasets(tmp_path, monkeypatch):
     assert main(["convert", str(tmp_path / "plt00100"), str(out), "--field", "stream,Density"]) == 0
     back = mi_amr.load_cells(out)
     ref = mi_amr.from_yt(ds, ("stream", "Density"))
-    np.testing.assert_array_equal(back.pos, ref.pos)
-    np.testing.assert_array_equal(back.value, ref.value)
+    a, b = np.lexsort(back.pos.T), np.lexsort(ref.pos.T)       # the same cells, in block order
+    np.testing.assert_array_equal(back.pos[a], ref.pos[b])
+    np.testing.assert_array_equal(back.value[a], ref.value[b])
+    assert back.meta == ref.meta
+
+
+def test05_blocks_straight_from_yt_equal_the_cells():
+    """`from_yt_blocks` streams yt's grids into the compact form: the same
+    cells and values as `from_yt`, and the same metadata."""
+    from yt.testing import fake_amr_ds
+    from mi_amr.data.yt_import import from_yt_blocks
+    ds = fake_amr_ds(fields=("Density",), units=("g/cm**3",))
+    cells = mi_amr.from_yt(ds, ("stream", "Density"))
+    vol = from_yt_blocks(ds, ("stream", "Density"))
+    back = vol.to_cells()
+    a, b = np.lexsort(np.c_[cells.pos, cells.level].T), np.lexsort(np.c_[back.pos, back.level].T)
+    np.testing.assert_array_equal(cells.pos[a], back.pos[b])
+    np.testing.assert_array_equal(cells.level[a], back.level[b])
+    np.testing.assert_array_equal(cells.value[a], back.value[b])
+    assert vol.meta == cells.meta and vol.meta["code"]
+
+
+def test06_unsupported_yt_data_are_named():
+    """2D grids, octree AMR (as RAMSES writes) and particle-only data give
+    an error naming what is not supported."""
+    from mi_amr.data.yt_import import from_yt_blocks
+    flat = yt.load_uniform_grid({"density": np.ones((8, 8, 1))}, [8, 8, 1])
+    flat.dimensionality = 2
+    with pytest.raises(ValueError, match="2D data"):
+        from_yt_blocks(flat, ("stream", "density"))
+    octree = yt.load_octree(octree_mask=np.array([8, 0, 0, 0, 0, 0, 0, 0, 0], dtype=np.uint8),
+                            data={("gas", "density"): np.ones(15)}, partial_coverage=0)
+    with pytest.raises(ValueError, match="octree"):
+        from_yt_blocks(octree, ("gas", "density"))
+    particles = yt.load_particles({("io", "particle_position_x"): np.random.random(50),
+                                   ("io", "particle_position_y"): np.random.random(50),
+                                   ("io", "particle_position_z"): np.random.random(50),
+                                   ("io", "particle_mass"): np.ones(50)})
+    with pytest.raises(ValueError, match="particle-only"):
+        from_yt_blocks(particles, ("io", "particle_mass"))

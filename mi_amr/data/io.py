@@ -267,8 +267,10 @@ def load_volume(path, scalars=None, *, overlap: str = "error", method: str = "te
     raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected .cells or .npz)")
 
 
-def save_cells(cells: AMRCells, path) -> Path:
+def save_cells(cells: AMRCells | BlockVolume, path) -> Path:
     path = Path(path)
+    if isinstance(cells, BlockVolume):
+        cells = cells.to_cells()
     if path.suffix == ".npz":
         return write_npz(cells, path)
     if path.suffix == ".cells":

@@ -257,13 +257,13 @@ def cmd_convert(args):
         cells = dense_to_amr(vol, args.threshold, args.max_level, source=str(src))
     elif args.field:
         from ..autoscene import _yt_load
-        from ..data.yt_import import from_yt
+        from ..data.yt_import import from_yt_blocks
         try:
             ds = _yt_load(src)
         except ImportError as e:
             raise SystemExit(f"mi-amr convert: {e}")
         field = tuple(args.field.split(",")) if "," in args.field else args.field
-        cells = from_yt(ds, field, overlap=args.overlap)
+        cells = from_yt_blocks(ds, field, overlap=args.overlap)        # grids straight into blocks
     else:
         raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' (expected .cells, "
                          ".npz, .npy or .raw, or a yt-loadable dataset with --field)")
