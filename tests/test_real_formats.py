@@ -1,0 +1,103 @@
+"""Simulation outputs in their codes' own formats, written by the tests
+(tests/amr_formats.py), read through yt as a user's data would be: coverage,
+values at cell centres against yt, shape, and a render against the
+gridvolume reference."""
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_amr
+from mi_amr.autoscene import plan_scene, scene_for
+from mi_amr.testing import block_z_scores, render_passes
+from mi_amr.tools.reference import reference_medium
+
+from amr_formats import write_amrex_plotfile
+from conftest import render_cli
+
+yt = pytest.importorskip("yt")
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    """An AMReX plotfile: 16 x 16 x 8 root cells over 1 x 0.62 x 1 (cells of
+    aspect 1 : 0.62 : 2), two root boxes, one refined box of 8^3 fine cells."""
+    rng = np.random.default_rng(0)
+    x, y, z = np.meshgrid(np.arange(8), np.arange(16), np.arange(8), indexing="ij")
+    blob = np.exp(-((x - 6) ** 2 + (y - 8) ** 2 + (z - 4) ** 2) / 20.0)
+    coarse = [((0, 0, 0), 1.0 + 4.0 * blob + 0.1 * rng.random(blob.shape)),
+              ((8, 0, 0), 1.0 + 4.0 * blob[::-1] + 0.1 * rng.random(blob.shape))]
+    fine = [((12, 12, 4), 3.0 + 2.0 * rng.random((8, 8, 8)))]
+    levels = [coarse, fine]
+    return write_amrex_plotfile(tmp_path_factory.mktemp("amrex") / "plt00010", levels,
+                                [0.0, 0.0, 0.0], [1.0, 0.62, 1.0]), levels
+
+
+@pytest.fixture(scope="module")
+def plotfile(written):
+    return written[0]
+
+
+def expected_leaf_cells(levels):
+    """{(x, y, z, level): value} of the written boxes in finest units
+    (level 1: root cells, minus those the fine box covers)."""
+    out = {}
+    for amr_level, boxes in ((1, levels[0]), (0, levels[1])):
+        for lo, data in boxes:
+            for ijk in np.ndindex(*data.shape):
+                p = (np.asarray(lo) + ijk) << amr_level
+                out[(*p.tolist(), amr_level)] = np.float32(data[ijk])
+    (flo, fdata), = levels[1]
+    fhi = np.asarray(flo) + fdata.shape
+    for key in [k for k in out if k[3] == 1]:
+        if np.all(np.asarray(key[:3]) >= flo) and np.all(np.asarray(key[:3]) < fhi):
+            del out[key]
+    return out
+
+
+def test01_amrex_plotfile_cells_cover_the_domain_with_yt_values(llvm, written):
+    plotfile, levels = written
+    from mi_amr.data.yt_import import from_yt_blocks
+    ds = yt.load(str(plotfile))
+    assert type(ds).__name__.endswith("Dataset") and ds.index.max_level == 1
+    vol = from_yt_blocks(ds, ("boxlib", "density"))
+    cells = vol.to_cells()
+    finest = np.asarray(ds.domain_dimensions) * 2
+    lo, hi = cells.bounds
+    assert lo.tolist() == [0, 0, 0] and hi.tolist() == finest.tolist()
+    assert int((cells.width.astype(np.int64) ** 3).sum()) == int(np.prod(finest))     # once each
+    assert vol.covers_bounds
+    # every leaf cell and its value, against the boxes written to the file
+    got = {(*p.tolist(), int(L)): v for p, L, v in zip(cells.pos, cells.level, cells.value)}
+    assert got == expected_leaf_cells(levels)
+    # shape: anisotropic cells keep the domain's aspect
+    assert vol.meta["domain_right_edge"] == [1.0, 0.62, 1.0] and vol.meta["domain_cells"] == [32, 32, 16]
+    np.testing.assert_allclose(plan_scene(ds, "density").extent, [1.0, 0.62, 1.0])
+
+
+def test02_amrex_render_matches_the_gridvolume_reference(llvm, plotfile):
+    """The scene made from the plotfile, rendered with the amr medium and
+    with Mitsuba's heterogeneous medium on the same field (nearest): 32
+    passes each, |z| < 4.5 per 4x4 block."""
+    ds = yt.load(str(plotfile))
+    plan = plan_scene(ds, "density", log=False)
+    scene = scene_for(plan, res=24, spp=8)
+    scene["volume"]["interior"]["reconstruction"] = "nearest"
+    tf = mi_amr.TransferFunction.load(plan.tf, plan.tf_range)
+    ref = dict(scene)
+    ref["volume"] = dict(scene["volume"], interior=reference_medium(
+        plan.data.to_cells(), tf, plan.density_scale, "nearest", to_world=scene["volume"]["interior"]["to_world"]))
+    ref["integrator"] = {"type": "volpath", "max_depth": 64}
+    a = render_passes(mi.load_dict(scene), 32, 8, seed0=0)
+    b = render_passes(mi.load_dict(ref), 32, 8, seed0=50_000)
+    assert np.abs(block_z_scores(a, b, 4)).max() < 4.5
+    assert a.mean(axis=0).std() > 0.01
+
+
+def test03_render_a_plotfile_in_one_command(llvm, plotfile, tmp_path):
+    out = tmp_path / "plt.exr"
+    r = render_cli([plotfile, "--field", "density", "-o", out, "--spp", "4", "--res", "24"])
+    assert r.returncode == 0, r.stderr
+    assert out.is_file() and out.with_suffix(".xml").is_file() and out.with_suffix(".cells").is_file()
+    img = np.array(mi.Bitmap(str(out)))
+    assert np.isfinite(img).all() and img.std() > 0
