@@ -46,16 +46,17 @@ def optical_depth_nearest(cells, sigma, o, d, chunk=64):
     return out
 
 
-def ratio_tracking(med, o, d, replicas, seed=0):
+def ratio_tracking(med, o, d, replicas, seed=0, control=False):
     """Ratio-tracking transmittance of ``replicas`` copies of each ray:
-    ``(T (R, replicas), counts)`` with the rays in the medium's world space."""
+    ``(T (R, replicas), counts)`` with the rays in the medium's world space
+    (residual ratio tracking against the minorants with ``control``)."""
     n = len(o) * replicas
     O = np.repeat(o, replicas, axis=0).astype(np.float32)
     D = np.repeat(d, replicas, axis=0).astype(np.float32)
     ray = mi.Ray3f(mi.Point3f(O.T.copy()), mi.Vector3f(D.T.copy()))
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
-    T, counts = med.transmittance(ray, mi.Float(np.inf), sampler, mi.Bool(True))
+    T, counts = med.transmittance(ray, mi.Float(np.inf), sampler, mi.Bool(True), control)
     return T.numpy().reshape(len(o), replicas), counts
 
 

@@ -122,13 +122,7 @@ def test05_cli_data_options_are_checked(llvm, tmp_path):
 def test06_yt_dataset_keeps_its_domain_shape(llvm):
     """A yt dataset on an anisotropic domain (2 : 1 : 1 code units, square
     cells) gets a scene at that aspect."""
-    yt = pytest.importorskip("yt")
-    rng = np.random.default_rng(2)
-    grids = [dict(left_edge=[0.0, 0.0, 0.0], right_edge=[2.0, 1.0, 1.0], level=0, dimensions=[16, 8, 8],
-                  density=rng.random((16, 8, 8)) + 0.1),
-             dict(left_edge=[0.5, 0.25, 0.25], right_edge=[1.0, 0.5, 0.5], level=1, dimensions=[8, 4, 4],
-                  density=rng.random((8, 4, 4)) + 0.1)]
-    ds = yt.load_amr_grids(grids, [16, 8, 8], bbox=np.array([[0.0, 2.0], [0.0, 1.0], [0.0, 1.0]]))
+    ds = domain_2x1x1([16, 8, 8], seed=2)
     plan = plan_scene(ds, "density")
     np.testing.assert_allclose(plan.extent, [1.0, 0.5, 0.5])
     scene = mi.load_dict(scene_for(plan, res=16, spp=4))
@@ -162,16 +156,18 @@ def test08_convert_log_writes_log10_values(llvm, tmp_path):
     np.testing.assert_allclose(cells.value[order_a], np.log10(np.maximum(raw.value[order_b], floor)), rtol=1e-6)
 
 
-def anisotropic_ds():
-    """An AMReX-like domain of 2 x 1 x 1 code units in 16^3 root cells
-    (cells of aspect 2 : 1 : 1), with one refined patch."""
+def domain_2x1x1(root, seed):
+    """A yt dataset over 2 x 1 x 1 code units with ``root`` root cells per
+    axis (16, 16, 16: cells of aspect 2 : 1 : 1, as AMReX may write them)
+    and one refined patch."""
     yt = pytest.importorskip("yt")
-    rng = np.random.default_rng(3)
-    grids = [dict(left_edge=[0.0, 0.0, 0.0], right_edge=[2.0, 1.0, 1.0], level=0, dimensions=[16, 16, 16],
-                  density=rng.random((16, 16, 16)) + 0.1),
-             dict(left_edge=[0.5, 0.25, 0.25], right_edge=[1.0, 0.5, 0.5], level=1, dimensions=[8, 8, 8],
-                  density=rng.random((8, 8, 8)) + 0.1)]
-    return yt.load_amr_grids(grids, [16, 16, 16], bbox=np.array([[0.0, 2.0], [0.0, 1.0], [0.0, 1.0]]))
+    rng = np.random.default_rng(seed)
+    fine = [r // 2 for r in root]
+    grids = [dict(left_edge=[0.0, 0.0, 0.0], right_edge=[2.0, 1.0, 1.0], level=0, dimensions=list(root),
+                  density=rng.random(tuple(root)) + 0.1),
+             dict(left_edge=[0.5, 0.25, 0.25], right_edge=[1.0, 0.5, 0.5], level=1, dimensions=fine,
+                  density=rng.random(tuple(fine)) + 0.1)]
+    return yt.load_amr_grids(grids, list(root), bbox=np.array([[0.0, 2.0], [0.0, 1.0], [0.0, 1.0]]))
 
 
 @pytest.mark.parametrize("suffix", [".npz", ".cells"])
@@ -182,7 +178,7 @@ def test09_metadata_travels_with_converted_data(llvm, tmp_path, suffix):
     file has the shape of the one planned through yt. A log10 conversion is
     recorded (and not applied twice). Files without metadata keep the unit
     cube."""
-    ds = anisotropic_ds()
+    ds = domain_2x1x1([16, 16, 16], seed=3)
     cells = mi_amr.from_yt(ds, ("stream", "density"))
     assert cells.meta["domain_right_edge"] == [2.0, 1.0, 1.0] and cells.meta["domain_cells"] == [32, 32, 32]
     path = mi_amr.save_cells(cells, tmp_path / f"plt{suffix}")

@@ -105,7 +105,7 @@ def test04_residual_ratio_tracking_matches_the_exact_optical_depth(llvm, travers
     """Residual ratio tracking through a nearest field with large minorants:
     per ray within 5 standard errors of exp(-optical depth), with fewer
     look-ups than plain ratio tracking and a smaller variance."""
-    from stress_oracles import assert_transmittance, face_rays, optical_depth_nearest
+    from stress_oracles import assert_transmittance, face_rays, optical_depth_nearest, ratio_tracking
     med = dense_medium("nearest", traversal, grid_refinement=refinement)
     cells = med.structures.cells
     o, d = face_rays(32, np.random.default_rng(5), 300)
@@ -113,23 +113,12 @@ def test04_residual_ratio_tracking_matches_the_exact_optical_depth(llvm, travers
     expected = np.exp(-optical_depth_nearest(cells, sigma, o, np.where(np.abs(d) < 1e-12, 0.0, d)))
     results = {}
     for control in (True, False):
-        T, counts = _transmittance(med, o, d, 256, control)
+        T, counts = ratio_tracking(med, o, d, 256, control=control)
         assert counts.capped.numpy().sum() == 0
         assert_transmittance(T, expected)
         results[control] = (T.var(axis=1).mean(), counts.lookups.numpy().mean())
     assert results[True][1] < 0.7 * results[False][1]
     assert results[True][0] < results[False][0]
-
-
-def _transmittance(med, o, d, replicas, control, seed=0):
-    n = len(o) * replicas
-    O = np.repeat(o, replicas, axis=0).astype(np.float32)
-    D = np.repeat(d, replicas, axis=0).astype(np.float32)
-    ray = mi.Ray3f(mi.Point3f(O.T.copy()), mi.Vector3f(D.T.copy()))
-    sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(seed, n)
-    T, counts = med.transmittance(ray, mi.Float(np.inf), sampler, mi.Bool(True), control)
-    return T.numpy().reshape(len(o), replicas), counts
 
 
 def grey_tf(cells):

@@ -29,9 +29,8 @@ STEP_COST = 0.2
 TWO_LEVEL_STEP_COST = 0.24
 CANDIDATES = (8, 16, 32, 64, 128)
 #: Refinement factors tried for two-level grids (fine macrocells per coarse
-#: one along each axis), and the fewest coarse macrocells along the longest axis.
+#: one along each axis).
 REFINEMENTS = (2, 4, 8, 16)
-MIN_COARSE = 4
 #: Steps per unit length of a ray through macrocells of width 1/R: about 1.5 R.
 STEPS_PER_CELL = 1.5
 
@@ -179,16 +178,6 @@ def _uniform_cost(mu: np.ndarray, resolution: int) -> float:
     m1 = float(mu.mean())
     m2 = float((mu * mu).mean()) / m1 if m1 > 0 else 0.0
     return STEP_COST * STEPS_PER_CELL * resolution + 0.5 * (m1 + m2)
-
-
-def auto_resolution(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.0,
-                    support: str = "tent", candidates=CANDIDATES, grids: dict | None = None,
-                    masks: bool = False):
-    """The best uniform grid of `auto_grid` (no two-level plans): ``(R,
-    {R: cost})``."""
-    best, costs = auto_grid(cells, tf, density_scale, world_scale, support, candidates, grids,
-                            masks, refinements=(1,))
-    return best.resolution, {p.resolution: c for p, c in costs.items() if p.refinement == 1}
 
 
 def _pool(a: np.ndarray, f: int, op, fill) -> np.ndarray:
