@@ -6,6 +6,10 @@ without downloading anything.
 ``Level_L/Cell_H`` and ``Level_L/Cell_D_00000``), as AMReX's
 ``WriteMultiLevelPlotfile`` lays it out (format "HyperCLaw-V1.1", one FAB file
 per level, little-endian doubles, x fastest).
+
+`write_enzo`: an Enzo 2 output (parameter file, ``.hierarchy`` text with the
+grid tree as ``Pointer:`` lines, packed HDF5 ``.cpu0000`` with one group per
+grid, values stored z slowest).
 """
 
 from __future__ import annotations
@@ -66,3 +70,43 @@ def _write_level(level_dir, boxes, box):
     head += [")", str(len(boxes))]
     head += [f"FabOnDisk: Cell_D_00000 {o}" for o in offsets]
     (level_dir / "Cell_H").write_text("\n".join(head) + "\n")
+
+
+def write_enzo(directory, name, root, children, field="Density"):
+    """Write an Enzo output ``directory/name`` (parameter file, ``.hierarchy``
+    and one packed-HDF5 ``.cpu0000`` file) as Enzo 2 writes it: one root
+    grid ``root`` (values indexed ``[i, j, k]``) over the unit cube and
+    level-1 grids ``children``: ``(start, data)`` with ``start`` the first
+    level-1 cell index. Returns the parameter file's path."""
+    import h5py
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    dims = np.asarray(root.shape)
+    (directory / name).write_text("\n".join([
+        "InitialTime = 0", "TopGridRank = 3", f"TopGridDimensions = {dims[0]} {dims[1]} {dims[2]}",
+        "DomainLeftEdge = 0 0 0", "DomainRightEdge = 1 1 1", "RefineBy = 2",
+        "LeftFaceBoundaryCondition = 3 3 3", "ComovingCoordinates = 0", "Gamma = 1.6667",
+        "NumberOfParticles = 0", "VersionNumber = 2.0", "LengthUnits = 1", "DensityUnits = 1",
+        "TimeUnits = 1", "HydroMethod = 0", "MultiSpecies = 0", "DualEnergyFormalism = 0", "Mu = 0.6", ""]))
+    data_file = f"{name}.cpu0000"
+    grids = [(0, np.zeros(3, int), root)] + [(1, np.asarray(s), d) for s, d in children]
+    lines = []
+    with h5py.File(directory / data_file, "w") as h5:
+        for gid, (level, start, data) in enumerate(grids, 1):
+            n = np.asarray(data.shape)
+            cell = 1.0 / (dims * 2 ** level)
+            left, right = start * cell, (start + n) * cell
+            h5.create_group(f"Grid{gid:08d}").create_dataset(field, data=np.asarray(data, "<f8").transpose(2, 1, 0))
+            lines += [f"Grid = {gid}", "GridRank = 3", f"GridDimension = {n[0]} {n[1]} {n[2]}",
+                      "GridStartIndex = 0 0 0", f"GridEndIndex = {n[0] - 1} {n[1] - 1} {n[2] - 1}",
+                      "GridLeftEdge = " + " ".join(f"{x:.17g}" for x in left),
+                      "GridRightEdge = " + " ".join(f"{x:.17g}" for x in right),
+                      "Time = 0", "SubgridsAreStatic = 0", "NumberOfBaryonFields = 1", "FieldType = 0",
+                      f"BaryonFileName = {data_file}", "NumberOfParticles = 0"]
+            # root: first child below; children: the next sibling on level 1
+            this = gid + 1 if level == 1 and gid < len(grids) else 0
+            below = 2 if level == 0 and len(grids) > 1 else 0
+            lines += [f"Pointer: Grid[{gid}]->NextGridThisLevel = {this}",
+                      f"Pointer: Grid[{gid}]->NextGridNextLevel = {below}", ""]
+    (directory / f"{name}.hierarchy").write_text("\n".join(lines) + "\n")
+    return directory / name

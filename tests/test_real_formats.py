@@ -1,7 +1,8 @@
-"""Simulation outputs in their codes' own formats, written by the tests
-(tests/amr_formats.py), read through yt as a user's data would be: coverage,
-values at cell centres against yt, shape, and a render against the
-gridvolume reference."""
+"""Simulation outputs in their codes' own formats (AMReX plotfile, Enzo
+packed HDF5), written by the tests (tests/amr_formats.py) and read through
+yt as a user's data would be: coverage, every leaf value against what was
+written, shape, a render against the gridvolume reference, and the
+one-command render."""
 
 import mitsuba as mi
 import numpy as np
@@ -12,25 +13,40 @@ from mi_amr.autoscene import plan_scene, scene_for
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.tools.reference import reference_medium
 
-from amr_formats import write_amrex_plotfile
+from amr_formats import write_amrex_plotfile, write_enzo
 from conftest import render_cli
 
 yt = pytest.importorskip("yt")
 
 
-@pytest.fixture(scope="module")
-def written(tmp_path_factory):
-    """An AMReX plotfile: 16 x 16 x 8 root cells over 1 x 0.62 x 1 (cells of
-    aspect 1 : 0.62 : 2), two root boxes, one refined box of 8^3 fine cells."""
+#: Per format: the field name in yt, the domain's right edge and the root cells.
+FORMATS = {"amrex": (("boxlib", "density"), [1.0, 0.62, 1.0], [16, 16, 8]),
+           "enzo": (("enzo", "Density"), [1.0, 1.0, 1.0], [16, 16, 16])}
+
+
+@pytest.fixture(scope="module", params=sorted(FORMATS))
+def written(request, tmp_path_factory):
+    """``(path, levels, format)``: an output written in a code's own format.
+    AMReX: a plotfile of 16 x 16 x 8 root cells over 1 x 0.62 x 1 (cells of
+    aspect 1 : 0.62 : 2) in two root boxes and one refined box of 8^3 fine
+    cells. Enzo: a 16^3 root grid over the unit cube and two level-1 grids.
+    ``levels``: per level, the ``(first cell index, values [i, j, k])`` boxes."""
     rng = np.random.default_rng(0)
-    x, y, z = np.meshgrid(np.arange(8), np.arange(16), np.arange(8), indexing="ij")
-    blob = np.exp(-((x - 6) ** 2 + (y - 8) ** 2 + (z - 4) ** 2) / 20.0)
-    coarse = [((0, 0, 0), 1.0 + 4.0 * blob + 0.1 * rng.random(blob.shape)),
-              ((8, 0, 0), 1.0 + 4.0 * blob[::-1] + 0.1 * rng.random(blob.shape))]
-    fine = [((12, 12, 4), 3.0 + 2.0 * rng.random((8, 8, 8)))]
-    levels = [coarse, fine]
-    return write_amrex_plotfile(tmp_path_factory.mktemp("amrex") / "plt00010", levels,
-                                [0.0, 0.0, 0.0], [1.0, 0.62, 1.0]), levels
+    root = tmp_path_factory.mktemp(request.param)
+    if request.param == "amrex":
+        x, y, z = np.meshgrid(np.arange(8), np.arange(16), np.arange(8), indexing="ij")
+        blob = np.exp(-((x - 6) ** 2 + (y - 8) ** 2 + (z - 4) ** 2) / 20.0)
+        coarse = [((0, 0, 0), 1.0 + 4.0 * blob + 0.1 * rng.random(blob.shape)),
+                  ((8, 0, 0), 1.0 + 4.0 * blob[::-1] + 0.1 * rng.random(blob.shape))]
+        fine = [((12, 12, 4), 3.0 + 2.0 * rng.random((8, 8, 8)))]
+        levels = [coarse, fine]
+        return write_amrex_plotfile(root / "plt00010", levels, [0.0, 0.0, 0.0], FORMATS["amrex"][1]), \
+            levels, "amrex"
+    x, y, z = np.meshgrid(*[np.arange(16)] * 3, indexing="ij")
+    top = 1.0 + 4.0 * np.exp(-((x - 9) ** 2 + (y - 7) ** 2 + (z - 8) ** 2) / 30.0) + 0.1 * rng.random((16, 16, 16))
+    children = [((8, 8, 8), 3.0 + 2.0 * rng.random((8, 8, 8))), ((16, 8, 8), 2.0 + rng.random((8, 6, 4)))]
+    path = write_enzo(root / "DD0003", "DD0003", top, children)
+    return path, [[((0, 0, 0), top)], children], "enzo"
 
 
 @pytest.fixture(scope="module")
@@ -40,27 +56,28 @@ def plotfile(written):
 
 def expected_leaf_cells(levels):
     """{(x, y, z, level): value} of the written boxes in finest units
-    (level 1: root cells, minus those the fine box covers)."""
+    (level 1: root cells, minus those a fine box covers)."""
     out = {}
     for amr_level, boxes in ((1, levels[0]), (0, levels[1])):
         for lo, data in boxes:
             for ijk in np.ndindex(*data.shape):
                 p = (np.asarray(lo) + ijk) << amr_level
                 out[(*p.tolist(), amr_level)] = np.float32(data[ijk])
-    (flo, fdata), = levels[1]
-    fhi = np.asarray(flo) + fdata.shape
-    for key in [k for k in out if k[3] == 1]:
-        if np.all(np.asarray(key[:3]) >= flo) and np.all(np.asarray(key[:3]) < fhi):
-            del out[key]
+    for flo, fdata in levels[1]:
+        fhi = np.asarray(flo) + fdata.shape
+        for key in [k for k in out if k[3] == 1]:
+            if np.all(np.asarray(key[:3]) >= flo) and np.all(np.asarray(key[:3]) < fhi):
+                del out[key]
     return out
 
 
-def test01_amrex_plotfile_cells_cover_the_domain_with_yt_values(llvm, written):
-    plotfile, levels = written
+def test01_cells_cover_the_domain_with_the_written_values(llvm, written):
+    plotfile, levels, fmt = written
+    field, right, root_cells = FORMATS[fmt]
     from mi_amr.data.yt_import import from_yt_blocks
     ds = yt.load(str(plotfile))
     assert type(ds).__name__.endswith("Dataset") and ds.index.max_level == 1
-    vol = from_yt_blocks(ds, ("boxlib", "density"))
+    vol = from_yt_blocks(ds, field)
     cells = vol.to_cells()
     finest = np.asarray(ds.domain_dimensions) * 2
     lo, hi = cells.bounds
@@ -71,12 +88,12 @@ def test01_amrex_plotfile_cells_cover_the_domain_with_yt_values(llvm, written):
     got = {(*p.tolist(), int(L)): v for p, L, v in zip(cells.pos, cells.level, cells.value)}
     assert got == expected_leaf_cells(levels)
     # shape: anisotropic cells keep the domain's aspect
-    assert vol.meta["domain_right_edge"] == [1.0, 0.62, 1.0] and vol.meta["domain_cells"] == [32, 32, 16]
-    np.testing.assert_allclose(plan_scene(ds, "density").extent, [1.0, 0.62, 1.0])
+    assert vol.meta["domain_right_edge"] == right and vol.meta["domain_cells"] == [2 * n for n in root_cells]
+    np.testing.assert_allclose(plan_scene(ds, ",".join(field)).extent, np.asarray(right) / max(right))
 
 
-def test02_amrex_render_matches_the_gridvolume_reference(llvm, plotfile):
-    """The scene made from the plotfile, rendered with the amr medium and
+def test02_render_matches_the_gridvolume_reference(llvm, plotfile):
+    """The scene made from the output, rendered with the amr medium and
     with Mitsuba's heterogeneous medium on the same field (nearest): 32
     passes each, |z| < 4.5 per 4x4 block."""
     ds = yt.load(str(plotfile))
@@ -94,7 +111,7 @@ def test02_amrex_render_matches_the_gridvolume_reference(llvm, plotfile):
     assert a.mean(axis=0).std() > 0.01
 
 
-def test03_render_a_plotfile_in_one_command(llvm, plotfile, tmp_path):
+def test03_render_an_output_in_one_command(llvm, plotfile, tmp_path):
     out = tmp_path / "plt.exr"
     r = render_cli([plotfile, "--field", "density", "-o", out, "--spp", "4", "--res", "24"])
     assert r.returncode == 0, r.stderr
