@@ -10,6 +10,9 @@ per level, little-endian doubles, x fastest).
 `write_enzo`: an Enzo 2 output (parameter file, ``.hierarchy`` text with the
 grid tree as ``Pointer:`` lines, packed HDF5 ``.cpu0000`` with one group per
 grid, values stored z slowest).
+
+`write_athena_pp`: an Athena++ ``.athdf`` file (leaf mesh blocks of one size,
+face coordinates per block, ``prim`` stored [variable, block, k, j, i]).
 """
 
 from __future__ import annotations
@@ -110,3 +113,40 @@ def write_enzo(directory, name, root, children, field="Density"):
                       f"Pointer: Grid[{gid}]->NextGridNextLevel = {below}", ""]
     (directory / f"{name}.hierarchy").write_text("\n".join(lines) + "\n")
     return directory / name
+
+
+def write_athena_pp(path, levels, root_cells, box=(1.0, 1.0, 1.0), field="rho"):
+    """Write an Athena++ ``.athdf`` file: mesh blocks of one size (only the
+    leaves, as Athena++ writes them), face coordinates per block, and the
+    primitive variables stored ``[variable, block, k, j, i]``. ``levels``:
+    per level, ``(first cell index at that level, values [i, j, k])`` blocks."""
+    import h5py
+    blocks = [(L, np.asarray(lo), np.asarray(d)) for L, boxes in enumerate(levels) for lo, d in boxes]
+    size = blocks[0][2].shape
+    assert all(d.shape == size for _, _, d in blocks), "Athena++ mesh blocks share one size"
+    root_cells, box = np.asarray(root_cells), np.asarray(box, float)
+    with h5py.File(path, "w") as h5:
+        a = h5.attrs
+        a["NumMeshBlocks"] = np.int32(len(blocks))
+        a["MeshBlockSize"] = np.asarray(size, np.int32)
+        a["RootGridSize"] = root_cells.astype(np.int32)
+        for k, name in enumerate(("RootGridX1", "RootGridX2", "RootGridX3")):
+            a[name] = np.array([0.0, box[k], 1.0])
+        a["MaxLevel"] = np.int32(len(levels) - 1)
+        a["Coordinates"] = np.bytes_("cartesian")
+        a["DatasetNames"] = np.array([b"prim"])
+        a["NumVariables"] = np.array([1], np.int32)
+        a["VariableNames"] = np.array([field.encode()])
+        a["Time"] = 0.0
+        a["NumCycles"] = np.int32(0)
+        faces = []
+        for k in range(3):
+            f = np.empty((len(blocks), size[k] + 1))
+            for b, (L, lo, _) in enumerate(blocks):
+                f[b] = (lo[k] + np.arange(size[k] + 1)) * box[k] / (root_cells[k] * 2 ** L)
+            faces.append(f)
+        h5["x1f"], h5["x2f"], h5["x3f"] = faces
+        h5["Levels"] = np.array([L for L, _, _ in blocks], np.int32)
+        h5["LogicalLocations"] = np.array([lo // np.asarray(size) for _, lo, _ in blocks], np.int64)
+        h5["prim"] = np.stack([d.transpose(2, 1, 0) for _, _, d in blocks])[None].astype("<f4")
+    return Path(path)

@@ -1,5 +1,5 @@
 """Simulation outputs in their codes' own formats (AMReX plotfile, Enzo
-packed HDF5), written by the tests (tests/amr_formats.py) and read through
+packed HDF5, Athena++ athdf), written by the tests (tests/amr_formats.py) and read through
 yt as a user's data would be: coverage, every leaf value against what was
 written, shape, a render against the gridvolume reference, and the
 one-command render."""
@@ -13,7 +13,7 @@ from mi_amr.autoscene import plan_scene, scene_for
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.tools.reference import reference_medium
 
-from amr_formats import write_amrex_plotfile, write_enzo
+from amr_formats import write_amrex_plotfile, write_athena_pp, write_enzo
 from conftest import render_cli
 
 yt = pytest.importorskip("yt")
@@ -21,7 +21,8 @@ yt = pytest.importorskip("yt")
 
 #: Per format: the field name in yt, the domain's right edge and the root cells.
 FORMATS = {"amrex": (("boxlib", "density"), [1.0, 0.62, 1.0], [16, 16, 8]),
-           "enzo": (("enzo", "Density"), [1.0, 1.0, 1.0], [16, 16, 16])}
+           "enzo": (("enzo", "Density"), [1.0, 1.0, 1.0], [16, 16, 16]),
+           "athena_pp": (("athena_pp", "rho"), [2.0, 1.0, 1.0], [16, 16, 16])}
 
 
 @pytest.fixture(scope="module", params=sorted(FORMATS))
@@ -30,6 +31,8 @@ def written(request, tmp_path_factory):
     AMReX: a plotfile of 16 x 16 x 8 root cells over 1 x 0.62 x 1 (cells of
     aspect 1 : 0.62 : 2) in two root boxes and one refined box of 8^3 fine
     cells. Enzo: a 16^3 root grid over the unit cube and two level-1 grids.
+    Athena++: 8^3 mesh blocks over 2 x 1 x 1 (cells of aspect 2 : 1 : 1),
+    one root block refined into eight (only leaves are written).
     ``levels``: per level, the ``(first cell index, values [i, j, k])`` boxes."""
     rng = np.random.default_rng(0)
     root = tmp_path_factory.mktemp(request.param)
@@ -42,6 +45,13 @@ def written(request, tmp_path_factory):
         levels = [coarse, fine]
         return write_amrex_plotfile(root / "plt00010", levels, [0.0, 0.0, 0.0], FORMATS["amrex"][1]), \
             levels, "amrex"
+    if request.param == "athena_pp":
+        coarse = [((i, j, k), 1.0 + rng.random((8, 8, 8))) for i in (0, 8) for j in (0, 8) for k in (0, 8)
+                  if (i, j, k) != (8, 8, 0)]
+        fine = [((16 + i, 16 + j, k), 3.0 + rng.random((8, 8, 8))) for i in (0, 8) for j in (0, 8) for k in (0, 8)]
+        levels = [coarse, fine]
+        return write_athena_pp(root / "blast.out1.00010.athdf", levels, [16, 16, 16], (2.0, 1.0, 1.0)), \
+            levels, "athena_pp"
     x, y, z = np.meshgrid(*[np.arange(16)] * 3, indexing="ij")
     top = 1.0 + 4.0 * np.exp(-((x - 9) ** 2 + (y - 7) ** 2 + (z - 8) ** 2) / 30.0) + 0.1 * rng.random((16, 16, 16))
     children = [((8, 8, 8), 3.0 + 2.0 * rng.random((8, 8, 8))), ((16, 8, 8), 2.0 + rng.random((8, 6, 4)))]
