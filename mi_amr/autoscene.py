@@ -37,6 +37,9 @@ MIN_POSITIVE_SHARE = 0.9
 #: Optical depth of the mean extinction across the domain's longest side.
 TARGET_DEPTH = 1.5
 FOV = 35.0
+#: Opacity peaks at a few values, like the layered Gaussians of yt's volume
+#: renderings: shells of structure rather than a fog over the whole domain.
+DEFAULT_TF = "spiky"
 #: Towards the sun: 50 degrees above the horizon, behind the camera's right.
 SUN_DIRECTION = [0.5, 0.6, 0.9]
 HISTOGRAM_BINS = 4096
@@ -170,7 +173,7 @@ def weighted_percentiles(data, qs, log: bool = False) -> list[float]:
     return [float(edges[min(int(np.searchsorted(cdf, q / 100.0)) + (q > 0), HISTOGRAM_BINS)]) for q in qs]
 
 
-def plan_scene(data, field=None, *, tf: str = "foggy", log: bool | None = None, value_range=None,
+def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = None, value_range=None,
                density_scale: float | None = None) -> ScenePlan:
     """Look at the data once and plan a scene (see the module docstring).
 
@@ -242,7 +245,7 @@ def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: st
                    "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
         "sky": {"type": "sunsky", "sun_direction": SUN_DIRECTION, "turbidity": 3.0,
                 "sun_scale": 2.5, "sky_scale": 6.0},
-        "floor": {"type": "rectangle", "to_world": T().translate([0, 0, plan.floor_height()]) @ T().scale(60),
+        "floor": {"type": "rectangle", "to_world": T().translate([0, 0, plan.floor_height()]) @ T().scale(1000),
                   "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.45}}},
         "volume": {"type": "cube", "to_world": T(mi.ScalarMatrix4f(plan.to_world_matrix().astype(np.float32)))
                    @ T().translate([0.5, 0.5, 0.5]) @ T().scale(0.5),
@@ -307,7 +310,7 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
 
     <shape type="rectangle">  <!-- the ground, just below the domain -->
         <transform name="to_world">
-            <scale value="60"/>
+            <scale value="1000"/>
             <translate z="{plan.floor_height():.6g}"/>
         </transform>
         <bsdf type="diffuse">

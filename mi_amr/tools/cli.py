@@ -35,12 +35,12 @@ def _scene_from_data(args):
     (`mi_amr.autoscene`), write it as OUT.xml beside the image (yt data are
     converted to OUT.cells first, so that the XML can load them) and return
     its path."""
-    from ..autoscene import plan_scene, write_scene_xml
+    from ..autoscene import DEFAULT_TF, plan_scene, write_scene_xml
     from ..data.io import save_cells
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     log = {"log": True, "linear": False}.get(args.scale)
-    plan = plan_scene(args.scene, args.field, tf=args.tf or "foggy", log=log,
+    plan = plan_scene(args.scene, args.field, tf=args.tf or DEFAULT_TF, log=log,
                       value_range=tuple(args.range) if args.range else None)
     data = Path(args.scene)
     if data.suffix in (".cells", ".npz") and data.is_file():
@@ -357,7 +357,7 @@ def build_parser():
                        help="data: TF over the values themselves")
     r.add_argument("--range", type=float, nargs=2, metavar=("LO", "HI"),
                    help="data: TF domain (in log10 units with --log; default: 1st-99.9th volume percentiles)")
-    r.add_argument("--tf", help="data: TF preset (spiky, foggy, ramp, constant) or .json file (default foggy)")
+    r.add_argument("--tf", help="data: TF preset (spiky, foggy, ramp, constant) or .json file (default spiky)")
     r.add_argument("--res", type=int, default=400, help="data: image width and height (default 400)")
     r.add_argument("-o", "--output", required=True, help="output .exr path")
     _render_flags(r, 64)
