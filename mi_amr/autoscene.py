@@ -83,19 +83,24 @@ def open_data(data, field=None):
         return _from_yt(data, field)
     path = Path(str(data))
     if path.suffix in (".cells", ".npz"):
-        if field is not None and path.suffix == ".cells":
-            stem = path.with_suffix("")
-            candidate = stem.parent / f"{stem.name}-{field}.scalars"
-            scalars = str(candidate) if candidate.is_file() else None
-        else:
-            scalars = None
-        vol = load_volume(path, scalars)
+        scalars = field_scalars(path, field)
+        vol = load_volume(path, None if scalars is None else str(scalars))
         lo, hi = vol.bounds
         box = physical_box(vol)
         return vol, (hi - lo).astype(np.float64) if box is None else box[1], str(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
     return _from_yt(_yt_load(path), field)
+
+
+def field_scalars(path, field) -> Path | None:
+    """The ``NAME-FIELD.scalars`` file of a ``.cells`` file for ``field``
+    (ExaBricks' naming for several fields), or None (then ``NAME.scalars``)."""
+    path = Path(path)
+    if field is None or path.suffix != ".cells":
+        return None
+    candidate = path.with_suffix("").parent / f"{path.stem}-{field}.scalars"
+    return candidate if candidate.is_file() else None
 
 
 def _yt_load(path):
@@ -184,15 +189,20 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
     percentiles; ``tf``: a preset name or a TF .json file."""
     volume, extent, what = open_data(data, field)
     notes = [f"data: {what}"]
+    log_percentiles = None
     if log is None:
         share = positive_share(volume)
-        p = weighted_percentiles(volume, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True) if share else None
+        if share:
+            log_percentiles = weighted_percentiles(volume, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True)
+        p = log_percentiles
         log = bool(share >= MIN_POSITIVE_SHARE and p[1] - p[0] > np.log10(LOG_RATIO))
         notes.append(f"log10 chosen: values span 10^{p[0]:.3g} to 10^{p[1]:.3g}" if log
                      else "linear values (positive ones within 1000x, or many values <= 0)")
     transform = "log10" if log else "none"
     if value_range is None:
-        value_range = tuple(weighted_percentiles(volume, [LOW_PERCENTILE, HIGH_PERCENTILE], log=log))
+        # the log percentiles of the choice above are the TF range already
+        value_range = tuple(log_percentiles if log and log_percentiles else
+                            weighted_percentiles(volume, [LOW_PERCENTILE, HIGH_PERCENTILE], log=log))
         if value_range[1] <= value_range[0]:
             pad = max(0.5, 1e-3 * abs(value_range[0]))
             value_range = (value_range[0] - pad, value_range[1] + pad)

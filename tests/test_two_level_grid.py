@@ -63,7 +63,7 @@ def test02_majorants_bound_the_field(llvm, reconstruction):
     assert isinstance(g, DeviceTwoLevelGrid) and g.refinement == 4
     uniform = two_level_medium(reconstruction, f=1)
     f, r = 4, 16
-    fine = g.fine.majorant.numpy().reshape(4, 4, 4, f, f, f).transpose(0, 3, 1, 4, 2, 5).reshape(r, r, r)
+    fine = g.grid_order(g.fine.majorant.numpy())
     np.testing.assert_array_equal(fine, uniform.majorant_grid)
     mu_c = g.coarse_mu.numpy()
     blocks = fine.reshape(4, f, 4, f, 4, f).max(axis=(1, 3, 5)).ravel()
@@ -160,8 +160,7 @@ def test05_refinement_follows_the_tf(llvm):
     g = med.structures.grid
     for tf in ("spiky", "foggy", "ramp"):
         mi_amr.set_transfer_function(med, tf, density_scale=20.0)
-        fine = med.structures.grid.fine.majorant.numpy().reshape(4, 4, 4, 4, 4, 4)
-        fine = fine.transpose(0, 3, 1, 4, 2, 5).reshape(16, 16, 16)
+        fine = g.grid_order(g.fine.majorant.numpy())
         _, host = plan_cost(fine.astype(np.float64) * med.world_scale, GridPlan(16, 4))
         np.testing.assert_array_equal(g.coarse_mu.numpy() < 0, host.ravel(), err_msg=tf)
     zero = mi_amr.TransferFunction([[1, 1, 1, 0]] * 4, med.tf.domain)

@@ -213,11 +213,16 @@ class DeviceTwoLevelGrid:
         local = (c.x & m) + self.refinement * ((c.y & m) + self.refinement * (c.z & m))
         return mi.UInt32(block) * (self.refinement ** 3) + mi.UInt32(local)
 
-    def effective_majorants(self) -> np.ndarray:
-        """The majorant the walk uses in each fine macrocell, [z, y, x]."""
+    def grid_order(self, values) -> np.ndarray:
+        """Per-fine-macrocell values in block order (f^3 per coarse
+        macrocell) as a [z, y, x] array of the fine grid, padding dropped."""
         f, rf = self.refinement, self.host.res
         rc = -(-np.asarray(rf) // f)
-        fine = self.fine.majorant.numpy().reshape(rc[2], rc[1], rc[0], f, f, f)
-        coarse = self.coarse_mu.numpy().reshape(rc[2], rc[1], rc[0], 1, 1, 1)
-        eff = np.where(coarse < 0, fine, coarse).transpose(0, 3, 1, 4, 2, 5).reshape(rc[2] * f, rc[1] * f, rc[0] * f)
-        return eff[:rf[2], :rf[1], :rf[0]]
+        a = np.asarray(values).reshape(rc[2], rc[1], rc[0], f, f, f).transpose(0, 3, 1, 4, 2, 5)
+        return a.reshape(rc[2] * f, rc[1] * f, rc[0] * f)[:rf[2], :rf[1], :rf[0]]
+
+    def effective_majorants(self) -> np.ndarray:
+        """The majorant the walk uses in each fine macrocell, [z, y, x]."""
+        b = self.refinement ** 3
+        coarse = np.repeat(self.coarse_mu.numpy(), b)
+        return self.grid_order(np.where(coarse < 0, self.fine.majorant.numpy(), coarse))

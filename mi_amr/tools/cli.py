@@ -35,7 +35,7 @@ def _scene_from_data(args):
     (`mi_amr.autoscene`), write it as OUT.xml beside the image (yt data are
     converted to OUT.cells first, so that the XML can load them) and return
     its path."""
-    from ..autoscene import DEFAULT_TF, plan_scene, write_scene_xml
+    from ..autoscene import DEFAULT_TF, field_scalars, plan_scene, write_scene_xml
     from ..data.io import save_cells
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -45,11 +45,8 @@ def _scene_from_data(args):
     data = Path(args.scene)
     if data.suffix in (".cells", ".npz") and data.is_file():
         data_file = data.resolve()
-        if data.suffix == ".cells" and args.field:
-            stem = data.with_suffix("")
-            field_scalars = stem.parent / f"{stem.name}-{args.field}.scalars"
-            if field_scalars.is_file():           # the XML names .cells + scalars: convert to one file
-                data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
+        if field_scalars(data, args.field) is not None:     # the XML names .cells + scalars: convert to one file
+            data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
     else:
         data_file = save_cells(plan.data, out.with_suffix(".cells")).resolve()
     xml = write_scene_xml(plan, data_file, out.with_suffix(".xml"), res=args.res, spp=args.spp)
