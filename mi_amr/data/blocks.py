@@ -467,13 +467,16 @@ def _remove_overlaps(vol: BlockVolume, overlap: str) -> int:
             fsel = np.nonzero(vol.level == Lf)[0]
             anc = _block_keys(vol.coord[fsel] >> k, np.full(len(fsel), Lc), False)
             i = np.minimum(np.searchsorted(ckeys, anc, sorter=corder), len(csel) - 1)
-            cand = fsel[ckeys[corder[i]] == anc]
-            for s in range(0, len(cand), max(1, CHUNK // b3)):
-                blocks = cand[s:s + CHUNK // b3]
+            match = ckeys[corder[i]] == anc
+            cand, cblock = fsel[match], csel[corder[i[match]]]     # fine blocks and their ancestor block
+            step = max(1, CHUNK // b3)
+            for s in range(0, len(cand), step):
+                blocks, anc_block = cand[s:s + step], cblock[s:s + step]
                 v = vol.values.reshape(-1, b3)[blocks]
                 bi, ci = np.nonzero(~np.isnan(v))
                 q = (vol.coord[blocks][bi].astype(np.int64) << vol.log2_block) + local[ci]
-                _, hit = vol.lookup(int(Lc), q >> k)
+                slot = _slot(anc_block[bi], q >> k, b)             # the coarse cell over each fine one
+                hit = ~np.isnan(vol.values[slot])
                 if not hit.any():
                     continue
                 if overlap == "error":
@@ -483,12 +486,8 @@ def _remove_overlaps(vol: BlockVolume, overlap: str) -> int:
                         f"{vol.source}: cells overlap finer or duplicate cells (first: the level-{int(Lc)} "
                         f"cell at {cpos.tolist()} covers a level-{int(Lf)} cell); pass overlap='finest' "
                         "to keep the finer ones")
-                cq = np.unique(q[hit] >> k, axis=0)
-                cb = cq >> vol.log2_block
-                ck = _block_keys(cb, np.full(len(cq), Lc), False)
-                j = csel[corder[np.searchsorted(ckeys, ck, sorter=corder)]]
-                slot = _slot(j, cq, b)
-                removed += int((~np.isnan(vol.values[slot])).sum())
+                slot = np.unique(slot[hit])
+                removed += len(slot)
                 vol.values[slot] = np.nan
     return removed
 
