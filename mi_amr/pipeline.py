@@ -34,7 +34,7 @@ from .structures.bricks import Bricks
 from .structures.cost_model import REFINEMENTS, GridPlan, auto_grid
 from .structures.kdtree_sah import build_sah_kdtree
 from .structures.macrocell_grid import MacrocellGrid, axis_resolution, default_resolution
-from .structures.region_tree import build_region_tree, exact_value_ranges
+from .structures.region_tree import brick_region_tree, exact_value_ranges
 from .transfer.function import TransferFunction, range_majorants_host
 
 TRAVERSALS = ("grid", "abr", "brick", "kdtree")
@@ -178,14 +178,9 @@ class Structures:
 
         def make_host():
             b = self.bricks
-            lo, hi = self.volume.bounds
-            if over_domains:
-                blo, bhi = b.domains()
-            else:
-                blo, bhi = b.lo.astype(np.float64), b.hi.astype(np.float64)
-            tree = build_region_tree(np.round(2 * blo).astype(np.int64), np.round(2 * bhi).astype(np.int64),
-                                     2 * lo, 2 * hi)
-            vmin, vmax = exact_value_ranges(tree, b, method, own_lists=over_domains)
+            tree = brick_region_tree(b, *self.volume.bounds, over_domains)
+            # the tree is over the supports of ``method`` unless it is the tent brick tree
+            vmin, vmax = exact_value_ranges(tree, b, method, own_lists=over_domains or method == "nearest")
             return tree, vmin, vmax
 
         key = "abr_tree" if over_domains else "brick_tree"

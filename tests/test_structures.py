@@ -10,7 +10,8 @@ from mi_amr.structures.bricks import Bricks
 from mi_amr.data.datasets import make_dataset
 from mi_amr.structures.kdtree_sah import build_sah_kdtree
 from mi_amr.testing import brute_force
-from mi_amr.structures.region_tree import box_value_ranges, build_region_tree, exact_value_ranges
+from mi_amr.structures.region_tree import (ABR_LEAF_CELLS, box_value_ranges, brick_region_tree, build_region_tree,
+                                          exact_value_ranges)
 from mi_amr.device.tree import DeviceTree
 
 from conftest import random_amr
@@ -34,13 +35,42 @@ def test01_bricks_are_complete_same_level_boxes(data):
         nx, ny, nz = b.dims[i]
         zz, yy, xx = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
         pos = b.lo[i] + np.stack([xx.ravel(), yy.ravel(), zz.ravel()], 1) * w
-        vals = b.values[b.offset[i]:b.offset[i] + nx * ny * nz]
+        vals = b.values[b.cell_index(i, xx.ravel(), yy.ravel(), zz.ravel())]
         for p, v in zip(pos.tolist(), vals):
             key = (tuple(p), int(b.level[i]))
             assert cells[key] == v            # every brick cell exists, same level, same value
             assert key not in seen            # and belongs to one brick only
             seen.add(key)
     assert len(seen) == len(data)
+
+
+@pytest.mark.parametrize("max_width", [8, 3])
+def test01b_bricks_read_the_volume_in_place(max_width):
+    """Bricks cut from blocks (full blocks cut evenly, partial ones split)
+    stay inside one block, cover every cell once and carry their own min/max;
+    they keep no copy of the values."""
+    from mi_amr.data.blocks import BlockVolume
+    cells = make_dataset("blocks", cells=6000, seed=4)
+    vol = BlockVolume.from_cells(cells, block=8)
+    b = Bricks(vol, max_width=max_width)
+    assert b.values is vol.values
+    assert np.all(b.dims <= min(max_width, vol.block))
+    B = vol.block
+    blk, local = np.divmod(b.offset, B ** 3)
+    corner = np.stack([local % B, (local // B) % B, local // B ** 2], 1)
+    assert np.all(corner + b.dims <= B)                               # inside one block
+    assert np.array_equal(b.level, vol.level[blk])
+    want = ((vol.coord[blk].astype(np.int64) * B + corner) << b.level[:, None].astype(np.int64)) + vol.origin
+    assert np.array_equal(b.lo, want)
+    seen = np.zeros(len(vol.values), np.int64)
+    for i in range(len(b)):
+        nx, ny, nz = b.dims[i]
+        zz, yy, xx = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+        idx = b.cell_index(i, xx.ravel(), yy.ravel(), zz.ravel())
+        seen[idx] += 1
+        assert b.vmin[i] == np.min(vol.values[idx]) and b.vmax[i] == np.max(vol.values[idx])
+    assert np.array_equal(seen, (~np.isnan(vol.values)).astype(np.int64))   # every cell once, no holes
+    assert b.nbytes < 8 * len(vol)                                    # headers only
 
 
 def test02_abrs_partition_space_with_exact_brick_lists(data):
@@ -63,8 +93,33 @@ def test02_abrs_partition_space_with_exact_brick_lists(data):
         assert np.array_equal(np.sort(got), ov)
 
 
+def test02b_abr_leaf_floor_keeps_lists_complete(data):
+    """With a leaf floor (no split once a node's longest side is at most
+    ``leaf_extent`` of the boxes in it) the leaves still partition the box,
+    every leaf lists exactly the domains overlapping it, and only leaves at
+    or under the floor keep a face inside."""
+    b = Bricks(data)
+    dlo, dhi = b.domains()
+    lo, hi = data.bounds
+    floor = 2 * 2 * b.width                       # two cells of each brick, in doubled units
+    tree = build_region_tree(np.round(2 * dlo).astype(np.int64), np.round(2 * dhi).astype(np.int64),
+                             2 * lo, 2 * hi, floor)
+    exact = build_region_tree(np.round(2 * dlo).astype(np.int64), np.round(2 * dhi).astype(np.int64), 2 * lo, 2 * hi)
+    assert tree.n_leaves < exact.n_leaves
+    vol = np.prod(tree.leaf_hi - tree.leaf_lo, axis=1)
+    assert vol.sum() == np.prod(2 * (hi - lo))
+    for L in range(tree.n_leaves):
+        llo, lhi = tree.leaf_lo[L], tree.leaf_hi[L]
+        ov = np.nonzero(np.all((2 * dlo < lhi) & (2 * dhi > llo), axis=1))[0]
+        got = tree.items[tree.list_offset[L]:tree.list_offset[L] + tree.list_count[L]]
+        assert np.array_equal(np.sort(got), ov)
+        faces = np.concatenate([2 * dlo[ov], 2 * dhi[ov]])
+        if np.any((faces > llo) & (faces < lhi)):
+            assert np.max(lhi - llo) <= floor[ov].min()
+
+
 @pytest.mark.parametrize("method", ["tent", "nearest"])
-def test03_leaf_ranges_contain_reconstructed_values(data, method):
+def test03_leaf_ranges_contain_reconstructed_values(variant, data, method):
     b = Bricks(data)
     dlo, dhi = b.domains()
     lo, hi = data.bounds
@@ -76,7 +131,8 @@ def test03_leaf_ranges_contain_reconstructed_values(data, method):
                                  2 * lo, 2 * hi)
         leaf = tree.locate(2 * x)
         exact = exact_value_ranges(tree, b, method)
-        if boxes[0] is dlo:          # ABRs: the leaves' own brick lists give the same ranges
+        # over the method's supports (ABRs), the leaves' own brick lists give the same ranges
+        if (boxes[0] is dlo) == (method == "tent"):
             own = exact_value_ranges(tree, b, method, own_lists=True)
             np.testing.assert_array_equal(own[0], exact[0])
             np.testing.assert_array_equal(own[1], exact[1])
@@ -87,15 +143,17 @@ def test03_leaf_ranges_contain_reconstructed_values(data, method):
 
 @pytest.mark.parametrize("mode", ["abr", "brick"])
 @pytest.mark.parametrize("method", ["tent", "nearest"])
-def test04_brick_sampling_matches_brute_force(variant, data, mode, method):
+@pytest.mark.parametrize("leaf_cells", [0, ABR_LEAF_CELLS])
+def test04_brick_sampling_matches_brute_force(variant, data, mode, method, leaf_cells):
+    if leaf_cells and (mode != "abr" or method != "tent"):
+        pytest.skip("the leaf floor applies to tent ABRs only")
     b = Bricks(data)
     origin = data.origin
     lo, hi = data.bounds
     dev = DeviceBricks(b, origin)
     frame = (mi.Vector3f(*[float(c) for c in lo - origin]), mi.Vector3f(*[float(c) for c in hi - lo]))
     if mode == "abr":                   # over the supports the pipeline uses: domains (tent), bounds (nearest)
-        dlo, dhi = b.domains() if method == "tent" else (b.lo, b.hi)
-        tree = build_region_tree(np.round(2 * dlo).astype(np.int64), np.round(2 * dhi).astype(np.int64), 2 * lo, 2 * hi)
+        tree = brick_region_tree(b, lo, hi, method == "tent", leaf_cells)
         if method == "nearest":
             assert tree.list_count.max() == 1
         sampler = BrickSampler(dev, method, *frame, over_bounds=method == "nearest",

@@ -23,11 +23,14 @@ from ..data.reconstruction import WEIGHT_EPS
 from ..structures.brick_lists import BrickLists
 from .ray import in_unit_cube
 from .structs import jit_struct
+from .values import device_values
 
 
 @jit_struct(lo="Vector3f", dims="Vector3i", width="Float", offset="UInt32", values="Float")
 class DeviceBricks:
-    """Bricks in Dr.Jit; positions in finest units relative to ``origin``."""
+    """Bricks in Dr.Jit; positions in finest units relative to ``origin``.
+    ``values`` is the volume's one device array (`device_values`): a brick's
+    cell ``i`` is at ``offset + i.x + B (i.y + B i.z)``."""
 
     def __init__(self, bricks: Bricks, origin):
         self.host = bricks
@@ -36,8 +39,12 @@ class DeviceBricks:
         self.dims = mi.Vector3i(bricks.dims.T.astype(np.int32).copy())
         self.width = mi.Float(bricks.width.astype(np.float32))
         self.offset = mi.UInt32(bricks.offset.astype(np.uint32))
-        self.values = mi.Float(bricks.values)
-        dr.make_opaque(self.lo, self.dims, self.width, self.offset, self.values)
+        self.values = device_values(bricks.volume)
+        self.block = int(bricks.stride[1])
+        dr.make_opaque(self.lo, self.dims, self.width, self.offset)
+
+    def _index(self, off, i):
+        return off + mi.UInt32(i.x + self.block * (i.y + self.block * i.z))
 
     def contribution(self, b, x, tent: bool, active):
         """``(sum_w, sum_wv, inside)`` of brick ``b`` at point ``x``; for
@@ -51,7 +58,7 @@ class DeviceBricks:
         if not tent:
             # the nearest cell of the brick (clamped into it); ``inside`` says whether it contains x
             i = dr.clip(mi.Vector3i(dr.floor(xb)), 0, dims - 1)
-            v = dr.gather(mi.Float, self.values, off + mi.UInt32(i.x + dims.x * (i.y + dims.y * i.z)), active)
+            v = dr.gather(mi.Float, self.values, self._index(off, i), active)
             return w, v, inside
         xc = xb - 0.5
         base = mi.Vector3i(dr.floor(xc))
@@ -63,7 +70,7 @@ class DeviceBricks:
             dd = dr.abs(xc - mi.Vector3f(i))
             wt = dr.maximum(0.0, 1.0 - dd.x) * dr.maximum(0.0, 1.0 - dd.y) * dr.maximum(0.0, 1.0 - dd.z)
             ok &= wt > 0.0
-            v = dr.gather(mi.Float, self.values, off + mi.UInt32(i.x + dims.x * (i.y + dims.y * i.z)), ok)
+            v = dr.gather(mi.Float, self.values, self._index(off, i), ok)
             sum_w += dr.select(ok, wt, 0.0)
             sum_wv += dr.select(ok, wt * v, 0.0)
         return sum_w, sum_wv, inside

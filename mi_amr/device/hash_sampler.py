@@ -20,6 +20,7 @@ from ..data.reconstruction import WEIGHT_EPS, check_method
 from ..structures.level_hash import LevelHash, hash_u32, pack_key
 from .ray import in_unit_cube
 from .structs import jit_struct
+from .values import device_values, shares_host_values
 
 #: Stencil corner c = dx + 2 dy + 4 dz.
 CORNERS = [(c & 1, (c >> 1) & 1, (c >> 2) & 1) for c in range(8)]
@@ -66,21 +67,11 @@ class DeviceReconstruction:
         self.mask = mi.UInt32(self.hash.mask)
         self.max_probe = mi.UInt32(self.hash.max_probe)
         self.payload = mi.UInt32(self.hash.payload)
-        # One device array of values per volume (media on the same data
-        # share it). On the CPU backend it is host memory: the volume's
-        # builders read it through a view, so the values are kept once.
-        device_values = volume.__dict__.get("_device_values")
-        if not isinstance(device_values, mi.Float):     # none yet, or made for another variant
-            device_values = mi.Float(volume.values)
-            dr.make_opaque(device_values)
-            volume._device_values = device_values
-        self.values = device_values
+        self.values = device_values(volume)    # shared with every structure on the data
         self.neighbours = mi.UInt32(neighbours.ravel())
         dr.make_opaque(self.keys, self.keys_z, self.payload, self.offset, self.mask, self.max_probe,
                        self.neighbours, self.n_blocks)
-        self.shares_values = dr.backend_v(self.values) == dr.JitBackend.LLVM
-        if self.shares_values:
-            volume.values = self.values.numpy()
+        self.shares_values = shares_host_values(self.values)
 
     @property
     def nbytes(self) -> int:

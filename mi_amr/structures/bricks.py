@@ -1,18 +1,22 @@
 """Bricks: dense boxes of same-level cells (the ExaBricks decomposition).
 
-Each level's cells are grouped into aligned blocks of at most ``max_width``
-cells per side; a block's tight bounding box becomes a brick when the cells
-fill it completely, otherwise it is split in two along its longest side and
-both halves are treated the same way. All bricks of a level are processed at
-once per round (vectorised). A brick's *domain* is its bounds grown by half a
-cell width: the region where its cells' tent supports reach.
+Bricks are cut from the blocks of a `BlockVolume` and never cross one, so a
+brick's cells are read in place from the volume's values (no copy): cell
+``(x, y, z)`` of a brick is ``values[offset + x + B (y + B z)]`` for blocks
+of ``B^3``. Within each block, cells are grouped into aligned groups of at
+most ``min(max_width, B)`` cells per side; a group's tight bounding box
+becomes a brick when the cells fill it completely, otherwise it is split in
+two along its longest side and both halves are treated the same way (all
+groups of a level at once per round, vectorised). A brick's *domain* is its
+bounds grown by half a cell width: the region where its cells' tent supports
+reach.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..data.blocks import BlockVolume, block_offsets
+from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..progress import progress
 
@@ -22,42 +26,49 @@ class Bricks:
 
     Attributes (numpy, finest-level units)
     --------------------------------------
+    volume : BlockVolume   the data; bricks index its ``values`` in place
     lo : int64 (B, 3)      lower corner of each brick
     dims : int64 (B, 3)    cells per axis
     level : int32 (B,)     cell level
-    offset : int64 (B,)    start of the brick's values in ``values``
-    values : float32 (V,)  cell values, x fastest within each brick
+    offset : int64 (B,)    index of the brick's lower corner cell in ``values``
     vmin, vmax : float32 (B,)  value range of the brick's own cells
+    stride : (1, B, B^2)   steps in ``values`` along x, y, z inside a brick
     """
 
     def __init__(self, data: AMRCells | BlockVolume, max_width: int = 8):
         if max_width < 1:
             raise ValueError(f"max_width must be >= 1, got {max_width}")
-        los, dims, levels, values = [], [], [], []
-        bar = progress(len(data), "bricks")
-        for L, q, v in _levels(data, max_width):
-            bar.update(len(v) if q is not None else len(v[2]))
-            if q is None:                        # whole bricks already (full blocks): lower corners, values
-                lo, dm, vals = v
-            else:
-                lo, dm, order = _bricks_of_level(q, max_width)
-                vals = v[order]                  # x fastest within each brick, bricks in order
-            los.append(lo << L)
-            dims.append(dm)
-            levels.append(np.full(len(lo), L, dtype=np.int32))
-            values.append(vals)
-        bar.close()
-        self.lo = np.concatenate(los)
+        if isinstance(data, AMRCells):
+            data = BlockVolume.from_cells(data)
+        self.volume = data
+        B = data.block
+        self.stride = (1, B, B * B)
+        los, dims, levels, offsets, vmins, vmaxs = [], [], [], [], [], []
+        with progress(len(data), "bricks") as bar:
+            for L in np.unique(data.level):
+                sel = np.nonzero(data.level == L)[0]
+                for lo, dm, off, vmin, vmax in _bricks_of_blocks(data, sel, min(int(max_width), B)):
+                    los.append(lo << np.int64(L))
+                    dims.append(dm)
+                    levels.append(np.full(len(lo), L, dtype=np.int32))
+                    offsets.append(off)
+                    vmins.append(vmin)
+                    vmaxs.append(vmax)
+                bar.update(int((~np.isnan(data.values.reshape(-1, B ** 3)[sel])).sum()))
+        self.lo = np.concatenate(los) + data.origin
         self.dims = np.concatenate(dims)
         self.level = np.concatenate(levels)
-        counts = self.dims.prod(axis=1)
-        self.offset = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        self.values = np.concatenate(values).astype(np.float32)
-        self.vmin = np.minimum.reduceat(self.values, self.offset)
-        self.vmax = np.maximum.reduceat(self.values, self.offset)
+        self.offset = np.concatenate(offsets)
+        self.vmin = np.concatenate(vmins).astype(np.float32)
+        self.vmax = np.concatenate(vmaxs).astype(np.float32)
 
     def __len__(self):
         return len(self.level)
+
+    @property
+    def values(self) -> np.ndarray:
+        """The volume's cell values, which the bricks index (see ``offset``)."""
+        return self.volume.values
 
     @property
     def width(self) -> np.ndarray:
@@ -72,52 +83,56 @@ class Bricks:
         h = 0.5 * self.width[:, None]
         return self.lo - h, self.hi + h
 
+    def cell_index(self, b, x, y, z):
+        """Index in ``values`` of cell ``(x, y, z)`` (brick-local) of brick ``b``."""
+        return np.take(self.offset, b) + x + self.stride[1] * y + self.stride[2] * z
+
     @property
     def nbytes(self) -> int:
-        return self.values.nbytes + len(self) * (3 * 8 + 3 * 8 + 4 + 8 + 8)
+        """Brick headers only: the values are the volume's."""
+        return len(self) * (3 * 8 + 3 * 8 + 4 + 8 + 4 + 4)
 
 
-def _levels(data, max_width: int):
-    """Per level present: ``(L, q, value)`` with ``q`` the cells' level
-    coordinates (int64 (m, 3), absolute: ``pos >> L``). From a `BlockVolume`
-    one level's blocks at a time, with no record of all cells; blocks that
-    are full and split evenly into ``max_width^3`` bricks come as ``(L,
-    None, (lower corners, dims, values))`` directly."""
-    if isinstance(data, BlockVolume):
-        B, b3 = data.block, data.block ** 3
-        local = block_offsets(B)
-        for L in np.unique(data.level):
-            L = int(L)
-            sel = np.nonzero(data.level == L)[0]
-            v = data.values.reshape(-1, b3)[sel]
-            full = ~np.isnan(v).any(axis=1) if B % max_width == 0 else np.zeros(len(sel), bool)
-            if full.any():
-                m, n = max_width, B // max_width
-                vf = v[full].reshape(-1, n, m, n, m, n, m)          # [block, bz, z, by, y, bx, x]
-                vals = vf.transpose(0, 1, 3, 5, 2, 4, 6).reshape(-1)  # brick after brick, x fastest
-                sub = np.stack(np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij"),
-                               -1).reshape(-1, 3)[:, ::-1] * m          # (bz, by, bx) order -> x, y, z
-                q0 = (data.coord[sel][full].astype(np.int64) << data.log2_block) + (data.origin >> L)
-                lo = (q0[:, None, :] + sub[None]).reshape(-1, 3)
-                yield L, None, (lo, np.full((len(lo), 3), m, np.int64), vals)
-            rest = ~full
-            if rest.any():
-                bi, ci = np.nonzero(~np.isnan(v[rest]))
-                q = (data.coord[sel][rest][bi].astype(np.int64) << data.log2_block) + local[ci] + (data.origin >> L)
-                yield L, q, v[rest][bi, ci]
-        return
-    for L in data.levels:
-        L = int(L)
-        idx = np.nonzero(data.level == L)[0]
-        yield L, data.pos[idx] >> L, data.value[idx]
+def _bricks_of_blocks(data: BlockVolume, sel: np.ndarray, m: int):
+    """Bricks of the blocks ``sel`` (one level), at most ``m`` cells per side:
+    yields ``(lo, dims, offset, vmin, vmax)`` with ``lo`` in level coordinates
+    relative to the volume's origin. Full blocks that ``m`` divides are cut
+    evenly, with no per-cell work but their min/max."""
+    B, b3 = data.block, data.block ** 3
+    v = data.values.reshape(-1, b3)[sel]
+    q0 = data.coord[sel].astype(np.int64) << data.log2_block          # block corners, level coordinates
+    full = ~np.isnan(v).any(axis=1) if B % m == 0 else np.zeros(len(sel), bool)
+    if full.any():
+        n = B // m
+        vf = v[full].reshape(-1, n, m, n, m, n, m)                     # [block, bz, z, by, y, bx, x]
+        sub = np.stack(np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij"),
+                       -1).reshape(-1, 3)[:, ::-1] * m                  # (bz, by, bx) order -> x, y, z
+        lo = (q0[full][:, None, :] + sub[None]).reshape(-1, 3)
+        local = sub[:, 0] + B * (sub[:, 1] + B * sub[:, 2])
+        off = (sel[full].astype(np.int64)[:, None] * b3 + local[None]).reshape(-1)
+        yield (lo, np.full((len(lo), 3), m, np.int64), off,
+               vf.min(axis=(2, 4, 6)).reshape(-1), vf.max(axis=(2, 4, 6)).reshape(-1))
+    rest = np.nonzero(~full)[0]
+    if len(rest):
+        bi, ci = np.nonzero(~np.isnan(v[rest]))
+        local = np.stack([ci % B, (ci // B) % B, ci // (B * B)], axis=1)
+        groups_per_axis = -(-B // m)
+        g = local // m
+        group = rest[bi].astype(np.int64) * groups_per_axis ** 3 + g[:, 0] + groups_per_axis * (
+            g[:, 1] + groups_per_axis * g[:, 2])
+        lo, dims, order, starts = _complete_boxes(local, group)
+        blk = rest[bi[order[starts]]]
+        off = sel[blk].astype(np.int64) * b3 + lo[:, 0] + B * (lo[:, 1] + B * lo[:, 2])
+        vals = v[rest][bi[order], ci[order]]
+        yield (q0[blk] + lo, dims, off, np.minimum.reduceat(vals, starts), np.maximum.reduceat(vals, starts))
 
 
-def _bricks_of_level(q: np.ndarray, max_width: int):
-    """Split the cells (level coordinates ``q``) of one level into complete
-    boxes. Returns (lower corners, dims, member order): the indices of the
-    cells, brick after brick, x fastest within each brick."""
-    key = q // max_width
-    _, node = np.unique(_row_keys(key), return_inverse=True)
+def _complete_boxes(q: np.ndarray, group: np.ndarray):
+    """Split cells (coordinates ``q`` (m, 3), int) into complete boxes, each
+    inside one ``group``. Returns ``(lower corners, dims, member order,
+    starts)``: the cell indices brick after brick (x fastest within each)
+    and where each brick's run starts in that order."""
+    _, node = np.unique(group, return_inverse=True)
     out_lo, out_dims, out_members = [], [], []
     cell = np.arange(len(q))
     while len(cell):
@@ -154,10 +169,7 @@ def _bricks_of_level(q: np.ndarray, max_width: int):
         present = np.zeros(2 * n, dtype=bool)
         present[half] = True
         node = (np.cumsum(present) - 1)[half]
-    return np.concatenate(out_lo), np.concatenate(out_dims), np.concatenate(out_members)
-
-
-def _row_keys(a: np.ndarray) -> np.ndarray:
-    a = a - a.min(axis=0)
-    m = a.max(axis=0) + 1
-    return a[:, 0] + m[0] * (a[:, 1] + m[1] * a[:, 2])
+    dims = np.concatenate(out_dims)
+    counts = dims.prod(axis=1)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    return np.concatenate(out_lo), dims, np.concatenate(out_members), starts

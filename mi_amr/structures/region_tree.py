@@ -13,9 +13,15 @@ two, so that domain faces at half cells stay integers).
 
 from __future__ import annotations
 
+import drjit as dr
 import numpy as np
 
 from ..progress import progress
+
+
+#: Tent ABR leaves are not split once no side is longer than this many cells
+#: of the finest brick they touch (docs/design.md section 4).
+ABR_LEAF_CELLS = 4
 
 
 class RegionTree:
@@ -55,22 +61,27 @@ class RegionTree:
                 + 4 * 6 * self.n_leaves + self.list_count.nbytes * 2 + self.items.nbytes)
 
     def overlapping_leaves(self, box_lo, box_hi):
-        """``(box, leaf)`` index pairs of boxes (K, 3), in the tree's units,
-        and the leaves they overlap (closed intervals), found by descending
-        all boxes through the tree together, one depth at a time."""
-        box_lo, box_hi = np.asarray(box_lo, np.float64), np.asarray(box_hi, np.float64)
+        """``(box, leaf)`` index pairs of integer boxes (K, 3), in the tree's
+        units, and the leaves they overlap (closed intervals), found by
+        descending all boxes through the tree together, one depth at a time
+        (int32 coordinates where they fit)."""
+        span = max(np.abs(a).max(initial=0) for a in (box_lo, box_hi, self.leaf_lo, self.leaf_hi))
+        ctype = np.int32 if span < 2**30 else np.int64
+        box_lo, box_hi = np.asarray(box_lo).astype(ctype), np.asarray(box_hi).astype(ctype)
+        leaf_lo, leaf_hi = self.leaf_lo.astype(ctype), self.leaf_hi.astype(ctype)
         flat_lo, flat_hi = box_lo.ravel(), box_hi.ravel()
-        axis, split, child = self.axis.astype(np.int64), self.split, self.child.astype(np.int64)
-        bi = np.arange(len(box_lo))
-        node = np.zeros(len(box_lo), dtype=np.int64)
+        axis, split = self.axis.astype(np.int32), self.split.astype(ctype)
+        child = self.child.astype(np.int32 if len(self.child) < 2**31 else np.int64)
+        bi = np.arange(len(box_lo), dtype=child.dtype)
+        node = np.zeros(len(box_lo), dtype=child.dtype)
         out_b, out_l = [], []
         while len(bi):
             ax = np.take(axis, node)
             leaf = ax == 3
             if leaf.any():
                 lb, ln = bi[leaf], np.take(child, node[leaf])
-                ok = np.all((np.take(box_lo, lb, axis=0) <= np.take(self.leaf_hi, ln, axis=0))
-                            & (np.take(box_hi, lb, axis=0) >= np.take(self.leaf_lo, ln, axis=0)), axis=1)
+                ok = np.all((np.take(box_lo, lb, axis=0) <= np.take(leaf_hi, ln, axis=0))
+                            & (np.take(box_hi, lb, axis=0) >= np.take(leaf_lo, ln, axis=0)), axis=1)
                 out_b.append(lb[ok])
                 out_l.append(ln[ok])
                 inner = ~leaf
@@ -83,7 +94,7 @@ class RegionTree:
             bi, node = np.concatenate([bi[go_l], bi[go_r]]), np.concatenate([c[go_l], c[go_r] + 1])
         if not out_b:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        return np.concatenate(out_b), np.concatenate(out_l)
+        return np.concatenate(out_b).astype(np.int64), np.concatenate(out_l).astype(np.int64)
 
     def locate(self, p: np.ndarray) -> np.ndarray:
         """Leaf index of each point (M, 3) (host; ties go right)."""
@@ -99,9 +110,12 @@ class RegionTree:
         return self.child[node].astype(np.int64)
 
 
-def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
+def build_region_tree(box_lo, box_hi, root_lo, root_hi, leaf_extent=None) -> RegionTree:
     """Build the tree over integer boxes ``[box_lo, box_hi]`` (K, 3) inside
-    the root box; see the module docstring.
+    the root box; see the module docstring. ``leaf_extent`` (K,): a node
+    whose longest side is at most the smallest ``leaf_extent`` of its boxes
+    is a leaf even with faces inside (its list still holds every box that
+    overlaps it).
 
     Built level by level, all nodes of a depth at once: the (node, box)
     pairs of the level, sorted by node, are the state. A node splits on its
@@ -145,6 +159,11 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
         order = np.argsort(-(hi - lo), axis=1, kind="stable")        # axes by extent, stable
         has_sorted = np.take_along_axis(has, order, axis=1)
         splits = has_sorted.any(axis=1)
+        if leaf_extent is not None and len(pn):
+            small = np.zeros(F, dtype=bool)
+            small[pn[starts]] = (hi - lo)[pn[starts]].max(axis=1) <= np.minimum.reduceat(
+                np.take(leaf_extent, pb), starts)
+            splits &= ~small
         ax = np.where(splits, order[np.arange(F), np.argmax(has_sorted, axis=1)], 3)
         # ---- Chosen plane: the inside face nearest the middle, then the smaller ----
         best = np.zeros(F, dtype=np.int64)
@@ -227,6 +246,23 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi) -> RegionTree:
     return RegionTree(ax_n, sp_n, ch_n, leaf_lo, leaf_hi, lists, depth)
 
 
+def brick_region_tree(bricks, lo, hi, over_domains: bool, leaf_cells: int | None = None) -> RegionTree:
+    """The region tree of ``bricks`` over the data bounds ``[lo, hi]``
+    (finest units): over the brick domains (``over_domains``: the ABRs of
+    ``tent``), leaves not split below ``leaf_cells`` cells of the finest
+    brick in them (default `ABR_LEAF_CELLS`; 0: exact ABRs), or over the disjoint brick bounds (the
+    brick tree, and the ABRs of ``nearest``). Tree units: finest cells
+    times two."""
+    leaf_cells = ABR_LEAF_CELLS if leaf_cells is None else leaf_cells
+    if over_domains:
+        blo, bhi = bricks.domains()
+        floor = 2 * leaf_cells * bricks.width if leaf_cells else None
+    else:
+        blo, bhi, floor = bricks.lo.astype(np.float64), bricks.hi.astype(np.float64), None
+    return build_region_tree(np.round(2 * blo).astype(np.int64), np.round(2 * bhi).astype(np.int64),
+                             2 * np.asarray(lo), 2 * np.asarray(hi), floor)
+
+
 def split_node(axis: list, split: list, child: list, node: int, a: int, s, lo, hi):
     """Turn leaf ``node`` into an inner node split at ``s`` on axis ``a``:
     appends its two children (leaves for now) to the node lists and returns
@@ -279,52 +315,86 @@ def _depth(axis, child) -> int:
 
 
 def exact_value_ranges(tree: RegionTree, bricks, method: str = "tent", own_lists: bool = False,
-                       chunk: int = 1 << 20):
+                       chunk: int = 1 << 22):
     """Exact value range of each leaf of ``tree`` (built over boxes in
     doubled finest units): min/max over the cells whose tent support
     (``tent``) or cell box (``nearest``) overlaps the leaf's interior.
     Candidate bricks are those whose domain overlaps the leaf: the leaves'
-    own lists when the tree was built over the brick domains
-    (``own_lists``, ABRs), else a box query of each domain down the tree
-    (`RegionTree.overlapping_leaves`). Within each brick only the sub-box
-    of cells that reach the leaf is visited (vectorised over all pairs)."""
-    from .boxes import enumerate_boxes
+    own lists when the tree was built over the supports of ``method``
+    (``own_lists``: the brick domains for ``tent``, the ABRs; the brick
+    bounds for ``nearest``, where a cell reaches only its own brick), else a
+    box query of each domain down the tree (`RegionTree.overlapping_leaves`).
+    The (leaf, brick) pairs are folded by one Dr.Jit kernel per chunk, in
+    the current variant, on every core: a brick whose cells all reach the
+    leaf gives its own range, of the others only the sub-box of cells that
+    reach the leaf is read."""
+    from ..device.values import device_values
     n = tree.n_leaves
-    leaf_lo, leaf_hi = tree.leaf_lo / 2, tree.leaf_hi / 2
-    out_min = np.full(n, np.inf, dtype=np.float32)
-    out_max = np.full(n, -np.inf, dtype=np.float32)
-    dlo, dhi = bricks.domains()
-    w_all = bricks.width.astype(np.float64)
-    ext = (1.5, 0.5) if method == "tent" else (1.0, 0.0)    # support reach below / above, in cells
     if own_lists:
-        li, b = np.repeat(np.arange(n), tree.list_count), tree.items.astype(np.int64)
+        li, b = np.repeat(np.arange(n, dtype=np.uint32), tree.list_count), tree.items
     else:
-        b, li = tree.overlapping_leaves(2 * dlo, 2 * dhi)
+        dlo, dhi = bricks.domains()
+        b, li = tree.overlapping_leaves(np.round(2 * dlo).astype(np.int64), np.round(2 * dhi).astype(np.int64))
+    values = device_values(bricks.volume)
+    Float = type(values)
+    Int64, Int32, UInt32 = dr.int64_array_t(Float), dr.int32_array_t(Float), dr.uint32_array_t(Float)
+    dev = {
+        "leaf_lo": [Int64(tree.leaf_lo[:, a].astype(np.int64)) for a in range(3)],   # doubled units
+        "leaf_hi": [Int64(tree.leaf_hi[:, a].astype(np.int64)) for a in range(3)],
+        "lo": [Int64(2 * bricks.lo[:, a]) for a in range(3)],
+        "dims": [Int32(bricks.dims[:, a].astype(np.int32)) for a in range(3)],
+        "level": Int32(bricks.level.astype(np.int32)),
+        "offset": UInt32(bricks.offset.astype(np.uint32)),
+        "vmin": Float(bricks.vmin), "vmax": Float(bricks.vmax), "values": values,
+        "block": int(bricks.stride[1]),
+        # support reach below / above a cell's lower corner, in half cells
+        "ext": (3, 1) if method == "tent" else (2, 0),
+    }
+    out_min, out_max = dr.full(Float, dr.inf, n), dr.full(Float, -dr.inf, n)
     with progress(len(li), "leaf value ranges", unit="pair") as bar:
         for s in range(0, len(li), chunk):
-            _fold_pairs(li[s:s + chunk], b[s:s + chunk], leaf_lo, leaf_hi, bricks, w_all, ext,
-                        out_min, out_max, enumerate_boxes)
+            _fold_pairs(UInt32(np.ascontiguousarray(li[s:s + chunk], dtype=np.uint32)),
+                        UInt32(np.ascontiguousarray(b[s:s + chunk], dtype=np.uint32)), dev, out_min, out_max)
+            dr.eval(out_min, out_max)
             bar.update(len(li[s:s + chunk]))
-    return out_min, out_max
+    return out_min.numpy().astype(np.float32), out_max.numpy().astype(np.float32)
 
 
-def _fold_pairs(li, b, leaf_lo, leaf_hi, bricks, w_all, ext, out_min, out_max, enumerate_boxes):
-    """Fold the cells of brick ``b[k]`` that reach leaf ``li[k]`` into its range."""
-    w = np.take(w_all, b)[:, None]
-    lo = np.take(bricks.lo, b, axis=0).astype(np.float64)
-    dims = np.take(bricks.dims, b, axis=0)
-    i0 = np.floor((np.take(leaf_lo, li, axis=0) - lo) / w - ext[0]).astype(np.int64) + 1
-    i1 = np.ceil((np.take(leaf_hi, li, axis=0) - lo) / w + ext[1]).astype(np.int64) - 1
-    i0 = np.maximum(i0, 0)
-    i1 = np.minimum(i1, dims - 1)
-    keep = np.all(i0 <= i1, axis=1)
-    li, b, i0, i1, dims = li[keep], b[keep], i0[keep], i1[keep], dims[keep]
-    if not len(li):
-        return
-    x, y, z, owner = enumerate_boxes(i0, i1)      # every (pair, cell) of the sub-boxes
-    # value index = offset + x + dx (y + dy z), with per-pair strides
-    sy, sz, base = dims[:, 0], dims[:, 0] * dims[:, 1], np.take(bricks.offset, b)
-    v = np.take(bricks.values, np.take(base, owner) + x + np.take(sy, owner) * y + np.take(sz, owner) * z)
-    leaf = np.take(li, owner)
-    np.minimum.at(out_min, leaf, v)
-    np.maximum.at(out_max, leaf, v)
+@dr.syntax
+def _fold_pairs(li, b, dev, out_min, out_max):
+    """Fold the cells of brick ``b[k]`` that reach leaf ``li[k]`` into the
+    leaf's range: cells ``i`` with ``lo + (i - ext0/2) w < leaf_hi`` and
+    ``lo + (i + 1 + ext1/2) w > leaf_lo`` (doubled units, integer shifts:
+    ``w = 2^level``)."""
+    Float, Int64, Int32 = type(out_min), type(dev["lo"][0]), type(dev["level"])
+    UInt32 = type(li)
+    level = Int64(dr.gather(Int32, dev["level"], b))
+    shift, w = level + 1, Int64(1) << level
+    e0, e1 = dev["ext"]
+    i0, size = [], []
+    whole = dr.full(dr.mask_t(Float), True, dr.width(b))
+    count = Int32(1)
+    for a in range(3):
+        lo2 = dr.gather(Int64, dev["lo"][a], b)
+        dims = dr.gather(Int32, dev["dims"][a], b)
+        a0 = Int32(dr.maximum(((dr.gather(Int64, dev["leaf_lo"][a], li) - lo2 - e0 * w) >> shift) + 1, 0))
+        a1 = Int32(dr.minimum(-((lo2 - dr.gather(Int64, dev["leaf_hi"][a], li) - e1 * w) >> shift) - 1,
+                              Int64(dims) - 1))
+        whole &= (a0 == 0) & (a1 == dims - 1)
+        i0.append(a0)
+        size.append(dr.maximum(a1 - a0 + 1, 0))
+        count *= size[-1]
+    dr.scatter_reduce(dr.ReduceOp.Min, out_min, dr.gather(Float, dev["vmin"], b, whole), li, whole)
+    dr.scatter_reduce(dr.ReduceOp.Max, out_max, dr.gather(Float, dev["vmax"], b, whole), li, whole)
+    count = dr.select(whole, 0, count)
+    off = dr.gather(UInt32, dev["offset"], b)
+    B = dev["block"]
+    nx, ny = dr.maximum(size[0], 1), dr.maximum(size[1], 1)      # no division by 0 in idle lanes
+    k = Int32(0)
+    while k < count:
+        t = k // nx
+        x, y, z = i0[0] + (k - t * nx), i0[1] + t % ny, i0[2] + t // ny
+        v = dr.gather(Float, dev["values"], off + UInt32(x + B * (y + B * z)))
+        dr.scatter_reduce(dr.ReduceOp.Min, out_min, v, li)
+        dr.scatter_reduce(dr.ReduceOp.Max, out_max, v, li)
+        k += 1
