@@ -116,3 +116,32 @@ def test05_bench_on_a_users_data_set(llvm, tmp_path):
     assert [r["dataset"] for r in records] == ["sim.npz"] * 2
     assert records[1]["efficiency_vs_reference"] > 0 and math.isfinite(records[1]["rmse"])
     assert "## sim.npz" in (out / "tables.md").read_text()
+
+
+def test06_frames_are_timed_alternating_one_scene_at_a_time(llvm, monkeypatch):
+    """`alternate_passes` loads the configurations in turn, A B A B ..., with
+    no other scene alive at any load, and times one frame per pass."""
+    import argparse
+    import mitsuba as mi
+    import numpy as np
+    from mi_amr.plugins.medium import live_media
+    from mi_amr.tools import bench
+    from conftest import random_amr
+    cells = random_amr(3, 8, 2)
+    args = argparse.Namespace(max_depth=8, res=8, spp=2, repeats=3, reconstruction="nearest",
+                              no_value_masks=False, grid_refinement=None, memory_limit=4.0)
+    import mi_amr
+    tf = mi_amr.TransferFunction.preset("spiky", cells.value_range)
+    scenes = {c: bench.config_scene(mi, c, cells, tf, 50.0, args)
+              for c in ("amrvolpath/grid/hash", "amrvolpath/abr/brick")}
+    loads, load = [], mi.load_dict
+
+    def logged(d):
+        loads.append((next(c for c, s in scenes.items() if s is d), live_media()))
+        return load(d)
+    monkeypatch.setattr(mi, "load_dict", logged)
+    out = bench.alternate_passes(mi, scenes, args, np.zeros((8, 8, 3)))
+    assert [c for c, _ in loads] == list(scenes) * 3
+    assert all(alive == 0 for _, alive in loads) and live_media() == 0
+    for times, mses in out.values():
+        assert len(times) == 3 and all(t > 0 for t in times) and all(m > 0 for m in mses)

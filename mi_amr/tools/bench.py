@@ -11,7 +11,10 @@ and ``ray`` majorants, and ``amrvolpath`` with every traversal x sampling),
 it measures build time, kernel compile time (the first frame), the median
 frame time, RMSE against a high-sample reference image, efficiency
 ``1 / (MSE * seconds)``, density look-ups per real collision, structure
-memory and the majorant recompute time of a TF change. Reconstruction is
+memory and the majorant recompute time of a TF change. Frame times are
+taken pass by pass, alternating the configurations of a data set and TF
+(A B C A B C ..., ``--repeats`` rounds), with one scene alive at a time
+(`alternate_passes`). Reconstruction is
 ``nearest`` by default so that the dense reference renders exactly the same
 field and every configuration converges to the same image.
 """
@@ -83,21 +86,22 @@ def dense_volume(cells, args):
     return _DENSE[key]
 
 
-def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resolution=None, grid_refinement=1):
-    """Measure one configuration; returns (record, image)."""
-    import drjit as dr
-    import numpy as np
-
+def check_alone(config):
+    """Refuse to time ``config`` while amr media of another scene are alive:
+    Dr.Jit dispatches virtual calls over every live instance, so a second
+    scene in memory shifts timings (up to 2x measured)."""
     from ..plugins.medium import live_media
-    from .reference import dense_bytes, reference_medium
     if live_media():
-        # Dr.Jit dispatches virtual calls over every live instance: a second
-        # scene in memory shifts timings (up to 2x measured)
         raise RuntimeError(f"benchmark: {live_media()} amr media of another scene are alive while "
                            f"timing {config}; free them first")
+
+
+def config_scene(mi, config, cells, tf, scale, args, grid_resolution=None, grid_refinement=1) -> dict:
+    """The benchmark scene of one configuration, as a dict (loadable again:
+    its data are shared, and host structures are cached on them)."""
+    from .reference import reference_medium
     kind = config.split("/")
     integ = {"type": "volpath", "max_depth": args.max_depth}
-    t0 = time.perf_counter()
     if kind[0] == "reference":
         medium = reference_medium(cells, tf, scale, args.reconstruction,
                                   memory_limit=int(args.memory_limit * 2**30))
@@ -125,7 +129,25 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
                 integ.update(residual_ratio_tracking=rrt, decomposition_tracking=dt)
             elif kind[1] != "default":
                 medium.update(traversal=kind[1], sampling=kind[2])
-    scene = mi.load_dict(bench_scene(medium, args.res, integ))
+    return bench_scene(medium, args.res, integ)
+
+
+def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resolution=None, grid_refinement=1,
+               timed=True, scene_dict=None):
+    """Measure one configuration; returns (record, image). ``timed``: also
+    time ``args.repeats`` frames in a row (else the caller times them, see
+    `alternate_passes`, and one frame feeds the counters). ``scene_dict``:
+    the configuration's scene, when the caller made it already."""
+    import drjit as dr
+    import numpy as np
+
+    from .reference import dense_bytes
+    check_alone(config)
+    kind = config.split("/")
+    t0 = time.perf_counter()
+    if scene_dict is None:
+        scene_dict = config_scene(mi, config, cells, tf, scale, args, grid_resolution, grid_refinement)
+    scene = mi.load_dict(scene_dict)
     build_s = time.perf_counter() - t0
     integrator = scene.integrator()
     t0 = time.perf_counter()
@@ -135,7 +157,7 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
     acc = None
     if hasattr(integrator, "reset_counters"):
         integrator.reset_counters()
-    for r in range(args.repeats):
+    for r in range(args.repeats if timed else 1):
         t0 = time.perf_counter()
         img = np.array(mi.render(scene, spp=args.spp, seed=r), dtype=np.float64)
         times.append(time.perf_counter() - t0)
@@ -182,7 +204,42 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
         rec["build_detail_s"] = dict(med.build_seconds)
         rec["resolved"] = (f"{med.options.structures.traversal}/{med.options.structures.sampling}, "
                            f"{med.structures.grid.describe()}")
-    return rec, acc / args.repeats
+    return rec, acc / len(times)
+
+
+def alternate_passes(mi, scenes: dict, args, ref_image) -> dict:
+    """Time configurations pass by pass (A B C A B C ...), ``args.repeats``
+    rounds: each pass loads its configuration's scene, renders one untimed
+    sample per pixel (kernels, caches), times one frame of ``args.spp`` and
+    frees the scene before the next is loaded, so exactly one scene is
+    alive while timing and slow drifts of the machine hit every
+    configuration alike. Returns ``{config: (seconds per frame, MSE per
+    frame)}``."""
+    import gc
+
+    import numpy as np
+    out = {c: ([], []) for c in scenes}
+    for r in range(args.repeats):
+        for config, scene_dict in scenes.items():
+            check_alone(config)
+            scene = mi.load_dict(scene_dict)
+            np.array(mi.render(scene, spp=1, seed=50_000 + r))
+            t0 = time.perf_counter()
+            img = np.array(mi.render(scene, spp=args.spp, seed=r), dtype=np.float64)
+            out[config][0].append(time.perf_counter() - t0)
+            out[config][1].append(float(np.mean((img - ref_image) ** 2)))
+            del scene, img
+            gc.collect()
+    return out
+
+
+def apply_timing(rec, times, mses):
+    """Fill a record's frame time and efficiency from alternating passes:
+    the median frame time, and the MSE over the passes."""
+    seconds, mse = statistics.median(times), float(sum(mses) / len(mses))
+    rec.update(seconds_per_frame=seconds, seconds_per_spp=seconds / rec["spp"], rmse=mse ** 0.5,
+               efficiency=1.0 / (mse * seconds) if mse > 0 else float("inf"),
+               frame_seconds=list(times))
 
 
 def main(argv=None):
@@ -293,21 +350,35 @@ def main(argv=None):
             # High-sample reference image: the default amrvolpath configuration.
             ref_args = argparse.Namespace(**{**vars(args), "spp": args.ref_spp, "repeats": 1})
             _, ref_img = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, ref_args)
-            ref_rec = None
+            # everything but the frame times, configuration by configuration
+            ref_rec, measured, scenes = None, [], {}
             for config in configs:
                 try:
-                    rec, _ = run_config(mi, config, cells, tf, scale, args, ref_img)
+                    scenes[config] = config_scene(mi, config, cells, tf, scale, args)
+                    rec, _ = run_config(mi, config, cells, tf, scale, args, ref_img, timed=False,
+                                        scene_dict=scenes[config])
                 except MemoryError as e:          # the dense reference does not fit
                     print(f"{name:8s} {tf_name:6s} {config:24s} skipped: {e}", flush=True)
-                    records.append({"dataset": name, "tf": tf_name, "config": config, "cells": len(cells),
-                                    "skipped": str(e)})
+                    scenes.pop(config, None)
+                    measured.append({"dataset": name, "tf": tf_name, "config": config, "cells": len(cells),
+                                     "skipped": str(e)})
                     continue
                 rec.update(dataset=name, tf=tf_name, cells=len(cells), density_scale=scale)
-                if config == "reference":
-                    ref_rec = rec
+                measured.append(rec)
+            # the frame times, alternating configurations pass by pass
+            timing = alternate_passes(mi, scenes, args, ref_img)
+            del scenes
+            for rec in measured:
+                if "skipped" not in rec:
+                    apply_timing(rec, *timing[rec["config"]])
+                    ref_rec = rec if rec["config"] == "reference" else ref_rec
+            for rec in measured:
+                records.append(rec)
+                if "skipped" in rec:
+                    continue
                 rec["efficiency_vs_reference"] = (rec["efficiency"] / ref_rec["efficiency"]
                                                   if ref_rec and ref_rec.get("efficiency") else None)
-                records.append(rec)
+                config = rec["config"]
                 lpc = rec["lookups_per_collision"]
                 print(f"{name:8s} {tf_name:6s} {config:24s} {rec['seconds_per_spp'] * 1e3:8.2f} ms/spp "
                       f"rmse {rec['rmse']:.4f} eff x{rec['efficiency_vs_reference'] or float('nan'):6.2f} "
