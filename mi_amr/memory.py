@@ -16,8 +16,14 @@ ENV_VAR = "MI_AMR_MEMORY_LIMIT"
 #: Peak build bytes per cell of each structure (measured, rounded up).
 BYTES_PER_CELL = {
     "cells": 160,          # AMRCells validation (keys, sorting): 80 measured
-    "bricks": 100,         # Bricks: 56 measured on octree-like data (84 per cell of a partial block), 5 on full blocks
 }
+#: Peak bytes of the region-tree build per (node, box) pair of a depth
+#: (coordinates, face tests, the next depth's pairs), per leaf list entry
+#: and per node (its box, the node arrays, the final tree): fitted to
+#: tracemalloc peaks of ABRs and brick trees on cloud and blocks data.
+BYTES_PER_TREE_PAIR = 150
+BYTES_PER_TREE_ITEM = 16
+BYTES_PER_TREE_NODE = 100
 #: Bytes per macrocell: host ranges and level mask, device copies, majorants.
 BYTES_PER_MACROCELL = 48
 #: Cells read per chunk when streaming (`mi_amr.data.blocks`).
@@ -92,6 +98,13 @@ def require(nbytes: float, what: str, limit: float | None = None, hint: str = ""
             f"{what} needs about {format_bytes(nbytes)}, more than the memory limit of "
             f"{format_bytes(limit)} ({ENV_VAR} or the medium's memory_limit)"
             + (f"; {hint}" if hint else ""))
+
+
+def bricks_bytes(n_cells: int, partial_block_cells: int) -> float:
+    """Peak host bytes of cutting bricks from the blocks: full blocks are cut
+    with no per-cell arrays (about 5 B per cell measured), cells of partial
+    blocks are grouped one by one (about 80 B each)."""
+    return 6.0 * n_cells + 80.0 * partial_block_cells
 
 
 def structure_bytes(kind: str, n_cells: int) -> float:

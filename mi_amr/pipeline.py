@@ -28,7 +28,7 @@ from .device.hash_sampler import DeviceReconstruction, HashSampler
 from .device.segments import GridSegments, TreeSegments, TwoLevelGridSegments
 from .device.structs import jit_struct
 from .device.tree import DeviceTree
-from .memory import hash_bytes, require, structure_bytes
+from .memory import bricks_bytes, hash_bytes, require
 from .structures.brick_lists import BrickLists
 from .structures.bricks import Bricks
 from .structures.cost_model import REFINEMENTS, GridPlan, auto_grid
@@ -167,7 +167,7 @@ class Structures:
     def bricks(self) -> Bricks:
         size = self.options.brick_size
         return self._build("bricks", lambda: self._host_cached(("bricks", size), lambda: Bricks(self.volume, size)),
-                           need=structure_bytes("bricks", len(self.volume)), store=self.host)
+                           need=bricks_bytes(len(self.volume), self.volume.partial_block_cells), store=self.host)
 
     def brick_tree(self, kind: str) -> DeviceTree:
         """kd-tree over the bricks' supports (``abr``: the regions their cells
@@ -178,7 +178,8 @@ class Structures:
 
         def make_host():
             b = self.bricks
-            tree = brick_region_tree(b, *self.volume.bounds, over_domains)
+            tree = brick_region_tree(b, *self.volume.bounds, over_domains, memory_limit=self.options.memory_limit,
+                                     what=f"amr: the {key} structure of {self.volume.source} ({len(self.volume)} cells)")
             # the tree is over the supports of ``method`` unless it is the tent brick tree
             vmin, vmax = exact_value_ranges(tree, b, method, own_lists=over_domains or method == "nearest")
             return tree, vmin, vmax

@@ -194,11 +194,14 @@ def test08_a_medium_from_a_file_keeps_only_blocks(llvm, tmp_path):
 
 @pytest.mark.parametrize("name", ["cloud", "blocks"])
 def test09_memory_estimates_within_2x_of_the_measured_peak(llvm, tmp_path, name):
-    """The estimates that guard loading, the macrocell grid and the block
-    hash are within a factor 2 of the host peak measured with tracemalloc
-    (numpy allocations), on octree-like and block-structured data."""
+    """The estimates that guard loading, the macrocell grid, the block hash,
+    the bricks and the region trees (checked depth by depth) are within a
+    factor 2 of the host peak measured with tracemalloc (numpy allocations),
+    on octree-like and block-structured data."""
     import tracemalloc
-    from mi_amr.memory import grid_bytes, hash_bytes, load_bytes
+    from mi_amr.memory import bricks_bytes, grid_bytes, hash_bytes, load_bytes
+    from mi_amr.structures.bricks import Bricks
+    from mi_amr.structures.region_tree import brick_region_tree
     cells = make_dataset("cloud", 300000) if name == "cloud" else make_dataset("blocks", 1_000_000, levels=4)
     path = write_exabricks(cells, tmp_path / "m.cells")[0]
     del cells
@@ -219,6 +222,12 @@ def test09_memory_estimates_within_2x_of_the_measured_peak(llvm, tmp_path, name)
         _, peak = peak_of(lambda: DeviceReconstruction(vol, method))
         est = hash_bytes(len(vol.level), method)
         assert 0.5 < est / peak < 2.0, ("hash", method, est / peak)
+    bricks, peak = peak_of(lambda: Bricks(vol))
+    est = bricks_bytes(len(vol), vol.partial_block_cells)
+    assert 0.5 < est / peak < 2.0, ("bricks", est / peak)
+    for over_domains in (True, False):                 # tent ABRs, brick tree
+        tree, peak = peak_of(lambda: brick_region_tree(bricks, *vol.bounds, over_domains))
+        assert 0.5 < tree.peak_estimate / peak < 2.0, ("region tree", over_domains, tree.peak_estimate / peak)
 
 
 def test10_media_on_the_same_data_share_one_device_copy(llvm):

@@ -115,6 +115,18 @@ def test16_structures_that_do_not_fit_fail_before_allocating(llvm, tmp_path, mon
     with pytest.raises(Exception, match=r"the hash structure .* needs about .*memory limit of "
                        + re.escape(format_bytes(limit))):
         mi.load_dict({"type": "amr", "data": data, "grid_resolution": 2, "memory_limit": limit})
+    # a limit that the bricks fit and the ABR tree does not: refused by the
+    # tree build's own depth-by-depth check, naming the structure and data
+    from mi_amr.memory import bricks_bytes
+    from mi_amr.structures.bricks import Bricks
+    from mi_amr.structures.region_tree import brick_region_tree
+    bricks_need = bricks_bytes(len(vol), vol.partial_block_cells)
+    tree_need = brick_region_tree(Bricks(vol), *vol.bounds, True).peak_estimate
+    assert bricks_need < tree_need
+    limit = 0.5 * (bricks_need + tree_need)
+    with pytest.raises(Exception, match=r"the abr_tree structure of .* needs about .*memory limit"):
+        mi.load_dict({"type": "amr", "data": data, "traversal": "abr", "sampling": "abr", "grid_resolution": 2,
+                      "memory_limit": limit})
     monkeypatch.setenv("MI_AMR_MEMORY_LIMIT", "2K")
     assert parse_bytes("2K") == 2048
     with pytest.raises(Exception, match="memory limit of 2.0 KiB"):

@@ -163,15 +163,26 @@ class BlockVolume(mi.Object):
     def covers_bounds(self) -> bool:
         """Whether the cells fill their bounding box (no holes): their
         volumes add up to the box's (cells never overlap here), so every
-        point of it has a value. Counted block by block, once."""
+        point of it has a value."""
+        return self._cell_counts()[0]
+
+    @property
+    def partial_block_cells(self) -> int:
+        """Cells in blocks that are not full (where bricks are found cell by
+        cell rather than cut from whole blocks)."""
+        return self._cell_counts()[1]
+
+    def _cell_counts(self):
+        """``(covers_bounds, partial_block_cells)``, counted block by block, once."""
         if self._covers is None:
             b3 = self.block ** 3
-            total = 0
+            total, partial = 0, 0
             step = max(1, (1 << 22) // b3)
             for s in range(0, len(self.level), step):
                 present = (~np.isnan(self.values[s * b3:(s + step) * b3].reshape(-1, b3))).sum(axis=1)
                 total += int((present.astype(np.int64) << (3 * self.level[s:s + step].astype(np.int64))).sum())
-            self._covers = total == int(np.prod((self.hi - self.lo).astype(np.int64)))
+                partial += int(present[present < b3].sum())
+            self._covers = (total == int(np.prod((self.hi - self.lo).astype(np.int64))), partial)
         return self._covers
 
     @property

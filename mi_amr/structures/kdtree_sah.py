@@ -58,7 +58,6 @@ def build_sah_kdtree(majorant: np.ndarray, vmin: np.ndarray, vmax: np.ndarray,
             right = np.maximum.accumulate(slab[::-1])[::-1][1:]
             e = (hi - lo) * cell
             k = np.arange(1, n)
-            el = e.copy()
             ea = k * cell[a]
             er_a = (n - k) * cell[a]
             o0, o1 = e[other[0]], e[other[1]]

@@ -16,6 +16,7 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
+from ..memory import BYTES_PER_TREE_ITEM, BYTES_PER_TREE_NODE, BYTES_PER_TREE_PAIR, require
 from ..progress import progress
 
 
@@ -110,12 +111,15 @@ class RegionTree:
         return self.child[node].astype(np.int64)
 
 
-def build_region_tree(box_lo, box_hi, root_lo, root_hi, leaf_extent=None) -> RegionTree:
+def build_region_tree(box_lo, box_hi, root_lo, root_hi, leaf_extent=None, memory_limit=None,
+                      what: str = "region tree") -> RegionTree:
     """Build the tree over integer boxes ``[box_lo, box_hi]`` (K, 3) inside
     the root box; see the module docstring. ``leaf_extent`` (K,): a node
     whose longest side is at most the smallest ``leaf_extent`` of its boxes
     is a leaf even with faces inside (its list still holds every box that
-    overlaps it).
+    overlaps it). Before each depth's pairs are made, their bytes and the
+    leaf lists so far are checked against ``memory_limit`` (an error names
+    ``what``); the largest such estimate is kept as ``peak_estimate``.
 
     Built level by level, all nodes of a depth at once: the (node, box)
     pairs of the level, sorted by node, are the state. A node splits on its
@@ -141,6 +145,8 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi, leaf_extent=None) -> Reg
     pn = np.zeros(len(pb), dtype=np.int64)
     n_nodes, n_leaves, depth = 1, 0, 0
     never = np.iinfo(np.int64).max
+    stored, peak_estimate = 0, BYTES_PER_TREE_PAIR * len(pb)
+    require(peak_estimate, what, memory_limit, "use fewer cells or raise the limit")
     bar = progress(None, "region tree", unit="node")
     while len(ids):
         F = len(ids)
@@ -194,6 +200,7 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi, leaf_extent=None) -> Reg
             leaf_hi.append(hi[li])
             sel = leaf[pn]
             leaf_pairs.append((leaf_index[pn[sel]], pb[sel]))
+            stored += int(sel.sum())
             axis.append(np.full(len(li), 3, np.uint32))
             split.append(np.zeros(len(li)))
             child.append(leaf_index[li])
@@ -221,6 +228,10 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi, leaf_extent=None) -> Reg
         a_k, s_k = s_ax[pn_k], s_pl[pn_k]
         to_left = np.take(box_lo.ravel(), 3 * pb_k + a_k) < s_k
         to_right = np.take(box_hi.ravel(), 3 * pb_k + a_k) > s_k
+        need = (BYTES_PER_TREE_PAIR * float(to_left.sum() + to_right.sum()) + BYTES_PER_TREE_ITEM * stored
+                + BYTES_PER_TREE_NODE * float(n_nodes))
+        peak_estimate = max(peak_estimate, need)
+        require(need, what, memory_limit, "use fewer cells or raise the limit")
         pn = np.concatenate([2 * pn_k[to_left], 2 * pn_k[to_right] + 1])
         pb = np.concatenate([pb_k[to_left], pb_k[to_right]])
         o = np.argsort(pn, kind="stable")
@@ -243,16 +254,19 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi, leaf_extent=None) -> Reg
     # leaves are numbered in the order their pairs were appended, and a
     # node's boxes stay in ascending order through every split: no sort
     lists = (np.bincount(li, minlength=n_leaves), bi)
-    return RegionTree(ax_n, sp_n, ch_n, leaf_lo, leaf_hi, lists, depth)
+    tree = RegionTree(ax_n, sp_n, ch_n, leaf_lo, leaf_hi, lists, depth)
+    tree.peak_estimate = peak_estimate
+    return tree
 
 
-def brick_region_tree(bricks, lo, hi, over_domains: bool, leaf_cells: int | None = None) -> RegionTree:
+def brick_region_tree(bricks, lo, hi, over_domains: bool, leaf_cells: int | None = None,
+                      memory_limit=None, what: str = "region tree") -> RegionTree:
     """The region tree of ``bricks`` over the data bounds ``[lo, hi]``
     (finest units): over the brick domains (``over_domains``: the ABRs of
     ``tent``), leaves not split below ``leaf_cells`` cells of the finest
     brick in them (default `ABR_LEAF_CELLS`; 0: exact ABRs), or over the disjoint brick bounds (the
     brick tree, and the ABRs of ``nearest``). Tree units: finest cells
-    times two."""
+    times two. ``memory_limit``, ``what``: see `build_region_tree`."""
     leaf_cells = ABR_LEAF_CELLS if leaf_cells is None else leaf_cells
     if over_domains:
         blo, bhi = bricks.domains()
@@ -260,7 +274,7 @@ def brick_region_tree(bricks, lo, hi, over_domains: bool, leaf_cells: int | None
     else:
         blo, bhi, floor = bricks.lo.astype(np.float64), bricks.hi.astype(np.float64), None
     return build_region_tree(np.round(2 * blo).astype(np.int64), np.round(2 * bhi).astype(np.int64),
-                             2 * np.asarray(lo), 2 * np.asarray(hi), floor)
+                             2 * np.asarray(lo), 2 * np.asarray(hi), floor, memory_limit, what)
 
 
 def split_node(axis: list, split: list, child: list, node: int, a: int, s, lo, hi):
