@@ -261,6 +261,25 @@ class Structures:
         self.global_majorant = mi.Float(dr.ravel(g))
         dr.make_opaque(self.global_majorant)
 
+    def minorant_fraction(self) -> float:
+        """The share of the majorant that the minorant carries over the
+        traversal structure, volume-weighted: ``sum(V mu_min) / sum(V mu_max)``
+        over its leaves (0 with no majorant). Read back on the host."""
+        traversal = self.options.traversal
+        if traversal == "grid":
+            g = self.grid
+            fine = getattr(g, "fine", g)
+            lo, hi = fine.minorant.numpy(), fine.majorant.numpy()
+            vol = np.ones(len(hi))
+        else:
+            t = self.device["kdtree" if traversal == "kdtree" else
+                            ("abr_tree" if traversal == "abr" and self.options.reconstruction == "tent"
+                             else "brick_tree")]
+            lo, hi = t.minorant.numpy(), t.majorant.numpy()
+            vol = np.prod(t.host.leaf_hi - t.host.leaf_lo, axis=1)
+        total = float(np.dot(vol, hi))
+        return float(np.dot(vol, lo)) / total if total > 0 else 0.0
+
     def set_transfer_function(self, tf: TransferFunction, density_scale: float, rebuild: bool = True):
         """Use a new TF and scale for the builds that depend on them: the
         pre-classified kd-tree is rebuilt (its topology was chosen for the

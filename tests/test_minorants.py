@@ -146,12 +146,12 @@ def test05_decomposition_tracking_agrees_with_stock_volpath(llvm, reconstruction
     assert per[True]["lookups_per_shadow_ray"] < 0.8 * per[False]["lookups_per_shadow_ray"]
 
 
-def _counters(scene_dict, on, seed=1):
+def _counters(scene_dict, on, seed=1, spp=8):
     s = dict(scene_dict)
     s["integrator"] = dict(scene_dict["integrator"], counters=True, decomposition_tracking=on,
                            residual_ratio_tracking=on)
     scene = mi.load_dict(s)
-    mi.render(scene, spp=8, seed=seed)
+    mi.render(scene, spp=spp, seed=seed)
     return scene.integrator().counters()
 
 
@@ -171,6 +171,34 @@ def test05b_coloured_tf_keeps_delta_tracking(llvm):
     mi.render(dt_only, spp=8, seed=1)
     c = dt_only.integrator().counters()
     assert (c["lookups"], c["real"]) == (off["lookups"], off["real"])
+
+
+@pytest.mark.parametrize("traversal,sampling,extra", LEAF_KINDS)
+def test05c_estimators_are_on_where_minorants_carry_the_majorant(llvm, traversal, sampling, extra):
+    """By default amrvolpath uses the minorant estimators on a medium only
+    where its minorants carry at least half of its majorants at load: the
+    foggy dense medium (a TF nowhere near zero) yes, the spiky one (zero
+    almost everywhere) no; the same counts as with the options set to that
+    choice, and the options given still win."""
+    foggy = dense_medium("nearest", traversal, sampling, **extra)
+    spiky = dense_medium("nearest", traversal, sampling, tf="spiky", **extra)
+    assert foggy.minorant_fraction >= 0.5 and foggy.minorants_pay
+    assert spiky.minorant_fraction < 0.1 and not spiky.minorants_pay
+    del foggy, spiky
+    cells = random_amr(seed=6, n=32, levels=3)
+    for tf, pays in (("foggy", True), ("spiky", False)):
+        med = dense_medium("nearest", traversal, sampling, tf=tf, **extra)
+        scene = volume_scene({"type": "amr", "data": cells, "transfer_function": med.tf, "density_scale": 4.0,
+                              "reconstruction": "nearest", "traversal": traversal, "sampling": sampling,
+                              "grid_resolution": 8, **extra}, res=16, integrator="amrvolpath")
+        del med
+        s = mi.load_dict(dict(scene, integrator=dict(scene["integrator"], counters=True)))
+        mi.render(s, spp=4, seed=1)
+        auto = s.integrator().counters()
+        del s
+        assert auto == _counters(scene, pays, spp=4)
+        if pays:
+            assert auto != _counters(scene, False, spp=4)
 
 
 def test06_two_level_coarse_minorant_is_the_least_fine_one(llvm):

@@ -64,12 +64,16 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
        - |bool|
        - Shadow rays track only the residual above each segment's
          minorant; the minorant's part of the transmittance is exact.
-         Default: true (with zero minorants it is plain ratio tracking).
+         Default: per medium, on where its minorants carry at least half of
+         its majorants at load (``minorants_pay``), where it pays; off
+         elsewhere, where it costs 5-15% of frame time. With zero minorants
+         it is plain ratio tracking.
      * - decomposition_tracking
        - |bool|
        - Free flights sample collisions with the minorant analytically
          (real with probability one) and track only the residual. Default:
-         true (with zero minorants it is plain delta tracking).
+         per medium, as ``residual_ratio_tracking``. With zero minorants it
+         is plain delta tracking.
     """
 
     def __init__(self, props: mi.Properties):
@@ -84,8 +88,9 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         self.rr_depth = get_int(props, "amrvolpath", "rr_depth", 5, minimum=1)
         self.hide_emitters = get_bool(props, "amrvolpath", "hide_emitters", False)
         self.counters_enabled = get_bool(props, "amrvolpath", "counters", False)
-        self.residual = get_bool(props, "amrvolpath", "residual_ratio_tracking", True)
-        self.decomposition = get_bool(props, "amrvolpath", "decomposition_tracking", True)
+        # None: decided per medium (`AMRMedium.minorants_pay`)
+        self.residual = get_bool(props, "amrvolpath", "residual_ratio_tracking", None)
+        self.decomposition = get_bool(props, "amrvolpath", "decomposition_tracking", None)
         self._counter_array = dr.zeros(mi.UInt64, len(COUNTER_NAMES))
 
     # ---- Counters ------------------------------------------------------------
@@ -113,6 +118,11 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                   shadow.lookups, shadow.steps, shadow.capped, shadow.real)
         for i, v in enumerate(values):
             dr.scatter_reduce(dr.ReduceOp.Add, self._counter_array, mi.UInt64(v), mi.UInt32(i))
+
+    @staticmethod
+    def _uses_minorants(option, medium) -> bool:
+        """An estimator option as given, or the medium's own choice."""
+        return medium.minorants_pay if option is None else option
 
     # ---- Scene analysis ---------------------------------------------------------
     @staticmethod
@@ -167,7 +177,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             # ---- amr media: delta tracking through local majorants ----
             for k in range(len(amr_media)):
                 is_k = active_medium & (medium == amr_ptrs[k])
-                hit, t, albedo, sigma_t, c = amr_media[k].free_flight(ray, si.t, sampler, is_k, self.decomposition)
+                control = self._uses_minorants(self.decomposition, amr_media[k])
+                hit, t, albedo, sigma_t, c = amr_media[k].free_flight(ray, si.t, sampler, is_k, control)
                 counts = counts + c
                 real = is_k & hit
                 mei[real] = self._medium_interaction(ray, t, albedo, sigma_t, amr_ptrs[k])
@@ -313,7 +324,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             moved = mi.Bool(False)
             for k in range(len(amr_media)):
                 is_k = in_medium & (medium == amr_ptrs[k])
-                Tk, c = amr_media[k].transmittance(ray, seg, sampler, is_k, self.residual)
+                control = self._uses_minorants(self.residual, amr_media[k])
+                Tk, c = amr_media[k].transmittance(ray, seg, sampler, is_k, control)
                 c.real = mi.UInt32(dr.select(is_k, 1, 0))      # shadow counts: crossings
                 counts = counts + c
                 T[is_k] *= Tk

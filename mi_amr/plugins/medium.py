@@ -94,6 +94,13 @@ def live_media() -> int:
     return len(_LIVE)
 
 
+#: ``amrvolpath`` uses residual ratio and decomposition tracking on a medium
+#: (unless told otherwise) when its minorants carry at least this share of
+#: its majorants at load (volume-weighted): measured in
+#: docs/performance/minorants.md, they cost 5-15% of frame time where the
+#: share is below 0.4 and gain up to 1.7x where it is near 1.
+MINORANTS_PAY_FRACTION = 0.5
+
 #: Settings that cannot be made as efficient as Mitsuba's own heterogeneous
 #: medium, and why (docs/performance/settings.md); the medium warns once per
 #: process when one is chosen.
@@ -256,6 +263,10 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
                                      options.world_scale)
         self._ray_majorant = _RayMajorant()
         self.update_majorants()
+        # whether amrvolpath's minorant estimators pay on these data (decided
+        # once, with the TF given at load: a later TF change compiles nothing)
+        self.minorant_fraction = self.structures.minorant_fraction()
+        self.minorants_pay = self.minorant_fraction >= MINORANTS_PAY_FRACTION
 
     # ---- Read-only views --------------------------------------------------------
     @property

@@ -54,7 +54,7 @@ class Bricks:
                     offsets.append(off)
                     vmins.append(vmin)
                     vmaxs.append(vmax)
-                bar.update(int((~np.isnan(data.values.reshape(-1, B ** 3)[sel])).sum()))
+                    bar.update(int(dm.prod(axis=1).sum()))
         self.lo = np.concatenate(los) + data.origin
         self.dims = np.concatenate(dims)
         self.level = np.concatenate(levels)

@@ -3,9 +3,11 @@
 `build_region_tree` splits a root box at faces of the input boxes that lie
 strictly inside a node, until no face is left inside: every leaf then
 overlaps a fixed set of input boxes, each of which covers the leaf
-completely. Over brick *domains* the leaves are the active brick regions
-(ABRs); over brick *bounds* (which do not overlap) each leaf lies in at most
-one brick. The leaves partition the root box.
+completely. With a leaf floor (``leaf_extent``) small nodes stop early and
+list every box that overlaps them, some only in part. Over brick *domains*
+the leaves are the active brick regions (ABRs); over brick *bounds* (which
+do not overlap) each leaf lies in at most one brick. The leaves partition
+the root box.
 
 Coordinates are exact: the caller passes integer boxes (finest units times
 two, so that domain faces at half cells stay integers).
@@ -264,8 +266,8 @@ def brick_region_tree(bricks, lo, hi, over_domains: bool, leaf_cells: int | None
     """The region tree of ``bricks`` over the data bounds ``[lo, hi]``
     (finest units): over the brick domains (``over_domains``: the ABRs of
     ``tent``), leaves not split below ``leaf_cells`` cells of the finest
-    brick in them (default `ABR_LEAF_CELLS`; 0: exact ABRs), or over the disjoint brick bounds (the
-    brick tree, and the ABRs of ``nearest``). Tree units: finest cells
+    brick in them (default `ABR_LEAF_CELLS`; 0: exact ABRs), or over the
+    disjoint brick bounds (the brick tree, and the ABRs of ``nearest``). Tree units: finest cells
     times two. ``memory_limit``, ``what``: see `build_region_tree`."""
     leaf_cells = ABR_LEAF_CELLS if leaf_cells is None else leaf_cells
     if over_domains:
