@@ -205,3 +205,18 @@ def test06_medium_structures_are_built_only_when_used(llvm):
         mi.load_dict({"type": "amr", "data": c, "traversal": "octree"})
     with pytest.raises(Exception, match="unknown sampling"):
         mi.load_dict({"type": "amr", "data": c, "sampling": "cells"})
+
+
+def test07_range_fold_keys_sort_as_the_values(llvm):
+    """Leaf ranges are folded as integer keys (min/max atomics on every
+    backend): the keys sort as the float values do, negatives and infinities
+    included, the same on host and device, and map back exactly."""
+    from mi_amr.structures.region_tree import _from_order_keys, _order_keys
+    rng = np.random.default_rng(8)
+    v = np.concatenate([[-np.inf, -0.0, 0.0, np.inf, 1e-38, -1e-38],
+                        rng.normal(0, 1e3, 1000), rng.normal(0, 1e-3, 1000)]).astype(np.float32)
+    k = _order_keys(v)
+    order = np.argsort(v, kind="stable")
+    assert np.all(np.diff(k[order].astype(np.int64)) >= 0)
+    np.testing.assert_array_equal(_from_order_keys(k), v)
+    np.testing.assert_array_equal(_order_keys(mi.Float(v)).numpy(), k)

@@ -366,14 +366,34 @@ def exact_value_ranges(tree: RegionTree, bricks, method: str = "tent", own_lists
         # support reach below / above a cell's lower corner, in half cells
         "ext": (3, 1) if method == "tent" else (2, 0),
     }
-    out_min, out_max = dr.full(Float, dr.inf, n), dr.full(Float, -dr.inf, n)
+    # ranges are folded as order-preserving integer keys of the float values:
+    # integer min/max atomics exist on every backend and GPU
+    out_min = dr.full(UInt32, int(_order_keys(np.float32(np.inf))), n)
+    out_max = dr.full(UInt32, int(_order_keys(np.float32(-np.inf))), n)
     with progress(len(li), "leaf value ranges", unit="pair") as bar:
         for s in range(0, len(li), chunk):
             _fold_pairs(UInt32(np.ascontiguousarray(li[s:s + chunk], dtype=np.uint32)),
                         UInt32(np.ascontiguousarray(b[s:s + chunk], dtype=np.uint32)), dev, out_min, out_max)
             dr.eval(out_min, out_max)
             bar.update(len(li[s:s + chunk]))
-    return out_min.numpy().astype(np.float32), out_max.numpy().astype(np.float32)
+    return _from_order_keys(out_min.numpy()), _from_order_keys(out_max.numpy())
+
+
+def _order_keys(v):
+    """uint32 keys of float32 values that sort as the values do (numpy, or
+    a Dr.Jit Float): the sign bit set for positives, all bits flipped for
+    negatives."""
+    if isinstance(v, (np.ndarray, np.floating)):
+        bits = np.asarray(v, np.float32).view(np.uint32)
+        return np.where(bits >> 31 != 0, ~bits, bits | np.uint32(0x80000000)).astype(np.uint32)
+    bits = dr.reinterpret_array(dr.uint32_array_t(type(v)), v)
+    return dr.select((bits >> 31) != 0, ~bits, bits | 0x80000000)
+
+
+def _from_order_keys(k: np.ndarray) -> np.ndarray:
+    """The float32 values of `_order_keys` keys (numpy)."""
+    k = np.asarray(k, np.uint32)
+    return np.where(k >> 31 != 0, k & np.uint32(0x7FFFFFFF), ~k).astype(np.uint32).view(np.float32)
 
 
 @dr.syntax
@@ -382,7 +402,7 @@ def _fold_pairs(li, b, dev, out_min, out_max):
     leaf's range: cells ``i`` with ``lo + (i - ext0/2) w < leaf_hi`` and
     ``lo + (i + 1 + ext1/2) w > leaf_lo`` (doubled units, integer shifts:
     ``w = 2^level``)."""
-    Float, Int64, Int32 = type(out_min), type(dev["lo"][0]), type(dev["level"])
+    Float, Int64, Int32 = type(dev["values"]), type(dev["lo"][0]), type(dev["level"])
     UInt32 = type(li)
     level = Int64(dr.gather(Int32, dev["level"], b))
     shift, w = level + 1, Int64(1) << level
@@ -400,8 +420,8 @@ def _fold_pairs(li, b, dev, out_min, out_max):
         i0.append(a0)
         size.append(dr.maximum(a1 - a0 + 1, 0))
         count *= size[-1]
-    dr.scatter_reduce(dr.ReduceOp.Min, out_min, dr.gather(Float, dev["vmin"], b, whole), li, whole)
-    dr.scatter_reduce(dr.ReduceOp.Max, out_max, dr.gather(Float, dev["vmax"], b, whole), li, whole)
+    dr.scatter_reduce(dr.ReduceOp.Min, out_min, _order_keys(dr.gather(Float, dev["vmin"], b, whole)), li, whole)
+    dr.scatter_reduce(dr.ReduceOp.Max, out_max, _order_keys(dr.gather(Float, dev["vmax"], b, whole)), li, whole)
     count = dr.select(whole, 0, count)
     off = dr.gather(UInt32, dev["offset"], b)
     B = dev["block"]
@@ -410,7 +430,7 @@ def _fold_pairs(li, b, dev, out_min, out_max):
     while k < count:
         t = k // nx
         x, y, z = i0[0] + (k - t * nx), i0[1] + t % ny, i0[2] + t // ny
-        v = dr.gather(Float, dev["values"], off + UInt32(x + B * (y + B * z)))
+        v = _order_keys(dr.gather(Float, dev["values"], off + UInt32(x + B * (y + B * z))))
         dr.scatter_reduce(dr.ReduceOp.Min, out_min, v, li)
         dr.scatter_reduce(dr.ReduceOp.Max, out_max, v, li)
         k += 1
