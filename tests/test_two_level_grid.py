@@ -32,7 +32,8 @@ def checkerboard_refinement(med):
     pattern = ((i % rc[0]) + (i // rc[0]) % rc[1] + i // (rc[0] * rc[1])) % 2 == 0
     block_max = dr.block_reduce(dr.ReduceOp.Max, g.fine.majorant, g.refinement ** 3)
     g.coarse_mu = dr.select(mi.Bool(pattern), -1.0, block_max)
-    dr.make_opaque(g.coarse_mu)
+    g.coarse_skip = g._skip_radius(g.coarse_mu != 0.0)
+    dr.make_opaque(g.coarse_mu, g.coarse_skip)
     return pattern
 
 
@@ -105,16 +106,48 @@ def test03_walk_tiles_each_ray_with_the_right_majorants(llvm):
     """Random, axis-parallel and face-grazing rays: the segments of the walk
     follow each other without gap or overlap from the ray's entry to its
     exit, every step moves forward, the walk ends within `max_steps`, and
-    each segment carries the majorant the grid holds at its middle (the
-    fine one in a refined coarse macrocell, the coarse one elsewhere), for
+    each segment carries the majorant the grid holds at its quarter points
+    (the fine one in a refined coarse macrocell, the coarse one elsewhere), for
     a checkerboard of refined coarse macrocells."""
     med = two_level_medium()
     refined = checkerboard_refinement(med)
+    check_walk(med)
+    assert refined.any() and (med.majorant_grid > 0).any()
+
+
+def test03b_walk_skips_empty_space(llvm):
+    """Where the TF leaves coarse macrocells empty, the walk crosses the cube
+    of empty ones around them in one step (``coarse_skip``, checked against
+    brute force) and still tiles each ray with the right majorants."""
+    med = two_level_medium(res=32, f=2, tf=mi_amr.TransferFunction(
+        [[1, 1, 1, 0], [1, 1, 1, 0], [1, 1, 1, 0], [1, 1, 1, 1]], (0.0, 1.0)))
+    g = med.structures.grid
+    rc = np.asarray(g.host.res) // g.refinement
+    occupied = (g.coarse_mu.numpy() != 0).reshape(rc[2], rc[1], rc[0])
+    want = np.zeros(occupied.shape, int)
+    for r in (1, 2, 4):
+        pad = np.pad(occupied, r)
+        k = 2 * r + 1
+        windows = np.lib.stride_tricks.sliding_window_view(pad, (k, k, k)).any(axis=(3, 4, 5))
+        want = np.where(~windows, r, want)
+    np.testing.assert_array_equal(g.coarse_skip.numpy().reshape(occupied.shape), want)
+    assert (want > 0).any() and occupied.any()
+    steps = check_walk(med)
+    med_plain = two_level_medium(res=32, f=2, tf=med.tf)
+    g2 = med_plain.structures.grid
+    g2.coarse_skip = dr.zeros(mi.UInt32, g2.n_coarse)
+    assert steps < 0.8 * check_walk(med_plain)
+
+
+def check_walk(med):
+    """Random, axis-parallel and face-grazing rays through ``med``'s walk:
+    the assertions of test03. Returns the number of segments."""
     rng = np.random.default_rng(7)
     n = 3000
     o = rng.random((n, 3)) * 1.6 - 0.3
     d = rng.normal(size=(n, 3))
-    o[:500, :2] = rng.integers(0, 17, (500, 2)) / 16          # along fine macrocell edges
+    res = med.majorant_grid.shape[0]
+    o[:500, :2] = rng.integers(0, res + 1, (500, 2)) / res    # along fine macrocell edges
     o[:500, 2] = -0.2
     d[:500] = [0, 0, 1]
     d[500:800, 0] = 0                                            # in planes x = const
@@ -129,11 +162,12 @@ def test03_walk_tiles_each_ray_with_the_right_majorants(llvm):
         np.testing.assert_array_equal(a[1:], b[:-1])
         assert np.all(b > a)
         long = (b - a) > 1e-4                    # guard steps are 1e-7 long
-        mid = o[i] + d[i] * (0.5 * (a + b))[:, None]
-        c = np.clip(np.floor(mid * 16), 0, 15).astype(int)
-        eff = med.majorant_grid[c[:, 2], c[:, 1], c[:, 0]]
-        np.testing.assert_array_equal(m[long], eff[long])
-    assert refined.any() and (med.majorant_grid > 0).any()
+        for frac in (0.25, 0.5, 0.75):           # a skip segment crosses several macrocells
+            x = o[i] + d[i] * (a + frac * (b - a))[:, None]
+            c = np.clip(np.floor(x * res), 0, res - 1).astype(int)
+            eff = med.majorant_grid[c[:, 2], c[:, 1], c[:, 0]]
+            np.testing.assert_array_equal(m[long], eff[long])
+    return int(k.sum())
 
 
 def test04_transmittance_equals_the_exact_optical_depth(llvm):

@@ -107,8 +107,8 @@ class DeviceMacrocellGrid:
 
 
 @jit_struct(res="Vector3i", coarse_res="Vector3i", fine=DeviceMacrocellGrid, coarse_mu="Float",
-            coarse_min="Float", fine_inside="Bool", n_fine="Float", keep_step="Float", refine_step="Float",
-            world_scale="Float")
+            coarse_min="Float", coarse_skip="UInt32", fine_inside="Bool", n_fine="Float", keep_step="Float",
+            refine_step="Float", world_scale="Float")
 class DeviceTwoLevelGrid:
     """A two-level macrocell grid in Dr.Jit (docs/design.md section 4).
 
@@ -122,6 +122,10 @@ class DeviceTwoLevelGrid:
     expected look-ups plus steps per unit length inside it; ``coarse_mu``
     holds its majorant, the largest of its fine ones, or -1 where refined;
     ``coarse_min`` its minorant, the smallest of its fine ones.
+    ``coarse_skip``: for an empty coarse macrocell (majorant 0), the largest
+    r in (0, 1, 2, 4) such that every coarse macrocell within r of it along
+    each axis is empty too, so that a ray may cross that whole cube in one
+    step (empty-space skipping).
     """
 
     def __init__(self, grid, refinement: int, world_scale: float, step_costs):
@@ -152,6 +156,7 @@ class DeviceTwoLevelGrid:
         self.n_fine = dr.block_sum(mi.Float(inside), f ** 3)
         self.coarse_mu = dr.zeros(mi.Float, self.n_coarse)
         self.coarse_min = dr.zeros(mi.Float, self.n_coarse)
+        self.coarse_skip = dr.zeros(mi.UInt32, self.n_coarse)
         self.keep_step, self.refine_step = mi.Float(step_costs[0]), mi.Float(step_costs[1])
         self.world_scale = mi.Float(world_scale)
         dr.make_opaque(self.res, self.coarse_res, self.fine_inside, self.n_fine, self.keep_step,
@@ -190,7 +195,41 @@ class DeviceTwoLevelGrid:
         s1 = dr.block_sum(mu, b)
         gain = refine_gain(self.n_fine, s1, mu_c, self.keep_step, self.refine_step, dr.maximum)
         self.coarse_mu = dr.select(gain > 0.0, -1.0, mu_c * dr.rcp(self.world_scale))
-        dr.make_opaque(self.coarse_mu, self.coarse_min)
+        self.coarse_skip = self._skip_radius(self.coarse_mu != 0.0)
+        dr.make_opaque(self.coarse_mu, self.coarse_min, self.coarse_skip)
+
+    def _skip_radius(self, occupied: mi.Bool) -> mi.UInt32:
+        """Per coarse macrocell, the largest r in (0, 1, 2, 4) whose cube of
+        (2r + 1)^3 coarse macrocells around it holds no ``occupied`` one
+        (cells past the grid count as empty): cube maxima by doubling, the
+        r = 1 cube from three axis passes, the 2r cube from the eight r cubes
+        at offsets of +-r."""
+        n = self.n_coarse
+        rc = self.coarse_res
+        i = dr.arange(mi.Int32, n)
+        c = mi.Vector3i(i % rc.x, (i // rc.x) % rc.y, i // (rc.x * rc.y))
+
+        def at(a, off):
+            q = c + off
+            ok = dr.all((q >= 0) & (q < rc))
+            return dr.gather(mi.UInt32, a, mi.UInt32(q.x + rc.x * (q.y + rc.y * q.z)), ok)
+        cube = mi.UInt32(dr.select(occupied, 1, 0))
+        for axis in range(3):
+            e = [0, 0, 0]
+            e[axis] = 1
+            off = mi.Vector3i(*e)
+            cube = dr.maximum(cube, dr.maximum(at(cube, off), at(cube, -off)))
+            dr.eval(cube)
+        skip = dr.select(cube == 0, 1, 0)
+        for r in (1, 2):                           # cube of r -> cube of 2r
+            wider = mi.UInt32(0)
+            for k in range(8):
+                off = mi.Vector3i(r if k & 1 else -r, r if k & 2 else -r, r if k & 4 else -r)
+                wider = dr.maximum(wider, at(cube, off))
+            cube = wider
+            dr.eval(cube)
+            skip = dr.select(cube == 0, 2 * r, skip)
+        return mi.UInt32(skip)
 
     def describe(self) -> str:
         rc = -(-np.asarray(self.host.res) // self.refinement)

@@ -10,7 +10,8 @@ unit cube). A *segment iterator* has two methods used inside symbolic loops:
 
 `GridSegments` walks the macrocell grid with a 3D DDA (Amanatides-Woo);
 `TwoLevelGridSegments` walks a two-level grid by locating the macrocell at
-the current point (the fine one where its coarse one is refined);
+the current point (the fine one where its coarse one is refined, the cube
+of empty coarse ones around an empty one);
 `TreeSegments` walks the leaves of a kd-tree front to back by re-descending
 from the root at the current point ("kd-restart": no stack, exact ties).
 """
@@ -92,8 +93,9 @@ class TwoLevelGridSegments:
     """Front-to-back macrocells of a `DeviceTwoLevelGrid`: at each step the
     fine macrocell just past the current point is located; where its coarse
     macrocell is refined, the segment is the fine macrocell, otherwise the
-    whole coarse one. The exit is measured from the located point, so every
-    step moves forward."""
+    whole coarse one, or, where that is empty, the cube of empty coarse
+    macrocells around it (``coarse_skip``). The exit is measured from the
+    located point, so every step moves forward."""
 
     def __init__(self, grid):
         self.grid = grid
@@ -124,9 +126,11 @@ class TwoLevelGridSegments:
         mu_f = dr.gather(mi.Float, g.fine.majorant, fflat, refined)
         mu_min = dr.select(refined, dr.gather(mi.Float, g.fine.minorant, fflat, refined),
                            dr.gather(mi.Float, g.coarse_min, mi.UInt32(cflat), valid & ~refined))
-        lo = dr.select(refined, cell, coarse << g.log2f)
-        width = mi.Vector3i(dr.select(refined, 1, g.refinement))
-        far = mi.Vector3f(lo + dr.select(d >= 0, width, 0))
+        # an empty coarse macrocell: the whole empty cube around it (skip radius r)
+        r = mi.Int32(dr.gather(mi.UInt32, g.coarse_skip, mi.UInt32(cflat), valid & ~refined))
+        lo = dr.select(refined, cell, dr.maximum(coarse - r, 0) << g.log2f)
+        hi = dr.select(refined, cell + 1, dr.minimum(coarse + r + 1, g.coarse_res) << g.log2f)
+        far = mi.Vector3f(dr.select(d >= 0, hi, lo))
         # >= t_at: a point rounded past the grid's last face (clamped) moves on too
         t_exit = t_at + dr.maximum(dr.min((far - p) * inv), 0.0)
         t1 = dr.minimum(t_exit, t_hi)
