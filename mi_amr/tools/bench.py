@@ -175,9 +175,7 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
            "seconds_per_frame": seconds, "spp": args.spp,
            "seconds_per_spp": seconds / args.spp, "mean": float(img.mean())}
     if ref_image is not None:
-        mse = float(np.mean(mses))               # over the repeats: a steadier estimate
-        rec["rmse"] = mse ** 0.5
-        rec["efficiency"] = 1.0 / (mse * seconds) if mse > 0 else float("inf")
+        apply_timing(rec, times, mses)
     if hasattr(integrator, "counters"):
         c = integrator.counters()
         rec["lookups_per_collision"] = c["lookups_per_collision"]
@@ -234,8 +232,8 @@ def alternate_passes(mi, scenes: dict, args, ref_image) -> dict:
 
 
 def apply_timing(rec, times, mses):
-    """Fill a record's frame time and efficiency from alternating passes:
-    the median frame time, and the MSE over the passes."""
+    """Fill a record's frame time and efficiency from timed frames: the
+    median frame time, and the MSE over the frames (a steadier estimate)."""
     seconds, mse = statistics.median(times), float(sum(mses) / len(mses))
     rec.update(seconds_per_frame=seconds, seconds_per_spp=seconds / rec["spp"], rmse=mse ** 0.5,
                efficiency=1.0 / (mse * seconds) if mse > 0 else float("inf"),
