@@ -265,18 +265,14 @@ class Structures:
         """The share of the majorant that the minorant carries over the
         traversal structure, volume-weighted: ``sum(V mu_min) / sum(V mu_max)``
         over its leaves (0 with no majorant). Read back on the host."""
-        traversal = self.options.traversal
-        if traversal == "grid":
-            g = self.grid
-            fine = getattr(g, "fine", g)
-            lo, hi = fine.minorant.numpy(), fine.majorant.numpy()
-            vol = np.ones(len(hi))
-        else:
-            t = self.device["kdtree" if traversal == "kdtree" else
-                            ("abr_tree" if traversal == "abr" and self.options.reconstruction == "tent"
-                             else "brick_tree")]
+        walker = self.segments()
+        if isinstance(walker, TreeSegments):
+            t = walker.tree
             lo, hi = t.minorant.numpy(), t.majorant.numpy()
             vol = np.prod(t.host.leaf_hi - t.host.leaf_lo, axis=1)
+        else:                                          # grids: equal macrocells (the fine ones)
+            lo, hi = walker.grid.minorant.numpy(), walker.grid.majorant.numpy()
+            vol = np.ones(len(hi))
         total = float(np.dot(vol, hi))
         return float(np.dot(vol, lo)) / total if total > 0 else 0.0
 

@@ -66,7 +66,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
          minorant; the minorant's part of the transmittance is exact.
          Default: per medium, on where its minorants carry at least half of
          its majorants at load (``minorants_pay``), where it pays; off
-         elsewhere, where it costs 5-15% of frame time. With zero minorants
+         elsewhere, where it costs about 10% of frame time. With zero minorants
          it is plain ratio tracking.
      * - decomposition_tracking
        - |bool|

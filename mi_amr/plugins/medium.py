@@ -97,7 +97,7 @@ def live_media() -> int:
 #: ``amrvolpath`` uses residual ratio and decomposition tracking on a medium
 #: (unless told otherwise) when its minorants carry at least this share of
 #: its majorants at load (volume-weighted): measured in
-#: docs/performance/minorants.md, they cost 5-15% of frame time where the
+#: docs/performance/minorants.md, they cost about 10% of frame time where the
 #: share is below 0.4 and gain up to 1.7x where it is near 1.
 MINORANTS_PAY_FRACTION = 0.5
 
