@@ -34,11 +34,11 @@ def first_leaf(med, u, d):
     seg = med.structures.segments()
     o, dj = mi.Vector3f(u.T.copy()), mi.Vector3f(d.T.copy())
     t_hi = mi.Float(1e-3)
-    state = seg.begin(o, dj, mi.Float(0.0), t_hi, mi.Bool(True))
+    state, fixed = seg.begin(o, dj, mi.Float(0.0), t_hi, mi.Bool(True))
     found = np.zeros(len(u), bool)
     lo_mu, hi_mu, mid = np.zeros(len(u)), np.zeros(len(u)), np.zeros(len(u))
     for _ in range(4):
-        state, s = seg.advance(o, dj, state, t_hi, mi.Bool(True))
+        state, s = seg.advance(o, dj, state, fixed, t_hi, mi.Bool(True))
         t0, t1 = s.t0.numpy(), s.t1.numpy()
         new = ~found & s.valid.numpy() & (t1 > t0)
         lo_mu[new], hi_mu[new], mid[new] = s.mu_min.numpy()[new], s.mu.numpy()[new], 0.5 * (t0 + t1)[new]

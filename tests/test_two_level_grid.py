@@ -91,10 +91,10 @@ def walk(med, o, d):
     oj, dj = mi.Vector3f(o.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32))
     hit, t_lo, t_hi = intersect_unit_cube(oj, safe_rcp(dj))
     t_lo = dr.maximum(t_lo, 0.0)
-    state = seg.begin(oj, dj, t_lo, t_hi, hit)
+    state, fixed = seg.begin(oj, dj, t_lo, t_hi, hit)
     out = []
     for _ in range(int(seg.max_steps()[0]) + 1):
-        state, s = seg.advance(oj, dj, state, t_hi, hit)
+        state, s = seg.advance(oj, dj, state, fixed, t_hi, hit)
         out.append([s.t0.numpy(), s.t1.numpy(), s.mu.numpy(), s.valid.numpy()])
         if not s.valid.numpy().any():
             break

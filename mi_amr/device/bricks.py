@@ -134,10 +134,11 @@ class BrickSampler:
         count = dr.select(active, count, 0)
         in_domain = dr.all((u >= 0.0) & (u < 1.0))          # cells are half-open
         i = mi.UInt32(0)
-        sum_w = mi.Float(0.0)
+        # loop state: only what this reconstruction changes (docs/design.md section 6)
+        sum_w = mi.Float(0.0) if self.tent else 0.0
         sum_wv = mi.Float(0.0)
-        best_w = mi.Float(dr.inf)
-        while dr.hint(i < count, label="amr_brick_list"):
+        best_w = float("inf") if self.tent else mi.Float(dr.inf)
+        while dr.hint(i < count, label="amr_brick_list", exclude=[self, x, start, count, items, in_domain]):
             b = dr.gather(mi.UInt32, items, start + i)
             w, wv, inside = self.bricks.contribution(b, x, self.tent, i < count)
             if dr.hint(self.tent, mode="scalar"):

@@ -113,11 +113,12 @@ class DeviceReconstruction:
         b3 = self.block ** 3
         remaining = dr.select(active, level_bits, 0)
         probe = mi.UInt32(0)
-        done = mi.UInt32(0)                 # tent: stencil corners handled at this level
-        sum_w = mi.Float(0.0)
+        # loop state: only what this reconstruction changes (docs/design.md section 6)
+        done = mi.UInt32(0) if tent else 0     # tent: stencil corners handled at this level
+        sum_w = mi.Float(0.0) if tent else 0.0
         sum_wv = mi.Float(0.0)
-        found = mi.Bool(False)
-        while dr.hint(remaining != 0, label="amr_reconstruct", exclude=[self]):
+        found = False if tent else mi.Bool(False)
+        while dr.hint(remaining != 0, label="amr_reconstruct", exclude=[self, x]):
             L = dr.tzcnt(remaining)
             # x / 2^L is exact; fractions stay small numbers so that no
             # sub-cell offset is rounded away near 2^24 (float32 spacing 1)

@@ -3,10 +3,14 @@
 All structures live in the medium's local space (the data bounds are the
 unit cube). A *segment iterator* has two methods used inside symbolic loops:
 
-* ``begin(o, d, t_lo, t_hi, active) -> state`` (a tuple of Dr.Jit arrays)
-* ``advance(o, d, state, t_hi, active) -> (state, Segment)``: the next
-  segment along ``o + t d`` after the previous one; its ``valid`` is false
-  once the ray has left ``[t_lo, t_hi]``.
+* ``begin(o, d, t_lo, t_hi, active) -> (state, fixed)``: ``state``, a tuple
+  of the Dr.Jit arrays that every step changes (the loop state), and
+  ``fixed``, per-ray constants of the walk (kept out of the loop state: a
+  loop carrying an unchanged variable is recorded twice, docs/design.md
+  section 6)
+* ``advance(o, d, state, fixed, t_hi, active) -> (state, Segment)``: the
+  next segment along ``o + t d`` after the previous one; its ``valid`` is
+  false once the ray has left ``[t_lo, t_hi]``.
 
 `GridSegments` walks the macrocell grid with a 3D DDA (Amanatides-Woo);
 `TwoLevelGridSegments` walks a two-level grid by locating the macrocell at
@@ -53,14 +57,13 @@ class GridSegments:
         cell = dr.clip(mi.Vector3i(dr.floor(p)), 0, g.res - 1)
         edge = mi.Vector3f(cell) + dr.select(dg >= 0, 1.0, 0.0)
         t_next = t_lo + (edge - p) * inv
-        return (cell, t_next, mi.Float(t_lo))
+        # per ray: t per macrocell along each axis, and the step direction
+        return (cell, t_next, mi.Float(t_lo)), (dr.abs(inv), dr.select(dg >= 0, 1, -1))
 
-    def advance(self, o, d, state, t_hi, active):
+    def advance(self, o, d, state, fixed, t_hi, active):
         g = self.grid
         cell, t_next, t_cell = state
-        dg = d * mi.Vector3f(g.res)
-        dt = dr.abs(safe_rcp(dg))
-        step = dr.select(dg >= 0, 1, -1)
+        dt, step = fixed
         inside = dr.all((cell >= 0) & (cell < g.res))
         valid = active & inside & (t_cell < t_hi)
         t0 = t_cell
@@ -82,11 +85,17 @@ class GridSegments:
         return (cell, t_next, t_cell), Segment(t0, t1, mu, mu_min, valid)
 
 
-def progress_guard(t, d):
+def direction_guard(d):
+    """The direction-only part of `progress_guard` (a per-ray constant):
+    1e-7 of the time to cross the unit cube along ``d``."""
+    return 1e-7 * dr.rcp(dr.max(dr.abs(d)))
+
+
+def progress_guard(t, guard):
     """Smallest step along ``o + t d`` for walks that re-locate the point at
-    each step: a few ulps of ``t``, or 1e-7 of the time to cross the unit
-    cube. A point rounded back onto the face it just left still moves on."""
-    return dr.maximum(dr.abs(t) * 5e-7, 1e-7 * dr.rcp(dr.max(dr.abs(d))))
+    each step: a few ulps of ``t``, or ``guard = direction_guard(d)``. A
+    point rounded back onto the face it just left still moves on."""
+    return dr.maximum(dr.abs(t) * 5e-7, guard)
 
 
 class TwoLevelGridSegments:
@@ -108,14 +117,15 @@ class TwoLevelGridSegments:
         res_f = mi.Vector3f(self.grid.res)
         # per ray: t per fine macrocell width along each axis, and the
         # direction-only part of the progress guard
-        return (mi.Float(t_lo), safe_rcp(d * res_f), 1e-7 * dr.rcp(dr.max(dr.abs(d))))
+        return (mi.Float(t_lo),), (safe_rcp(d * res_f), direction_guard(d))
 
-    def advance(self, o, d, state, t_hi, active):
-        t_cell, inv, guard = state
+    def advance(self, o, d, state, fixed, t_hi, active):
+        (t_cell,) = state
+        inv, guard = fixed
         g = self.grid
         valid = mi.Bool(active) & (t_cell < t_hi)
         res_f = mi.Vector3f(g.res)
-        t_at = t_cell + dr.maximum(dr.abs(t_cell) * 5e-7, guard)    # as `progress_guard`
+        t_at = t_cell + progress_guard(t_cell, guard)
         p = (o + d * t_at) * res_f                          # fine macrocell units
         cell = dr.clip(mi.Vector3i(dr.floor(p)), 0, g.res - 1)
         coarse = cell >> g.log2f
@@ -136,7 +146,7 @@ class TwoLevelGridSegments:
         t1 = dr.minimum(t_exit, t_hi)
         t0 = t_cell
         t_cell = dr.select(valid, t1, t_cell)
-        return (t_cell, inv, guard), Segment(t0, t1, dr.select(refined, mu_f, mu_c), mu_min, valid)
+        return (t_cell,), Segment(t0, t1, dr.select(refined, mu_f, mu_c), mu_min, valid)
 
 
 class TreeSegments:
@@ -149,10 +159,12 @@ class TreeSegments:
         return mi.UInt32(self.tree.n_leaves + 2)
 
     def begin(self, o, d, t_lo, t_hi, active):
-        return (mi.Float(t_lo),)
+        # per ray: 1/d, and the direction-only part of the progress guard
+        return (mi.Float(t_lo),), (safe_rcp(d), direction_guard(d))
 
-    def advance(self, o, d, state, t_hi, active):
+    def advance(self, o, d, state, fixed, t_hi, active):
         (t_cell,) = state
+        inv, guard = fixed
         tree = self.tree
         valid = mi.Bool(active) & (t_cell < t_hi)
         p = o + d * t_cell
@@ -160,9 +172,9 @@ class TreeSegments:
         lo = dr.gather(mi.Vector3f, tree.leaf_lo, leaf, valid)
         hi = dr.gather(mi.Vector3f, tree.leaf_hi, leaf, valid)
         far = dr.select(d >= 0, hi, lo)
-        t_exit = dr.min((far - o) * safe_rcp(d))
+        t_exit = dr.min((far - o) * inv)
         # progress guard: p rounded to before the plane re-finds the same leaf
-        t_min = t_cell + progress_guard(t_cell, d)
+        t_min = t_cell + progress_guard(t_cell, guard)
         t1 = dr.minimum(dr.maximum(t_exit, t_min), t_hi)
         mu = dr.gather(mi.Float, tree.majorant, leaf, valid)
         mu_min = dr.gather(mi.Float, tree.minorant, leaf, valid)

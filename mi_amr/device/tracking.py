@@ -35,6 +35,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .rng import Rng
 from .structs import jit_struct
 
 
@@ -60,7 +61,8 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
                    max_iterations, length_scale=1.0, control: bool = False, known_albedo=None):
     """Track along the local ray ``o + t d`` over ``[t_lo, t_hi]``.
 
-    ``segments``: a segment walker (`mi_amr.device.segments`);
+    ``segments``: a segment walker (`mi_amr.device.segments`); ``sampler``:
+    a Mitsuba sampler or an `Rng`, which seeds the loop's own stream;
     ``density(u, active) -> (albedo, sigma_t)``; majorants and sigma_t are
     per world length, and ``length_scale`` is local ``t`` per world length.
     ``control``: use the segments' minorants as control extinction
@@ -73,30 +75,37 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
     albedo and sigma_t); for ratio tracking ``T`` in the 4th slot. The loop
     stops after ``max_iterations`` iterations (counted in ``counts.capped``).
     """
-    state = segments.begin(o, d, t_lo, t_hi, active)
+    # The loop state holds only what the loop changes (docs/design.md
+    # section 6): what a mode leaves unchanged is a Python constant there,
+    # per-ray constants are excluded, and the random numbers come from a
+    # stream of our own (`Rng`) rather than from the sampler.
+    use_control = control and (ratio or known_albedo is not None)
+    state, fixed = segments.begin(o, d, t_lo, t_hi, active)
+    rng = Rng.derive(sampler, active)
     t = mi.Float(t_lo)
     seg_end = mi.Float(t_lo)
     mu = mi.Float(0.0)
-    mu_c = mi.Float(0.0)
-    collided = mi.Bool(False)
-    albedo = mi.Color3f(0.0)
+    mu_c = mi.Float(0.0) if use_control else 0.0
+    collided = False if ratio else mi.Bool(False)
+    albedo = 0.0 if ratio else mi.Color3f(0.0)
     result = mi.Float(1.0 if ratio else 0.0)
     lookups = mi.UInt32(0)
     n_null = mi.UInt32(0)
-    n_real = mi.UInt32(0)
+    n_real = 0 if ratio else mi.UInt32(0)
     steps = mi.UInt32(0)
     it = mi.UInt32(0)
     alive = mi.Bool(active)
-    while dr.hint(alive, label="amr_track"):
+    while dr.hint(alive, label="amr_track",
+                  exclude=[segments, density, fixed, o, d, t_hi, max_iterations, length_scale, known_albedo]):
         # ---- Next segment once the current one is used up ----
         need = alive & (t >= seg_end)
-        state, seg = segments.advance(o, d, state, t_hi, need)
+        state, seg = segments.advance(o, d, state, fixed, t_hi, need)
         seg_end = dr.select(need, seg.t1, seg_end)
         mu = dr.select(need, seg.mu, mu)
         t = dr.select(need, dr.maximum(t, seg.t0), t)
         steps += dr.select(need & seg.valid, 1, 0)
         alive &= ~need | seg.valid
-        if dr.hint(control and (ratio or known_albedo is not None), mode="scalar"):
+        if dr.hint(use_control, mode="scalar"):
             mu_c_new = dr.clip(seg.mu_min, 0.0, seg.mu)
             if dr.hint(not ratio, mode="scalar"):
                 # no control clock without a known albedo: plain delta tracking
@@ -110,14 +119,14 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
         # ---- Tentative collision in the segment (none if mu == 0) ----
         residual = mu - mu_c
         go = alive & (residual > 0.0)
-        xi = sampler.next_1d(go)
+        xi = rng.next_1d(go)
         t_c = t - dr.log(1.0 - xi) * dr.rcp(dr.select(go, residual, 1.0)) * length_scale
         t_c = dr.select(go, t_c, float("inf"))
         by_control = mi.Bool(False)
         if dr.hint(control and not ratio and known_albedo is not None, mode="scalar"):
             # decomposition tracking: the control clock (rate mu_c) may ring first
             ctl = alive & (mu_c > 0.0)
-            xi_c = sampler.next_1d(ctl)
+            xi_c = rng.next_1d(ctl)
             t_ctl = t - dr.log(1.0 - xi_c) * dr.rcp(dr.select(ctl, mu_c, 1.0)) * length_scale
             by_control = ctl & (t_ctl < t_c)
             t_c = dr.select(by_control, t_ctl, t_c)
@@ -137,7 +146,7 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
         else:
             # Delta / decomposition tracking: real with probability
             # (sigma_t - mu_c) / (mu - mu_c), or 1 at a control collision
-            accept = by_control | (look & (sampler.next_1d(look) * residual < excess))
+            accept = by_control | (look & (rng.next_1d(look) * residual < excess))
             collided |= accept
             if dr.hint(known_albedo is not None, mode="scalar"):
                 rgb = dr.select(by_control, known_albedo[1], rgb)
@@ -150,8 +159,8 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
         it += 1
         capped = alive & (it >= max_iterations)
         alive &= ~capped
-    counts = TrackingCounts(lookups, n_null, n_real, steps, dr.select(it >= max_iterations, 1, 0))
-    return collided, t, albedo, result, counts
+    counts = TrackingCounts(lookups, n_null, mi.UInt32(n_real), steps, dr.select(it >= max_iterations, 1, 0))
+    return mi.Bool(collided), t, mi.Color3f(albedo), result, counts
 
 
 @dr.syntax
@@ -166,7 +175,7 @@ def span_majorant(segments, o, d, t_lo, t_hi, active, max_steps, global_mu):
     (``capped``) falls back to a conservative answer: the span runs on to
     ``t_hi`` with the global majorant ``global_mu``.
     """
-    state = segments.begin(o, d, t_lo, t_hi, active)
+    state, fixed = segments.begin(o, d, t_lo, t_hi, active)
     found = mi.Bool(False)
     t_first = mi.Float(t_hi)
     t_last = mi.Float(t_lo)
@@ -175,8 +184,8 @@ def span_majorant(segments, o, d, t_lo, t_hi, active, max_steps, global_mu):
     it = mi.UInt32(0)
     capped = mi.Bool(False)
     alive = mi.Bool(active) & (t_lo < t_hi)
-    while dr.hint(alive, label="amr_span_majorant"):
-        state, seg = segments.advance(o, d, state, t_hi, alive)
+    while dr.hint(alive, label="amr_span_majorant", exclude=[segments, fixed, o, d, t_hi, max_steps, global_mu]):
+        state, seg = segments.advance(o, d, state, fixed, t_hi, alive)
         nonzero = seg.valid & (seg.mu > 0.0)
         t_first = dr.select(nonzero & ~found, seg.t0, t_first)
         t_last = dr.select(nonzero, seg.t1, t_last)

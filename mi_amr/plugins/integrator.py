@@ -15,6 +15,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from ..device.rng import Rng
 from ..device.tracking import TrackingCounts
 from ..params import ParameterError, check_known, get_bool, get_int
 from .medium import AMRMedium, require_jit_rgb_variant, scene_media
@@ -156,7 +157,11 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         counts = TrackingCounts()
         shadow_counts = TrackingCounts()
 
-        while dr.hint(active, label="amrvolpath"):
+        # read-only names stay out of the loop state (docs/design.md section
+        # 6); the sampler's unchanged stream increment still makes Dr.Jit
+        # record this one loop twice
+        while dr.hint(active, label="amrvolpath",
+                      exclude=[self, scene, amr_media, amr_ptrs, has_other, channel, mis_weight, index_spectrum]):
             # ---- Russian roulette (as in volpath) ----
             q = dr.minimum(dr.max(throughput) * dr.square(eta), 0.95)
             perform_rr = depth > self.rr_depth
@@ -307,16 +312,23 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         active = mi.Bool(active)
         ds, emitter_val = scene.sample_emitter_direction(ref, sampler.next_2d(active), False, active)
         active &= ds.pdf != 0.0
-        ray = ref.spawn_ray_to(ds.p)
-        max_dist = mi.Float(ray.maxt)
+        first = ref.spawn_ray_to(ds.p)
+        max_dist = mi.Float(first.maxt)
+        # the loop state holds only what the loop changes (docs/design.md
+        # section 6): the ray's origin and direction, not its time, and a
+        # random stream of our own rather than the sampler
+        ray_o, ray_d, time, wavelengths = mi.Point3f(first.o), mi.Vector3f(first.d), first.time, first.wavelengths
+        rng = Rng.derive(sampler, active) if (amr_media or has_other) else None
         total = mi.Float(0.0)
         T = mi.Spectrum(1.0)
         medium = mi.MediumPtr(medium)
         counts = TrackingCounts()
         it = mi.UInt32(0)
-        while dr.hint(active, label="amrvolpath_shadow"):
+        while dr.hint(active, label="amrvolpath_shadow",
+                      exclude=[self, scene, ds, max_dist, time, wavelengths, amr_media, amr_ptrs, has_other,
+                               channel, index_spectrum]):
             remaining = max_dist - total
-            ray.maxt = remaining
+            ray = mi.Ray3f(ray_o, ray_d, remaining, time, wavelengths)
             active &= remaining > 0.0
             si = scene.ray_intersect(ray, active)
             seg = dr.minimum(si.t, remaining)
@@ -325,7 +337,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             for k in range(len(amr_media)):
                 is_k = in_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.residual, amr_media[k])
-                Tk, c = amr_media[k].transmittance(ray, seg, sampler, is_k, control)
+                Tk, c = amr_media[k].transmittance(ray, seg, rng, is_k, control)
                 c.real = mi.UInt32(dr.select(is_k, 1, 0))      # shadow counts: crossings
                 counts = counts + c
                 T[is_k] *= Tk
@@ -333,9 +345,9 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 is_other = in_medium
                 for p in amr_ptrs:
                     is_other &= medium != p
-                ray_o = mi.Ray3f(ray)
-                ray_o.maxt = seg
-                m_o = medium.sample_interaction(ray_o, sampler.next_1d(is_other), channel, is_other)
+                ray_m = mi.Ray3f(ray)
+                ray_m.maxt = seg
+                m_o = medium.sample_interaction(ray_m, rng.next_1d(is_other), channel, is_other)
                 hit_o = is_other & m_o.is_valid() & (m_o.t < seg)
                 # spectral media: analytic transmittance up to the next event
                 spectral = is_other & medium.has_spectral_extinction()
@@ -344,7 +356,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 tr_pdf = dr.select(hit_o, index_spectrum(tr * m_o.combined_extinction, channel), index_spectrum(tr, channel))
                 T[spectral & (dr.isfinite(m_o.mint))] *= dr.select(tr_pdf > 0.0, tr / tr_pdf, 0.0)
                 T[hit_o] *= dr.select(spectral, m_o.sigma_n, m_o.sigma_n / m_o.combined_extinction)
-                ray.o[hit_o] = m_o.p
+                ray_o[hit_o] = m_o.p
                 total[hit_o] += m_o.t
                 moved |= hit_o
             # ---- the surface (or the emitter) at the end of the segment ----
@@ -352,8 +364,10 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             bsdf = si.bsdf(ray)
             T[at_surface] *= bsdf.eval_null_transmission(si, at_surface)
             total[at_surface] += si.t
-            ray[at_surface] = si.spawn_ray_to(ds.p)
-            medium[at_surface & si.is_medium_transition()] = si.target_medium(ray.d)
+            onward = si.spawn_ray_to(ds.p)
+            ray_o[at_surface] = onward.o
+            ray_d[at_surface] = onward.d
+            medium[at_surface & si.is_medium_transition()] = si.target_medium(onward.d)
             active &= (at_surface | moved) & dr.any(T != 0.0)
             it += 1
             # bound on the surfaces and media crossed: a shadow ray cut short
