@@ -219,7 +219,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             active &= depth < self.max_depth
             act_scatter &= active
 
-            # ---- Medium scattering: NEE and phase sampling ----
+            # ---- Medium scattering: the phase function (NEE below) ----
             phase_ctx = mi.PhaseFunctionContext(sampler)
             phase = mei.medium.phase_function()
             phase[~act_scatter] = dr.zeros(mi.PhaseFunctionPtr)
@@ -227,30 +227,15 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             specular_chain &= ~act_scatter
             specular_chain |= act_scatter & ~sample_emitters
             nee_m = act_scatter & sample_emitters
-            if dr.hint(len(scene.emitters()) > 0, mode="scalar"):
-                emitted, ds, c = self._sample_emitter(mei, scene, sampler, medium, channel,
-                                                      nee_m, amr_media, amr_ptrs, has_other)
-                shadow_counts = shadow_counts + c
-                phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
-                L[nee_m] += throughput * phase_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf)) * emitted
 
-            wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, sampler.next_1d(act_scatter),
-                                                       sampler.next_2d(act_scatter), act_scatter)
-            act_scatter &= phase_pdf > 0.0
-            throughput[act_scatter] *= phase_weight
-            ray[act_scatter] = mei.spawn_ray(wo)
-            needs_intersection |= act_scatter
-            last_pdf[act_scatter] = phase_pdf
-            valid_ray |= act_scatter
-
-            # ---- Surfaces (and rays that left their medium) ----
+            # ---- Surfaces (and rays that left their medium): emitters hit ----
             active_surface = (active & ~active_medium) | (escaped_medium & active)
             emitter = si.emitter(scene)
             active_e = active_surface & (emitter != None)  # noqa: E711
             if dr.hint(self.hide_emitters, mode="scalar"):
                 active_e &= ~(depth == 0)
-            ds = mi.DirectionSample3f(scene, si, last_event)
-            em_pdf = scene.pdf_emitter_direction(last_event, ds, active_e & ~specular_chain)
+            ds_hit = mi.DirectionSample3f(scene, si, last_event)
+            em_pdf = scene.pdf_emitter_direction(last_event, ds_hit, active_e & ~specular_chain)
             count_direct = (depth == 0) | specular_chain
             mis = dr.select(count_direct, 1.0, mis_weight(last_pdf, em_pdf))
             L[active_e] += throughput * emitter.eval(si, active_e) * mis
@@ -259,13 +244,29 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             ctx = mi.BSDFContext()
             bsdf = si.bsdf(ray)
             nee_s = active_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth + 1 < self.max_depth)
+
+            # ---- NEE, one call for medium and surface vertices ----
+            # (a lane is one or the other: one shadow loop in the kernel and
+            # in the trace, which runs for both kinds of lane together)
             if dr.hint(len(scene.emitters()) > 0, mode="scalar"):
-                emitted, ds, c = self._sample_emitter(si, scene, sampler, medium, channel,
-                                                      nee_s, amr_media, amr_ptrs, has_other)
+                ref = dr.select(nee_m, mi.Interaction3f(mei), mi.Interaction3f(si))
+                emitted, ds, c = self._sample_emitter(ref, scene, sampler, medium, channel,
+                                                      nee_m | nee_s, amr_media, amr_ptrs, has_other)
                 shadow_counts = shadow_counts + c
-                wo_l = si.to_local(ds.d)
-                bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo_l, nee_s)
+                phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
+                L[nee_m] += throughput * phase_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf)) * emitted
+                bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), nee_s)
                 L[nee_s] += throughput * bsdf_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
+
+            # ---- Next direction: phase sampling in media, BSDF sampling at surfaces ----
+            wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, sampler.next_1d(act_scatter),
+                                                       sampler.next_2d(act_scatter), act_scatter)
+            act_scatter &= phase_pdf > 0.0
+            throughput[act_scatter] *= phase_weight
+            ray[act_scatter] = mei.spawn_ray(wo)
+            needs_intersection |= act_scatter
+            last_pdf[act_scatter] = phase_pdf
+            valid_ray |= act_scatter
 
             bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active_surface),
                                           sampler.next_2d(active_surface), active_surface)
