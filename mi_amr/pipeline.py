@@ -273,8 +273,11 @@ class Structures:
         else:                                          # grids: equal macrocells (the fine ones)
             lo, hi = walker.grid.minorant.numpy(), walker.grid.majorant.numpy()
             vol = np.ones(len(hi))
-        total = float(np.dot(vol, hi))
-        return float(np.dot(vol, lo)) / total if total > 0 else 0.0
+        # elementwise sums, not np.dot: a BLAS dot of this length wakes
+        # OpenBLAS's worker threads, which then spin on a core for a few
+        # hundred ms and halve the speed of the first frames after a load
+        total = float(np.sum(vol * hi, dtype=np.float64))
+        return float(np.sum(vol * lo, dtype=np.float64)) / total if total > 0 else 0.0
 
     def set_transfer_function(self, tf: TransferFunction, density_scale: float, rebuild: bool = True):
         """Use a new TF and scale for the builds that depend on them: the

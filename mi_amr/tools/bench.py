@@ -208,7 +208,7 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
 def alternate_passes(mi, scenes: dict, args, ref_image) -> dict:
     """Time configurations pass by pass (A B C A B C ...), ``args.repeats``
     rounds: each pass loads its configuration's scene, renders one untimed
-    sample per pixel (kernels, caches), times one frame of ``args.spp`` and
+    frame of ``args.spp`` (kernels, caches, buffers of the full size), times one more and
     frees the scene before the next is loaded, so exactly one scene is
     alive while timing and slow drifts of the machine hit every
     configuration alike. Returns ``{config: (seconds per frame, MSE per
@@ -221,7 +221,7 @@ def alternate_passes(mi, scenes: dict, args, ref_image) -> dict:
         for config, scene_dict in scenes.items():
             check_alone(config)
             scene = mi.load_dict(scene_dict)
-            np.array(mi.render(scene, spp=1, seed=50_000 + r))
+            np.array(mi.render(scene, spp=args.spp, seed=50_000 + r))
             t0 = time.perf_counter()
             img = np.array(mi.render(scene, spp=args.spp, seed=r), dtype=np.float64)
             out[config][0].append(time.perf_counter() - t0)
