@@ -5,9 +5,10 @@ variable the body leaves unchanged, and every loop nested in it is then
 recorded once per recording of its parent: the per-frame tracing cost of
 ``amrvolpath`` doubles at each level. These tests render with every leaf
 kind, both reconstructions and both estimator settings, and count how often
-each loop body is traced per loop: once for every loop of ours, at most
-twice for the integrator's path loop (it carries the Mitsuba sampler, whose
-stream increment never changes).
+each loop body is traced per loop: once for every loop, and at most twice
+for the integrator's path loop where the scene's sampler is not the
+independent one (that loop then carries the Mitsuba sampler, whose stream
+increment never changes).
 """
 
 from collections import defaultdict
@@ -43,10 +44,10 @@ class BodyCounter:
             return out
         monkeypatch.setattr(dr, "while_loop", counting)
 
-    def check(self, what):
+    def check(self, what, path_limit=1):
         assert self.calls, f"{what}: no symbolic loop was traced"
         for label, counts in self.calls.items():
-            limit = 2 if label == "amrvolpath" else 1
+            limit = path_limit if label == "amrvolpath" else 1
             assert max(counts) <= limit, (f"{what}: loop {label!r} traced its body {max(counts)} times "
                                           f"(at most {limit}): its state holds a variable it never changes")
 
@@ -88,3 +89,20 @@ def test02_other_media_and_stock_volpath(llvm, monkeypatch):
     assert np.isfinite(np.array(mi.render(scene, spp=1))).all()
     assert "amr_span_majorant" in counter.calls
     counter.check("volpath with majorant=ray")
+
+
+@pytest.mark.parametrize("sampler", ["stratified", "ldsampler"])
+def test03_other_samplers(llvm, monkeypatch, sampler):
+    """A sampler other than the independent one draws every number of the
+    path itself (the path loop carries it and may be recorded twice); its
+    image agrees with the independent sampler's within Monte Carlo error."""
+    scene_d = volume_scene(medium_dict("grid", "hash", "nearest"), res=8, integrator="amrvolpath")
+    scene_d["sensor"]["sampler"] = {"type": sampler, "sample_count": 64}
+    counter = BodyCounter(monkeypatch)
+    img = np.array(mi.render(mi.load_dict(scene_d), spp=64), dtype=np.float64)
+    counter.check(f"amrvolpath with a {sampler} sampler", path_limit=2)
+    scene_d["sensor"]["sampler"] = {"type": "independent", "sample_count": 64}
+    scene = mi.load_dict(scene_d)
+    means = np.array([np.array(mi.render(scene, spp=64, seed=s), dtype=np.float64).mean() for s in range(8)])
+    se = means.std(ddof=1)          # one frame's standard error (of its mean over pixels)
+    assert abs(img.mean() - means.mean()) < 4.5 * se * np.sqrt(1 + 1 / 8), (img.mean(), means, se)

@@ -5,7 +5,9 @@ variable the body leaves unchanged, and every loop nested inside is then
 recorded twice as well (docs/design.md section 6). A Mitsuba sampler's
 state keeps such a variable (its stream increment), so a loop that carries
 the sampler is always recorded twice. The tracking and shadow-ray loops
-carry an `Rng` instead: PCG32 (O'Neill 2014) with one fixed stream and the
+carry an `Rng` instead, and so does the path loop of ``amrvolpath`` when
+the sampler is Mitsuba's ``independent`` one (which draws from PCG32 too):
+PCG32 (O'Neill 2014) with one fixed stream and the
 64-bit state as the only variable, which every draw changes. Each stream is
 seeded from two of the sampler's dimensions (or from a parent stream), so
 images stay a function of the sampler's seed.
@@ -63,3 +65,8 @@ class Rng:
         """Uniform float in [0, 1) (23 random mantissa bits)."""
         bits = (self.next_u32(active) >> 9) | 0x3F800000
         return dr.reinterpret_array(mi.Float, bits) - 1.0
+
+    def next_2d(self, active=True):
+        """Uniform point in [0, 1)^2, as ``mi.Sampler.next_2d``."""
+        x = self.next_1d(active)
+        return mi.Point2f(x, self.next_1d(active))

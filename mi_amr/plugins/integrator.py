@@ -154,18 +154,25 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         last_pdf = mi.Float(1.0)
         medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
         channel = mi.UInt32(dr.minimum(3.0 * sampler.next_1d(active), 2.0))
+        # Random numbers of the path: with Mitsuba's independent sampler, a
+        # stream of our own with the same distribution (PCG32, seeded from
+        # the sampler), so that no loop state holds an unchanged variable
+        # and the path loop is recorded once (docs/design.md section 6);
+        # any other sampler (stratified, low-discrepancy) is used as it is.
+        rng = Rng.derive(sampler, active) if sampler.class_name() == "IndependentSampler" else sampler
         counts = TrackingCounts()
         shadow_counts = TrackingCounts()
 
         # read-only names stay out of the loop state (docs/design.md section
-        # 6); the sampler's unchanged stream increment still makes Dr.Jit
-        # record this one loop twice
+        # 6); a sampler other than the independent one is carried as `rng`,
+        # and its unchanged stream increment makes Dr.Jit record the loop twice
         while dr.hint(active, label="amrvolpath",
-                      exclude=[self, scene, amr_media, amr_ptrs, has_other, channel, mis_weight, index_spectrum]):
+                      exclude=[self, scene, sampler, amr_media, amr_ptrs, has_other, channel, mis_weight,
+                               index_spectrum]):
             # ---- Russian roulette (as in volpath) ----
             q = dr.minimum(dr.max(throughput) * dr.square(eta), 0.95)
             perform_rr = depth > self.rr_depth
-            active &= (sampler.next_1d(active) < q) | ~perform_rr
+            active &= (rng.next_1d(active) < q) | ~perform_rr
             throughput = dr.select(perform_rr, throughput * dr.rcp(q), throughput)
             active &= dr.any(throughput != 0.0)
 
@@ -183,7 +190,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             for k in range(len(amr_media)):
                 is_k = active_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.decomposition, amr_media[k])
-                hit, t, albedo, sigma_t, c = amr_media[k].free_flight(ray, si.t, sampler, is_k, control)
+                hit, t, albedo, sigma_t, c = amr_media[k].free_flight(ray, si.t, rng, is_k, control)
                 counts = counts + c
                 real = is_k & hit
                 mei[real] = self._medium_interaction(ray, t, albedo, sigma_t, amr_ptrs[k])
@@ -195,14 +202,14 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 is_other = active_medium
                 for p in amr_ptrs:
                     is_other &= medium != p
-                m_other = medium.sample_interaction(ray, sampler.next_1d(is_other), channel, is_other)
+                m_other = medium.sample_interaction(ray, rng.next_1d(is_other), channel, is_other)
                 m_other.t[is_other & (si.t < m_other.t)] = dr.inf
                 tr, ff_pdf = medium.transmittance_eval_pdf(m_other, si, is_other)
                 tr_pdf = index_spectrum(ff_pdf, channel)
                 throughput[is_other] *= dr.select(tr_pdf > 0.0, tr / tr_pdf, 0.0)
                 valid_o = is_other & m_other.is_valid()
                 p_real = index_spectrum(m_other.sigma_t, channel) / index_spectrum(m_other.combined_extinction, channel)
-                null_o = valid_o & (sampler.next_1d(valid_o) >= p_real)
+                null_o = valid_o & (rng.next_1d(valid_o) >= p_real)
                 real_o = valid_o & ~null_o
                 throughput[null_o] *= m_other.sigma_n / (1.0 - p_real)
                 throughput[real_o] *= m_other.sigma_s / p_real
@@ -250,7 +257,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             # in the trace, which runs for both kinds of lane together)
             if dr.hint(len(scene.emitters()) > 0, mode="scalar"):
                 ref = dr.select(nee_m, mi.Interaction3f(mei), mi.Interaction3f(si))
-                emitted, ds, c = self._sample_emitter(ref, scene, sampler, medium, channel,
+                emitted, ds, c = self._sample_emitter(ref, scene, rng, medium, channel,
                                                       nee_m | nee_s, amr_media, amr_ptrs, has_other)
                 shadow_counts = shadow_counts + c
                 phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
@@ -259,8 +266,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 L[nee_s] += throughput * bsdf_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
 
             # ---- Next direction: phase sampling in media, BSDF sampling at surfaces ----
-            wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, sampler.next_1d(act_scatter),
-                                                       sampler.next_2d(act_scatter), act_scatter)
+            wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, rng.next_1d(act_scatter),
+                                                       rng.next_2d(act_scatter), act_scatter)
             act_scatter &= phase_pdf > 0.0
             throughput[act_scatter] *= phase_weight
             ray[act_scatter] = mei.spawn_ray(wo)
@@ -268,8 +275,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             last_pdf[act_scatter] = phase_pdf
             valid_ray |= act_scatter
 
-            bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active_surface),
-                                          sampler.next_2d(active_surface), active_surface)
+            bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_1d(active_surface),
+                                          rng.next_2d(active_surface), active_surface)
             active_surface &= bs.pdf > 0.0
             throughput[active_surface] *= bsdf_weight
             eta[active_surface] *= bs.eta
