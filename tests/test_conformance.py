@@ -192,3 +192,20 @@ def test05_plugins_follow_the_variant_active_at_instantiation(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().endswith("ok True")
+
+
+@pytest.mark.parametrize("phase", [{"type": "isotropic"}, {"type": "rayleigh"},
+                                   {"type": "tabphase", "values": "0.4, 1.0, 1.8"},
+                                   {"type": "blendphase", "weight": 0.4, "phase1": {"type": "isotropic"},
+                                    "phase2": {"type": "hg", "g": -0.5}}])
+def test05_every_phase_function_agrees_with_volpath(llvm, phase):
+    """amrvolpath draws the path's numbers from its own stream (independent
+    sampler) while the phase function context still names the sampler: every
+    built-in phase function but the refused microflake ones gives the image
+    of stock volpath (z-test over independent passes, |z| < 4.5)."""
+    from mi_amr.testing import block_z_scores, render_passes
+    a = render_passes(amr_scene("amrvolpath", phase=phase, res=16), 16, 16)
+    b = render_passes(amr_scene("volpath", phase=phase, res=16), 16, 16, seed0=100)
+    assert np.isfinite(a).all()
+    z = np.abs(block_z_scores(a, b, 4)).max()
+    assert z < 4.5, f"{phase['type']}: max |z| = {z:.2f}"
