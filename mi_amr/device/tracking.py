@@ -134,7 +134,13 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
         by_control &= inside
         t = dr.select(inside, t_c, dr.select(alive, seg_end, t))
         look = inside & ~by_control
-        rgb, sigma_t = density(o + d * t, look)
+        rgb = mi.Color3f(0.0)
+        sigma_t = mi.Float(0.0)
+        x = o + d * t
+        if dr.hint(look, exclude=[density, x]):
+            # a symbolic conditional: a SIMD packet in which no lane looks
+            # up the density (all stepping through segments) skips it
+            rgb, sigma_t = density(x, look)
         lookups += dr.select(look, 1, 0)
         excess = sigma_t - mu_c
         inv_res = dr.rcp(dr.select(residual > 0.0, residual, 1.0))
