@@ -145,3 +145,22 @@ def test06_frames_are_timed_alternating_one_scene_at_a_time(llvm, monkeypatch):
     assert all(alive == 0 for _, alive in loads) and live_media() == 0
     for times, mses in out.values():
         assert len(times) == 3 and all(t > 0 for t in times) and all(m > 0 for m in mses)
+
+
+def test07_timing_waits_until_the_process_is_idle():
+    """`wait_idle` holds a timed frame back while a thread of the process
+    spins (as OpenBLAS's workers do after a BLAS call), and not otherwise."""
+    import threading
+    import time
+    from mi_amr.tools import bench
+    stop = time.perf_counter() + 0.3
+
+    def spin():
+        while time.perf_counter() < stop:
+            pass
+    thread = threading.Thread(target=spin)
+    thread.start()
+    waited = bench.wait_idle()
+    thread.join()
+    assert waited >= 0.2, f"waited {waited:.3f} s while a thread spun for 0.3 s"
+    assert bench.wait_idle() < 0.15

@@ -96,6 +96,29 @@ def check_alone(config):
                            f"timing {config}; free them first")
 
 
+def wait_idle(slice_s: float = 0.02, busy_share: float = 0.25, limit_s: float = 2.0) -> float:
+    """Wait until this process is idle before a timed frame: slices of
+    ``slice_s`` seconds until one uses less than ``busy_share`` of a core
+    (a thread left spinning, e.g. OpenBLAS's workers after a BLAS call, takes
+    a core from the render: measured 2x slower frames on 2 cores), at most
+    ``limit_s``. Returns the seconds waited; warns when the limit is hit."""
+    import resource
+
+    def cpu():
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+    t_start = time.perf_counter()
+    while True:
+        c0, t0 = cpu(), time.perf_counter()
+        time.sleep(slice_s)
+        if cpu() - c0 < busy_share * (time.perf_counter() - t0):
+            return time.perf_counter() - t_start
+        if time.perf_counter() - t_start > limit_s:
+            print(f"benchmark: the process stayed busy for {limit_s:.1f} s before a timed frame "
+                  "(a spinning thread?): timings may be slow", file=sys.stderr, flush=True)
+            return time.perf_counter() - t_start
+
+
 def config_scene(mi, config, cells, tf, scale, args, grid_resolution=None, grid_refinement=1) -> dict:
     """The benchmark scene of one configuration, as a dict (loadable again:
     its data are shared, and host structures are cached on them)."""
@@ -157,6 +180,7 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
     acc = None
     if hasattr(integrator, "reset_counters"):
         integrator.reset_counters()
+    wait_idle()
     for r in range(args.repeats if timed else 1):
         t0 = time.perf_counter()
         img = np.array(mi.render(scene, spp=args.spp, seed=r), dtype=np.float64)
@@ -208,7 +232,8 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
 def alternate_passes(mi, scenes: dict, args, ref_image) -> dict:
     """Time configurations pass by pass (A B C A B C ...), ``args.repeats``
     rounds: each pass loads its configuration's scene, renders one untimed
-    frame of ``args.spp`` (kernels, caches, buffers of the full size), times one more and
+    frame of ``args.spp`` (kernels, caches, buffers of the full size), waits
+    until the process is idle (`wait_idle`), times one more and
     frees the scene before the next is loaded, so exactly one scene is
     alive while timing and slow drifts of the machine hit every
     configuration alike. Returns ``{config: (seconds per frame, MSE per
@@ -222,6 +247,7 @@ def alternate_passes(mi, scenes: dict, args, ref_image) -> dict:
             check_alone(config)
             scene = mi.load_dict(scene_dict)
             np.array(mi.render(scene, spp=args.spp, seed=50_000 + r))
+            wait_idle()
             t0 = time.perf_counter()
             img = np.array(mi.render(scene, spp=args.spp, seed=r), dtype=np.float64)
             out[config][0].append(time.perf_counter() - t0)
