@@ -68,10 +68,18 @@ def grid_majorant_at(med, u):
 
 def assert_transmittance(T, expected, z_max=5.0, floor=2e-3):
     """Each ray's mean estimate equals its expected transmittance within
-    ``z_max`` standard errors (estimated from the replicas, floored)."""
+    ``z_max`` standard errors: estimated from the replicas, floored, and at
+    least that of the Russian roulette below ``RATIO_RR_THRESHOLD`` (a ray
+    whose transmittance ``T`` falls below the threshold ``q`` ends with
+    ``q`` or 0, variance about ``T (q - T)``: where fewer than 30 replicas
+    are expected to survive, their spread alone underestimates it)."""
+    from mi_amr.device.tracking import RATIO_RR_THRESHOLD as q
     assert np.isfinite(T).all() and (T >= 0).all() and (T <= 1 + 1e-5).all()
     mean = T.mean(axis=1)
-    se = np.maximum(T.std(axis=1) / np.sqrt(T.shape[1]), floor)
+    n = T.shape[1]
+    few = n * expected / q < 30
+    roulette = np.where(few, np.sqrt(expected * np.maximum(q - expected, 0.0) / n), 0.0)
+    se = np.maximum(np.maximum(T.std(axis=1) / np.sqrt(n), floor), roulette)
     z = (mean - expected) / se
     worst = int(np.argmax(np.abs(z)))
     assert np.abs(z).max() < z_max, (worst, mean[worst], expected[worst], se[worst])
