@@ -1,7 +1,8 @@
 """The ``amrvolpath`` integrator: Mitsuba's volpath with local majorants.
 
 Same estimator as Mitsuba's ``volpath`` (unidirectional volumetric path
-tracing, next-event estimation with ratio-tracked shadow rays, MIS between
+tracing, next-event estimation with ratio-tracked shadow rays, which here
+play Russian roulette once their transmittance is small, MIS between
 emitter and BSDF/phase sampling for emitters hit by chance, Russian
 roulette, nested media and index-matched boundaries). For ``amr`` media,
 free flights (delta tracking) and shadow rays (ratio tracking) run segment
@@ -312,13 +313,14 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         return mei
 
     @dr.syntax
-    def _sample_emitter(self, ref, scene, sampler, medium, channel, active,
+    def _sample_emitter(self, ref, scene, source, medium, channel, active,
                         amr_media, amr_ptrs, has_other):
         """Next-event estimation: an emitter sample and its transmittance
-        through media (ratio tracking) and index-matched surfaces."""
+        through media (ratio tracking) and index-matched surfaces. ``source``:
+        the path's random numbers (an `Rng` or the Mitsuba sampler)."""
         _, index_spectrum = _mitsuba_helpers()
         active = mi.Bool(active)
-        ds, emitter_val = scene.sample_emitter_direction(ref, sampler.next_2d(active), False, active)
+        ds, emitter_val = scene.sample_emitter_direction(ref, source.next_2d(active), False, active)
         active &= ds.pdf != 0.0
         first = ref.spawn_ray_to(ds.p)
         max_dist = mi.Float(first.maxt)
@@ -326,7 +328,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         # section 6): the ray's origin and direction, not its time, and a
         # random stream of our own rather than the sampler
         ray_o, ray_d, time, wavelengths = mi.Point3f(first.o), mi.Vector3f(first.d), first.time, first.wavelengths
-        rng = Rng.derive(sampler, active) if (amr_media or has_other) else None
+        rng = Rng.derive(source, active) if (amr_media or has_other) else None
         total = mi.Float(0.0)
         T = mi.Spectrum(1.0)
         medium = mi.MediumPtr(medium)
