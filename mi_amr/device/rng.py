@@ -1,4 +1,4 @@
-"""A per-lane random number stream for the inner symbolic loops.
+"""A per-lane random number stream for the symbolic loops.
 
 Dr.Jit records a symbolic loop a second time when its state holds a
 variable the body leaves unchanged, and every loop nested inside is then
@@ -6,11 +6,11 @@ recorded twice as well (docs/design.md section 6). A Mitsuba sampler's
 state keeps such a variable (its stream increment), so a loop that carries
 the sampler is always recorded twice. The tracking and shadow-ray loops
 carry an `Rng` instead, and so does the path loop of ``amrvolpath`` when
-the sampler is Mitsuba's ``independent`` one (which draws from PCG32 too):
-PCG32 (O'Neill 2014) with one fixed stream and the
-64-bit state as the only variable, which every draw changes. Each stream is
-seeded from two of the sampler's dimensions (or from a parent stream), so
-images stay a function of the sampler's seed.
+the sampler is Mitsuba's ``independent`` one (which draws from PCG32 too).
+An `Rng` is PCG32 (O'Neill 2014) on one fixed stream, with the 64-bit state
+as its only variable, which every draw changes. Each stream is seeded from
+two of the sampler's dimensions (or from a parent stream), so images stay a
+function of the sampler's seed.
 """
 
 from __future__ import annotations

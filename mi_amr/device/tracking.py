@@ -37,6 +37,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .rng import Rng
+from .structs import jit_struct
 
 #: Ratio tracking plays Russian roulette once its transmittance falls below
 #: this: a shadow ray that is mostly blocked stops early, unbiased (it goes
@@ -44,7 +45,6 @@ from .rng import Rng
 #: 1.01-1.12x on five 20k benchmark cases (docs/performance/frame-cost.md):
 #: the variance it adds is lost in the rest of the path's.
 RATIO_RR_THRESHOLD = 0.5
-from .structs import jit_struct
 
 
 @jit_struct(lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32", capped="UInt32")
