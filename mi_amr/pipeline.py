@@ -274,8 +274,8 @@ class Structures:
             lo, hi = walker.grid.minorant.numpy(), walker.grid.majorant.numpy()
             vol = np.ones(len(hi))
         # elementwise sums, not np.dot: a BLAS dot of this length wakes
-        # OpenBLAS's worker threads, which then spin on a core for a few
-        # hundred ms and halve the speed of the first frames after a load
+        # OpenBLAS's worker threads, which then spin on a core for about
+        # 0.1 s and halve the speed of the first frames after a load
         total = float(np.sum(vol * hi, dtype=np.float64))
         return float(np.sum(vol * lo, dtype=np.float64)) / total if total > 0 else 0.0
 

@@ -68,7 +68,8 @@ class DeviceTree:
         node = mi.UInt32(0)
         axis = dr.gather(mi.UInt32, self.axis, node, active)
         i = mi.UInt32(0)
-        while dr.hint(mi.Bool(active) & (axis < 3) & (i < self.depth), label="amr_kd_locate", exclude=[self, p, d, active]):
+        while dr.hint(mi.Bool(active) & (axis < 3) & (i < self.depth), label="amr_kd_locate",
+                      exclude=[self, p, d, active]):
             s = dr.gather(mi.Float, self.split, node)
             pa = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
             da = dr.select(axis == 0, d.x, dr.select(axis == 1, d.y, d.z))

@@ -96,22 +96,24 @@ def check_alone(config):
                            f"timing {config}; free them first")
 
 
+def process_cpu_seconds() -> float:
+    """CPU seconds used so far by every thread of this process."""
+    import resource
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def wait_idle(slice_s: float = 0.02, busy_share: float = 0.25, limit_s: float = 2.0) -> float:
     """Wait until this process is idle before a timed frame: slices of
     ``slice_s`` seconds until one uses less than ``busy_share`` of a core
     (a thread left spinning, e.g. OpenBLAS's workers after a BLAS call, takes
     a core from the render: measured 2x slower frames on 2 cores), at most
     ``limit_s``. Returns the seconds waited; warns when the limit is hit."""
-    import resource
-
-    def cpu():
-        r = resource.getrusage(resource.RUSAGE_SELF)
-        return r.ru_utime + r.ru_stime
     t_start = time.perf_counter()
     while True:
-        c0, t0 = cpu(), time.perf_counter()
+        c0, t0 = process_cpu_seconds(), time.perf_counter()
         time.sleep(slice_s)
-        if cpu() - c0 < busy_share * (time.perf_counter() - t0):
+        if process_cpu_seconds() - c0 < busy_share * (time.perf_counter() - t0):
             return time.perf_counter() - t_start
         if time.perf_counter() - t_start > limit_s:
             print(f"benchmark: the process stayed busy for {limit_s:.1f} s before a timed frame "
