@@ -16,6 +16,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
+from ..device.structs import owned
 from ..device.tracking import span_majorant, track_segments
 from ..params import ParameterError
 from ..pipeline import Structures
@@ -255,7 +256,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self._to_local = mi.Transform4f(options.to_world.inverse())
         self._scale = mi.Float(self.density_scale)
         self._max_iterations = mi.UInt32(options.max_iterations)
-        self._tf_rgba = mi.Float(self.tf.rgba.ravel())
+        self._tf_rgba = owned(mi.Float, self.tf.rgba)     # not the TF's memory: structs.owned
         self._tf_domain = mi.Float(self.tf.domain)
         dr.make_opaque(self._to_local, self._scale, self._max_iterations, self._tf_rgba, self._tf_domain)
         self.tf_device = DeviceTransferFunction(self.tf)
@@ -462,7 +463,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self.tf = tf
         self.tf_device.set(tf)
         # the traversed parameters are updated in place (SceneParameters hold them)
-        mi.set_property(self._tf_rgba, mi.Float(tf.rgba.ravel()))
+        mi.set_property(self._tf_rgba, owned(mi.Float, tf.rgba))
         mi.set_property(self._tf_domain, mi.Float(tf.domain))
         if density_scale is not None:
             self.density_scale = check_density_scale(density_scale)

@@ -10,7 +10,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..device.structs import jit_struct
+from ..device.structs import jit_struct, owned
 from .function import TransferFunction
 
 
@@ -26,9 +26,9 @@ class DeviceTransferFunction:
         """Upload a (new) TF: table, range-max sparse table, domain, size."""
         self.tf = tf
         n = len(tf)
-        self.rgba = mi.Float(tf.rgba.ravel())
-        self.sparse = mi.Float(tf.sparse_table().ravel())
-        self.sparse_min = mi.Float(tf.sparse_table(np.minimum).ravel())
+        self.rgba = owned(mi.Float, tf.rgba)
+        self.sparse = owned(mi.Float, tf.sparse_table())
+        self.sparse_min = owned(mi.Float, tf.sparse_table(np.minimum))
         self.n = mi.UInt32(n)
         self.lo = mi.Float(tf.domain[0])
         self.inv_width = mi.Float(1.0 / (tf.domain[1] - tf.domain[0]))
