@@ -3,6 +3,8 @@
 import json
 import math
 
+import pytest
+
 from mi_amr.tools.bench import all_configs, main
 
 
@@ -164,3 +166,44 @@ def test07_timing_waits_until_the_process_is_idle():
     thread.join()
     assert waited >= 0.2, f"waited {waited:.3f} s while a thread spun for 0.3 s"
     assert bench.wait_idle() < 0.15
+
+
+@pytest.mark.parametrize("config", ["reference", "amrvolpath/default"])
+def test08_frozen_frames_replay_the_plain_image(llvm, monkeypatch, config):
+    """With ``--frozen`` each pass times a replay of a frozen render: the
+    image of a seed is the plain render's, and after the warm-up frames the
+    timed one records nothing (a recording would time a trace)."""
+    import argparse
+
+    import drjit as dr
+    import mitsuba as mi
+    import numpy as np
+
+    import mi_amr
+    from conftest import random_amr
+    from mi_amr.tools import bench
+    cells = random_amr(3, 8, 2)
+    args = argparse.Namespace(max_depth=8, res=8, spp=2, repeats=2, reconstruction="nearest",
+                              no_value_masks=False, grid_refinement=None, memory_limit=4.0, frozen=True)
+    tf = mi_amr.TransferFunction.preset("spiky", cells.value_range)
+    scene_dict = bench.config_scene(mi, config, cells, tf, 50.0, args)
+    recordings, freeze = [], dr.freeze
+
+    def counted(f):
+        frozen = freeze(f)
+        recordings.append(frozen)
+        return frozen
+    monkeypatch.setattr(dr, "freeze", counted)
+    scene = mi.load_dict(scene_dict)
+    frame = bench.frame_function(mi, args.spp, frozen=True)
+    for w in range(bench.FROZEN_WARMUP):
+        frame(scene, 100 + w)
+    n = recordings[0].n_recordings
+    img = frame(scene, 7)
+    assert recordings[0].n_recordings == n
+    plain = bench.frame_function(mi, args.spp, frozen=False)(scene, 7)
+    np.testing.assert_allclose(img, plain, rtol=1e-4, atol=1e-5)
+    del scene
+    out = bench.alternate_passes(mi, {config: scene_dict}, args, plain)
+    times, mses = out[config]
+    assert len(times) == 2 and all(t > 0 for t in times) and all(np.isfinite(mses))

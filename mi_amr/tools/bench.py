@@ -234,7 +234,8 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
 def alternate_passes(mi, scenes: dict, args, ref_image) -> dict:
     """Time configurations pass by pass (A B C A B C ...), ``args.repeats``
     rounds: each pass loads its configuration's scene, renders one untimed
-    frame of ``args.spp`` (kernels, caches, buffers of the full size), waits
+    frame of ``args.spp`` (kernels, caches, buffers of the full size; with
+    ``args.frozen`` the `FROZEN_WARMUP` frames of a frozen render), waits
     until the process is idle (`wait_idle`), times one more and
     frees the scene before the next is loaded, so exactly one scene is
     alive while timing and slow drifts of the machine hit every
@@ -243,20 +244,46 @@ def alternate_passes(mi, scenes: dict, args, ref_image) -> dict:
     import gc
 
     import numpy as np
+    frozen = bool(getattr(args, "frozen", False))
     out = {c: ([], []) for c in scenes}
     for r in range(args.repeats):
         for config, scene_dict in scenes.items():
             check_alone(config)
             scene = mi.load_dict(scene_dict)
-            np.array(mi.render(scene, spp=args.spp, seed=50_000 + r))
+            frame = frame_function(mi, args.spp, frozen)
+            for w in range(FROZEN_WARMUP if frozen else 1):
+                frame(scene, 50_000 + 10 * r + w)
             wait_idle()
             t0 = time.perf_counter()
-            img = np.array(mi.render(scene, spp=args.spp, seed=r), dtype=np.float64)
+            img = frame(scene, r)
             out[config][0].append(time.perf_counter() - t0)
             out[config][1].append(float(np.mean((img - ref_image) ** 2)))
             del scene, img
             gc.collect()
     return out
+
+
+#: Untimed frames of a frozen render before the timed one: the recording,
+#: the second recording Mitsuba's state after a first frame asks for, and
+#: one replay.
+FROZEN_WARMUP = 3
+
+
+def frame_function(mi, spp: int, frozen: bool):
+    """``frame(scene, seed)``: one frame of ``spp`` samples per pixel as a
+    float64 array, rendered by ``mi.render`` or, with ``frozen``, by a
+    ``dr.freeze``-recorded ``mi.render`` (what an interactive viewer runs:
+    the kernels are replayed without tracing Python and Mitsuba calls
+    again; the same image for the same seed)."""
+    import drjit as dr
+    import numpy as np
+    if not frozen:
+        return lambda scene, seed: np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float64)
+
+    @dr.freeze
+    def render(scene, seed):
+        return mi.render(scene, spp=spp, seed=seed)
+    return lambda scene, seed: np.array(render(scene, dr.opaque(mi.UInt32, seed)), dtype=np.float64)
 
 
 def apply_timing(rec, times, mses):
@@ -282,6 +309,9 @@ def main(argv=None):
     p.add_argument("--spp", type=int, default=16)
     p.add_argument("--ref-spp", type=int, default=1024)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--frozen", action="store_true",
+                   help="time frames of a dr.freeze-recorded render (as an interactive viewer runs them: "
+                        "no per-frame Python trace), every configuration alike")
     p.add_argument("--max-depth", type=int, default=64)
     p.add_argument("--datasets", nargs="*", default=["cloud", "shell", "stadium", "blocks"])
     p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
@@ -389,7 +419,7 @@ def main(argv=None):
                     measured.append({"dataset": name, "tf": tf_name, "config": config, "cells": len(cells),
                                      "skipped": str(e)})
                     continue
-                rec.update(dataset=name, tf=tf_name, cells=len(cells), density_scale=scale)
+                rec.update(dataset=name, tf=tf_name, cells=len(cells), density_scale=scale, frozen=args.frozen)
                 measured.append(rec)
             # the frame times, alternating configurations pass by pass
             timing = alternate_passes(mi, scenes, args, ref_img)
@@ -634,6 +664,8 @@ def write_tables(records, sweeps, out: Path, tf_timing=None):
     """One Markdown table per data set, laid out like the paper's Table 2,
     and the grid-resolution sweep."""
     lines = ["# mi-amr benchmark", ""]
+    if any(r.get("frozen") for r in records):
+        lines += ["Frames timed as `dr.freeze` replays (`--frozen`): no per-frame trace.", ""]
     for name in dict.fromkeys(r["dataset"] for r in records):
         skipped = [r for r in records if r["dataset"] == name and r.get("skipped")]
         rows = [r for r in records if r["dataset"] == name and not r.get("skipped")]
