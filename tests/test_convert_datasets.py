@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.data.datasets import NAMES, make_dataset
+from mi_amr.data.datasets import NAMES, make_dataset, uniform_dataset
 from mi_amr.tools.reference import resample_dense
 
 
@@ -53,6 +53,22 @@ def test04_datasets_deterministic_and_multilevel(name):
     assert (a.width ** 3).sum() == np.prod(hi - lo)     # tiles the domain
     mi_amr.AMRCells(a.pos, a.level, a.value)             # passes full validation
     assert a.value.max() > 0.5                            # the feature is resolved
+
+
+def test04b_sparse_is_one_uniform_level_mostly_empty():
+    """``sparse``: the cloud field on a uniform n^3 grid, one level, most
+    cells 0; deterministic; ``cells`` picks n."""
+    a = make_dataset("sparse", cells=32 ** 3, seed=5)
+    np.testing.assert_array_equal(a.value, uniform_dataset("sparse", 32 ** 3, seed=5).value)
+    assert not np.array_equal(a.value, make_dataset("sparse", cells=32 ** 3, seed=6).value)
+    assert len(a) == 32 ** 3 and list(a.levels) == [0]
+    lo, hi = a.bounds
+    assert list(lo) == [0, 0, 0] and list(hi) == [32, 32, 32]
+    mi_amr.AMRCells(a.pos, a.level, a.value)             # passes full validation
+    assert 0.5 < (a.value == 0).mean() < 0.95 and a.value.max() > 0.5
+    assert len(make_dataset("sparse", cells=30000)) == 31 ** 3
+    with pytest.raises(ValueError, match="unknown"):
+        make_dataset("sparser")
 
 
 def test05_dataset_size_scales():

@@ -21,6 +21,13 @@ box). Simulation codes write *block-structured* data instead, and so does
   applied to whole blocks. `block_leaves` gives the blocks, `block_cells`
   their cells chunk by chunk, so that 10^8-cell files are written without
   holding per-cell arrays of the whole data (`write_block_dataset`).
+
+One data set has a single level (`uniform_dataset`; ``levels`` does not
+apply):
+
+* ``sparse``: the ``cloud`` field on a uniform n^3 grid, as a uniform
+  simulation or a resampled volume gives it (e.g. 128^3): most cells hold
+  0, empty space around the cloud.
 """
 
 from __future__ import annotations
@@ -33,6 +40,8 @@ from .blocks import block_offsets
 from .cells import AMRCells
 
 NAMES = ("cloud", "shell", "stadium", "blocks")
+#: Single-level data sets (``levels`` does not apply to them).
+UNIFORM_NAMES = ("sparse",)
 #: Cells per block side of the ``blocks`` data set, by default.
 DEFAULT_NXB = 16
 
@@ -116,8 +125,10 @@ def make_dataset(name: str, cells: int = 20000, levels: int = 4, seed: int = 0) 
     Positions are in finest-level units; the domain is a cube of
     ``base * 2**(levels - 1)`` finest cells per side.
     """
+    if name in UNIFORM_NAMES:
+        return uniform_dataset(name, cells, seed)
     if name not in NAMES:
-        raise ValueError(f"unknown data set {name!r} (choose from {', '.join(NAMES)})")
+        raise ValueError(f"unknown data set {name!r} (choose from {', '.join(NAMES + UNIFORM_NAMES)})")
     if name == "blocks":
         leaves = block_leaves(cells, levels, seed)
         parts = list(block_cells(*leaves))
@@ -171,6 +182,25 @@ def make_dataset(name: str, cells: int = 20000, levels: int = 4, seed: int = 0) 
                     np.concatenate(out_val).astype(np.float32),
                     source=f"dataset {name}(cells={cells}, levels={levels}, seed={seed})",
                     validate=False)
+
+
+def uniform_dataset(name: str, cells: int = 128 ** 3, seed: int = 0, chunk: int = 1 << 20) -> AMRCells:
+    """Single-level data set ``name`` (``sparse``: the ``cloud`` field) on
+    a uniform n^3 grid, n the nearest integer to ``cells ** (1/3)``: one
+    level-0 cell per grid point, valued at its centre (finest units)."""
+    if name not in UNIFORM_NAMES:
+        raise ValueError(f"unknown single-level data set {name!r} (choose from {', '.join(UNIFORM_NAMES)})")
+    n = int(round(cells ** (1 / 3)))
+    if n < 4:
+        raise ValueError(f"cells must be >= 64, got {cells}")
+    f, _ = _field("cloud", seed)
+    i = np.arange(n ** 3, dtype=np.int64)
+    pos = np.stack([i % n, (i // n) % n, i // (n * n)], axis=1)
+    value = np.empty(n ** 3, dtype=np.float32)
+    for start in range(0, n ** 3, chunk):          # the field's modes over chunks of points
+        value[start:start + chunk] = f((pos[start:start + chunk] + 0.5) / n)
+    return AMRCells(pos, np.zeros(n ** 3, dtype=np.int32), value,
+                    source=f"dataset {name}(cells={n}^3, seed={seed})", validate=False)
 
 
 def ensure_dataset(path, name: str, cells: int = 20000, levels: int = 4, seed: int = 0) -> Path:

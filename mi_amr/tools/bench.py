@@ -34,7 +34,8 @@ TRAVERSALS = ("grid", "abr", "brick", "kdtree")
 SAMPLINGS = ("hash", "abr", "brick")
 SCALES = {("cloud", "spiky"): 60.0, ("cloud", "foggy"): 150.0,
           ("shell", "spiky"): 60.0, ("shell", "foggy"): 200.0,
-          ("stadium", "spiky"): 300.0, ("stadium", "foggy"): 300.0}
+          ("stadium", "spiky"): 300.0, ("stadium", "foggy"): 300.0,
+          ("sparse", "spiky"): 60.0, ("sparse", "foggy"): 150.0}
 
 
 #: amrvolpath/default with estimators turned off: name -> (residual ratio

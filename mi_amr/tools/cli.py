@@ -421,8 +421,9 @@ def build_parser():
 
     d = _command(sub, "dataset", "generate a synthetic data set",
                  "mi-amr dataset blocks big.cells --cells 100000000 --levels 5")
-    d.add_argument("name", choices=("cloud", "shell", "stadium", "blocks"), help="octree-like: cloud, shell, stadium; "
-                   "block-structured (FLASH-like nxb^3 blocks): blocks")
+    d.add_argument("name", choices=("cloud", "shell", "stadium", "blocks", "sparse"),
+                   help="octree-like: cloud, shell, stadium; block-structured (FLASH-like nxb^3 blocks): "
+                        "blocks; one uniform level (the cloud field on a grid of about --cells points): sparse")
     d.add_argument("output")
     d.add_argument("--cells", type=int, default=20000)
     d.add_argument("--levels", type=int, default=4)
