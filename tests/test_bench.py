@@ -43,6 +43,10 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
     assert (out / "tables.md").read_text().count("| amrvolpath/grid/hash |") == 1
     assert (out / "curves_cloud_spiky.png").stat().st_size > 1000
     assert (out / "grid_sweep.png").stat().st_size > 1000
+    # a frozen render replays through a TF change (same table size): nothing recorded
+    frozen = json.loads((out / "tf_change.json").read_text())["frozen"]
+    assert frozen["recorded_on_change"] == 0 and frozen["first_after_change_s"] > 0
+    assert "the first after a TF change" in (out / "tables.md").read_text()
 
 
 def test02_config_names():

@@ -521,13 +521,20 @@ def tf_change_timing(mi, args, cells):
                         "ratio": first / statistics.median(steady), "set_transfer_function_s": update_s}
         print(f"first frame after a TF change: {first:.3f} s vs steady {statistics.median(steady):.3f} s "
               f"({out['frame']['ratio']:.2f}x); set_transfer_function {1e3 * update_s:.1f} ms", flush=True)
-        out["frozen"] = frozen_frame_timing(mi, scene, args.spp)
+        # a slider move: another TF of the same table size
+        moved_tf = mi_amr.TransferFunction.from_colormap("viridis", [(0, 0.1), (0.6, 0.5), (1, 0)],
+                                                         cells.value_range, n=128)
+        out["frozen"] = frozen_frame_timing(
+            mi, scene, args.spp, change=lambda: mi_amr.set_transfer_function(scene, moved_tf, density_scale=150.0))
     return out
 
 
-def frozen_frame_timing(mi, scene, spp: int, rounds: int = 5):
+def frozen_frame_timing(mi, scene, spp: int, rounds: int = 5, change=None):
     """Frame time of a ``dr.freeze``-recorded render against a plain one on
-    the same scene, alternating the two; medians and the per-round ratios."""
+    the same scene, alternating the two; medians and the per-round ratios.
+    ``change()``, when given, then changes the TF: the first frozen frame
+    after it against the frozen frames that follow it (the same TF), and
+    whether the change made a new recording."""
     import drjit as dr
     import numpy as np
 
@@ -552,6 +559,18 @@ def frozen_frame_timing(mi, scene, spp: int, rounds: int = 5):
     print(f"frozen frame {res['frozen_s']:.3f} s vs plain {res['plain_s']:.3f} s: "
           f"{res['speedup_median']:.2f}x (range {ratios[0]:.2f}-{ratios[-1]:.2f}, "
           f"{frozen.n_recordings} recordings)", flush=True)
+    if change is not None:
+        change()
+        after = []
+        for r in range(4):
+            t0 = time.perf_counter()
+            np.array(frozen(scene, dr.opaque(mi.UInt32, rounds + r)))
+            after.append(time.perf_counter() - t0)
+        res.update(first_after_change_s=after[0], steady_after_change_s=statistics.median(after[1:]),
+                   recorded_on_change=frozen.n_recordings - res["recordings"])
+        res["first_ratio"] = after[0] / res["steady_after_change_s"]
+        print(f"first frozen frame after a TF change: {after[0]:.3f} s ({res['first_ratio']:.2f}x the "
+              f"frozen frames after it; {res['recorded_on_change']} new recordings)", flush=True)
     return res
 
 
@@ -718,6 +737,12 @@ def write_tables(records, sweeps, out: Path, tf_timing=None):
             lines += ["", f"First frame after a TF change: {f['first_after_change_s']:.3f} s, steady state "
                           f"{f['steady_s']:.3f} s ({f['ratio']:.2f}x); set_transfer_function "
                           f"{1e3 * f['set_transfer_function_s']:.1f} ms."]
+        z = tf_timing.get("frozen", {})
+        if "first_after_change_s" in z:
+            lines += ["", f"Frozen frames (`dr.freeze`): {z['frozen_s']:.3f} s against {z['plain_s']:.3f} s plain "
+                          f"({z['speedup_median']:.2f}x); the first after a TF change "
+                          f"{z['first_after_change_s']:.3f} s ({z['first_ratio']:.2f}x), "
+                          f"{z['recorded_on_change']} new recordings."]
         lines.append("")
     (out / "tables.md").write_text("\n".join(lines))
 
