@@ -12,6 +12,7 @@ struct keeps the types of the variant that was active at import.
 
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -61,7 +62,6 @@ def owned(array_type, host):
     and a kernel that loads the table contiguously compiles once per
     alignment. The cell values are shared with the host on purpose
     (`mi_amr.device.values`) and uploaded once."""
-    import drjit as dr
     dtype = {dr.VarType.Float32: np.float32, dr.VarType.UInt32: np.uint32}[dr.type_v(array_type)]
     host = np.asarray(host, dtype=dtype).ravel()
     buf = np.empty(host.size + ALIGN // host.itemsize, dtype=dtype)

@@ -275,7 +275,8 @@ def frame_function(mi, spp: int, frozen: bool):
     float64 array, rendered by ``mi.render`` or, with ``frozen``, by a
     ``dr.freeze``-recorded ``mi.render`` (what an interactive viewer runs:
     the kernels are replayed without tracing Python and Mitsuba calls
-    again; the same image for the same seed)."""
+    again; the same image for the same seed). A frozen ``frame.recorder``
+    is the frozen function (its ``n_recordings``)."""
     import drjit as dr
     import numpy as np
     if not frozen:
@@ -284,7 +285,11 @@ def frame_function(mi, spp: int, frozen: bool):
     @dr.freeze
     def render(scene, seed):
         return mi.render(scene, spp=spp, seed=seed)
-    return lambda scene, seed: np.array(render(scene, dr.opaque(mi.UInt32, seed)), dtype=np.float64)
+
+    def frame(scene, seed):
+        return np.array(render(scene, dr.opaque(mi.UInt32, seed)), dtype=np.float64)
+    frame.recorder = render
+    return frame
 
 
 def apply_timing(rec, times, mses):
@@ -535,39 +540,31 @@ def frozen_frame_timing(mi, scene, spp: int, rounds: int = 5, change=None):
     ``change()``, when given, then changes the TF: the first frozen frame
     after it against the frozen frames that follow it (the same TF), and
     whether the change made a new recording."""
-    import drjit as dr
-    import numpy as np
-
-    @dr.freeze
-    def frozen(scene, seed):
-        return mi.render(scene, spp=spp, seed=seed)
-
+    plain, frozen = frame_function(mi, spp, False), frame_function(mi, spp, True)
     for seed in (100, 101):                          # record, and the state Mitsuba adds after a frame
-        np.array(frozen(scene, dr.opaque(mi.UInt32, seed)))
+        frozen(scene, seed)
     plain_s, frozen_s = [], []
     for r in range(rounds):
-        t0 = time.perf_counter()
-        np.array(mi.render(scene, spp=spp, seed=r))
-        plain_s.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        np.array(frozen(scene, dr.opaque(mi.UInt32, r)))
-        frozen_s.append(time.perf_counter() - t0)
+        for frame, times in ((plain, plain_s), (frozen, frozen_s)):
+            t0 = time.perf_counter()
+            frame(scene, r)
+            times.append(time.perf_counter() - t0)
     ratios = sorted(p / f for p, f in zip(plain_s, frozen_s))
     res = {"plain_s": statistics.median(plain_s), "frozen_s": statistics.median(frozen_s),
            "speedup_median": statistics.median(ratios), "speedup_range": [ratios[0], ratios[-1]],
-           "recordings": frozen.n_recordings}
+           "recordings": frozen.recorder.n_recordings}
     print(f"frozen frame {res['frozen_s']:.3f} s vs plain {res['plain_s']:.3f} s: "
           f"{res['speedup_median']:.2f}x (range {ratios[0]:.2f}-{ratios[-1]:.2f}, "
-          f"{frozen.n_recordings} recordings)", flush=True)
+          f"{res['recordings']} recordings)", flush=True)
     if change is not None:
         change()
         after = []
         for r in range(4):
             t0 = time.perf_counter()
-            np.array(frozen(scene, dr.opaque(mi.UInt32, rounds + r)))
+            frozen(scene, rounds + r)
             after.append(time.perf_counter() - t0)
         res.update(first_after_change_s=after[0], steady_after_change_s=statistics.median(after[1:]),
-                   recorded_on_change=frozen.n_recordings - res["recordings"])
+                   recorded_on_change=frozen.recorder.n_recordings - res["recordings"])
         res["first_ratio"] = after[0] / res["steady_after_change_s"]
         print(f"first frozen frame after a TF change: {after[0]:.3f} s ({res['first_ratio']:.2f}x the "
               f"frozen frames after it; {res['recorded_on_change']} new recordings)", flush=True)
