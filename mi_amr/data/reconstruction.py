@@ -7,8 +7,9 @@ Methods (docs/design.md section 3), ``x`` in finest-level cell units:
   level boundaries, trilinear inside a same-level region. No value where
   ``sum phi <= 1e-20``. Cost: one block lookup (8 values) per level that can contribute.
 * ``nearest``: the value of the finest cell containing ``x`` (piecewise
-  constant). Cost: one hash lookup per level, finest first, stopping at the
-  first hit.
+  constant). Cost: one hash lookup per level, coarsest first, stopping at
+  the first hit (leaf cells do not overlap, so the order does not change
+  the cell found).
 
 Implementations: `mi_amr.testing.brute_force` (numpy, O(cells) per point,
 the test oracle), `mi_amr.structures.host_reconstruction` (numpy over the

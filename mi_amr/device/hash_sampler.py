@@ -3,9 +3,13 @@
 The data live in a `BlockVolume`: aligned B^3 blocks of same-level cells.
 One hash table per level maps a block coordinate to its block; a cell's
 value is then one gather (docs/design.md sections 3 and 9). ``nearest``
-probes level by level, finest first, and stops at the first cell present;
-``tent`` visits the 2x2x2 stencil of every contributing level, probing once
-per distinct block the stencil touches (usually one).
+probes level by level, coarsest first, and stops at the first cell present
+(leaf cells do not overlap, so any order finds the same cell; look-ups fall
+uniformly in the volume of a macrocell and coarse cells fill most of it:
+1.25-1.78 levels probed per look-up against 1.44-2.50 finest first on the
+20k data, docs/performance/frame-cost.md section 7); ``tent`` visits the
+2x2x2 stencil of every contributing level, probing once per distinct block
+the stencil touches (usually one).
 """
 
 from __future__ import annotations
@@ -119,7 +123,10 @@ class DeviceReconstruction:
         sum_wv = mi.Float(0.0)
         found = False if tent else mi.Bool(False)
         while dr.hint(remaining != 0, label="amr_reconstruct", exclude=[self, x]):
-            L = dr.tzcnt(remaining)
+            if dr.hint(tent, mode="scalar"):
+                L = dr.tzcnt(remaining)
+            else:
+                L = 31 - dr.lzcnt(remaining)       # coarsest first: see the module docstring
             # x / 2^L is exact; fractions stay small numbers so that no
             # sub-cell offset is rounded away near 2^24 (float32 spacing 1)
             xl = x * dr.rcp(mi.Float(mi.UInt32(1) << L))
@@ -181,7 +188,7 @@ class DeviceReconstruction:
                 found |= hit & ~dr.isnan(v)
                 sum_wv = dr.select(hit & ~dr.isnan(v), v, sum_wv)
                 probe = dr.select(level_done, 0, probe + 1)
-            remaining = dr.select(level_done, remaining & (remaining - 1), remaining)
+            remaining = dr.select(level_done, remaining & ~(mi.UInt32(1) << L), remaining)
             if dr.hint(not tent, mode="scalar"):
                 remaining = dr.select(found, 0, remaining)
         if dr.hint(tent, mode="scalar"):
