@@ -71,7 +71,10 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
 
     ``segments``: a segment walker (`mi_amr.device.segments`); ``sampler``:
     a Mitsuba sampler or an `Rng`, which seeds the loop's own stream;
-    ``density(u, active) -> (albedo, sigma_t)``; majorants and sigma_t are
+    ``density = (lookup, albedo_of)``: ``lookup(u, active) -> (value,
+    sigma_t)`` at local points, ``albedo_of(value, active) -> rgb`` (called
+    once, after the loop, for the lanes that collided: a null collision needs
+    no colour); majorants and sigma_t are
     per world length, and ``length_scale`` is local ``t`` per world length.
     ``control``: use the segments' minorants as control extinction
     (residual ratio tracking, decomposition tracking); ``known_albedo``:
@@ -88,6 +91,7 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
     # per-ray constants are excluded, and the random numbers come from a
     # stream of our own (`Rng`) rather than from the sampler.
     use_control = control and (ratio or known_albedo is not None)
+    lookup, albedo_of = density
     state, fixed = segments.begin(o, d, t_lo, t_hi, active)
     rng = Rng.derive(sampler, active)
     t = mi.Float(t_lo)
@@ -95,7 +99,7 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
     mu = mi.Float(0.0)
     mu_c = mi.Float(0.0) if use_control else 0.0
     collided = False if ratio else mi.Bool(False)
-    albedo = 0.0 if ratio else mi.Color3f(0.0)
+    value = 0.0 if ratio else mi.Float(0.0)     # the value at the real collision
     result = mi.Float(1.0 if ratio else 0.0)
     lookups = mi.UInt32(0)
     n_null = mi.UInt32(0)
@@ -104,7 +108,8 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
     it = mi.UInt32(0)
     alive = mi.Bool(active)
     while dr.hint(alive, label="amr_track",
-                  exclude=[segments, density, fixed, o, d, t_hi, max_iterations, length_scale, known_albedo]):
+                  exclude=[segments, lookup, albedo_of, fixed, o, d, t_hi, max_iterations, length_scale,
+                           known_albedo]):
         # ---- Next segment once the current one is used up ----
         need = alive & (t >= seg_end)
         state, seg = segments.advance(o, d, state, fixed, t_hi, need)
@@ -142,13 +147,13 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
         by_control &= inside
         t = dr.select(inside, t_c, dr.select(alive, seg_end, t))
         look = inside & ~by_control
-        rgb = mi.Color3f(0.0)
+        v = mi.Float(0.0)
         sigma_t = mi.Float(0.0)
         x = o + d * t
-        if dr.hint(look, exclude=[density, x]):
+        if dr.hint(look, exclude=[lookup, x]):
             # a symbolic conditional: a SIMD packet in which no lane looks
             # up the density (all stepping through segments) skips it
-            rgb, sigma_t = density(x, look)
+            v, sigma_t = lookup(x, look)
         lookups += dr.select(look, 1, 0)
         excess = sigma_t - mu_c
         inv_res = dr.rcp(dr.select(residual > 0.0, residual, 1.0))
@@ -168,9 +173,8 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
             accept = by_control | (look & (rng.next_1d(look) * residual < excess))
             collided |= accept
             if dr.hint(known_albedo is not None, mode="scalar"):
-                rgb = dr.select(by_control, known_albedo[1], rgb)
                 sigma_t = dr.select(by_control, mu_c, sigma_t)
-            albedo = dr.select(accept, rgb, albedo)
+            value = dr.select(accept & ~by_control, v, value)
             result = dr.select(accept, sigma_t, result)
             n_null += dr.select(inside & ~accept, 1, 0)
             n_real += dr.select(accept, 1, 0)
@@ -179,7 +183,11 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
         capped = alive & (it >= max_iterations)
         alive &= ~capped
     counts = TrackingCounts(lookups, n_null, mi.UInt32(n_real), steps, dr.select(it >= max_iterations, 1, 0))
-    return mi.Bool(collided), t, mi.Color3f(albedo), result, counts
+    if dr.hint(ratio, mode="scalar"):
+        return mi.Bool(collided), t, mi.Color3f(0.0), result, counts
+    # a control collision happens only where the colour is known (one
+    # colour for every value), so the value left there colours it too
+    return collided, t, albedo_of(value, collided), result, counts
 
 
 @dr.syntax

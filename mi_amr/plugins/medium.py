@@ -338,6 +338,18 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         rgb, alpha = self.tf_device.eval(value, found)
         return rgb, dr.select(found, self._scale * alpha, 0.0)
 
+    def value_local(self, u: mi.Vector3f, active=True):
+        """``(value, sigma_t)`` at local point ``u``: the reconstructed value
+        and sigma_t as in `eval_local`, without the colour (tracking takes
+        the albedo of its one real collision from the value, `albedo_of`)."""
+        value, found = self.structures.sampler().eval(u, active)
+        alpha = self.tf_device.eval_alpha(value, found)
+        return value, dr.select(found, self._scale * alpha, 0.0)
+
+    def albedo_of(self, value, active=True):
+        """The TF's colour (the albedo) at ``value``."""
+        return self.tf_device.eval_rgb(value, active)
+
     # ---- Local-majorant tracking (used by the amrvolpath integrator) ---------
     def local_ray(self, ray: mi.Ray3f):
         """``(o, d, s)``: the ray in the unit cube with a unit direction ``d``
@@ -372,8 +384,8 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         t_hi = dr.minimum(t1, t_max * s)
         active = mi.Bool(active) & hit & (s > 0.0) & (t_lo < t_hi) & (self.structures.global_majorant > 0.0)
         collided, t, albedo, result, counts = track_segments(
-            self.structures.segments(), self.eval_local, o, d, t_lo, t_hi, sampler, active, ratio,
-            self._max_iterations, s, control, (self.tf_device.rgb_constant, self.tf_device.rgb0))
+            self.structures.segments(), (self.value_local, self.albedo_of), o, d, t_lo, t_hi, sampler,
+            active, ratio, self._max_iterations, s, control, (self.tf_device.rgb_constant, self.tf_device.rgb0))
         return collided, t * dr.rcp(dr.select(s > 0.0, s, 1.0)), albedo, result, counts
 
     # ---- Mitsuba medium interface -------------------------------------------

@@ -44,6 +44,18 @@ class DeviceTransferFunction:
 
     def eval(self, v, active=True):
         """(rgb, alpha) at values ``v``: linear interpolation of the table."""
+        c = self._channels(v, range(4), active)
+        return mi.Color3f(c[0], c[1], c[2]), c[3]
+
+    def eval_alpha(self, v, active=True):
+        """Alpha at values ``v`` (as `eval`, one channel)."""
+        return self._channels(v, (3,), active)[0]
+
+    def eval_rgb(self, v, active=True):
+        """Colour at values ``v`` (as `eval`, three channels)."""
+        return mi.Color3f(*self._channels(v, range(3), active))
+
+    def _channels(self, v, channels, active):
         n1 = self.n - 1
         x = self._u(v) * mi.Float(n1)
         i = dr.minimum(mi.UInt32(dr.floor(x)), n1 - 1)
@@ -52,11 +64,11 @@ class DeviceTransferFunction:
         # gathers compile to one of two codes at random (measured with
         # dr.JitFlag.KernelHistory), which would cost a compile now and then
         c = []
-        for k in range(4):
+        for k in channels:
             a = dr.gather(mi.Float, self.rgba, 4 * i + k, active)
             b = dr.gather(mi.Float, self.rgba, 4 * i + 4 + k, active)
             c.append(dr.fma(f, b - a, a))
-        return mi.Color3f(c[0], c[1], c[2]), c[3]
+        return c
 
     def range_max_alpha(self, vmin, vmax, active=True):
         """Maximum table alpha over entries ``floor(u_min (N-1)) ..
