@@ -77,10 +77,11 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
     no colour); majorants and sigma_t are
     per world length, and ``length_scale`` is local ``t`` per world length.
     ``control``: use the segments' minorants as control extinction
-    (residual ratio tracking, decomposition tracking); ``known_albedo``:
-    ``(flag, rgb)``, the albedo everywhere when ``flag`` is set (decomposition
-    tracking runs its control clock only then). At a control collision the
-    returned sigma_t is the minorant (no look-up is made).
+    (residual ratio tracking, decomposition tracking); ``known_albedo``: a
+    per-lane flag, set where every value has the same colour (decomposition
+    tracking runs its control clock only then, and ``albedo_of`` colours a
+    control collision from any value). At a control collision the returned
+    sigma_t is the minorant (no look-up is made).
     Returns ``(collided, t, albedo, sigma_t_or_T, counts)`` (``t`` local):
     for delta tracking the first real collision (``collided``, its ``t``,
     albedo and sigma_t); for ratio tracking ``T`` in the 4th slot. The loop
@@ -122,7 +123,7 @@ def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: 
             mu_c_new = dr.clip(seg.mu_min, 0.0, seg.mu)
             if dr.hint(not ratio, mode="scalar"):
                 # no control clock without a known albedo: plain delta tracking
-                mu_c_new = dr.select(known_albedo[0], mu_c_new, 0.0)
+                mu_c_new = dr.select(known_albedo, mu_c_new, 0.0)
             mu_c = dr.select(need, mu_c_new, mu_c)
             if dr.hint(ratio, mode="scalar"):
                 # the control part of this segment's transmittance, analytically

@@ -385,7 +385,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         active = mi.Bool(active) & hit & (s > 0.0) & (t_lo < t_hi) & (self.structures.global_majorant > 0.0)
         collided, t, albedo, result, counts = track_segments(
             self.structures.segments(), (self.value_local, self.albedo_of), o, d, t_lo, t_hi, sampler,
-            active, ratio, self._max_iterations, s, control, (self.tf_device.rgb_constant, self.tf_device.rgb0))
+            active, ratio, self._max_iterations, s, control, self.tf_device.rgb_constant)
         return collided, t * dr.rcp(dr.select(s > 0.0, s, 1.0)), albedo, result, counts
 
     # ---- Mitsuba medium interface -------------------------------------------

@@ -15,7 +15,7 @@ from .function import TransferFunction
 
 
 @jit_struct(rgba="Float", sparse="Float", sparse_min="Float", n="UInt32", lo="Float", inv_width="Float",
-            rgb_constant="Bool", rgb0="Color3f")
+            rgb_constant="Bool")
 class DeviceTransferFunction:
     """A `TransferFunction` uploaded for use in Dr.Jit kernels."""
 
@@ -35,9 +35,8 @@ class DeviceTransferFunction:
         # one colour for every value: the albedo is known without a look-up
         rgb = tf.rgba[:, :3]
         self.rgb_constant = mi.Bool(bool(np.all(rgb == rgb[0])))
-        self.rgb0 = mi.Color3f(*[float(c) for c in rgb[0]])
         dr.make_opaque(self.rgba, self.sparse, self.sparse_min, self.n, self.lo, self.inv_width,
-                       self.rgb_constant, self.rgb0)
+                       self.rgb_constant)
 
     def _u(self, v):
         return dr.clip((v - self.lo) * self.inv_width, 0.0, 1.0)
