@@ -8,7 +8,7 @@ import pytest
 
 import mi_amr
 from mi_amr.data.datasets import make_dataset
-from mi_amr.device.grid import DeviceTwoLevelGrid
+from mi_amr.device.grid import MAX_SKIP_EDGE, DeviceTwoLevelGrid
 from mi_amr.device.ray import intersect_unit_cube, safe_rcp
 from mi_amr.device.segments import TwoLevelGridSegments
 from mi_amr.structures.cost_model import GridPlan, auto_grid, plan_cost, refine_gain
@@ -32,7 +32,7 @@ def checkerboard_refinement(med):
     pattern = ((i % rc[0]) + (i // rc[0]) % rc[1] + i // (rc[0] * rc[1])) % 2 == 0
     block_max = dr.block_reduce(dr.ReduceOp.Max, g.fine.majorant, g.refinement ** 3)
     g.coarse_mu = dr.select(mi.Bool(pattern), -1.0, block_max)
-    g.coarse_skip = g._skip_radius(g.coarse_mu != 0.0)
+    g.coarse_skip = g._skip_cubes(g.coarse_mu != 0.0)
     dr.make_opaque(g.coarse_mu, g.coarse_skip)
     return pattern
 
@@ -116,26 +116,43 @@ def test03_walk_tiles_each_ray_with_the_right_majorants(llvm):
 
 
 def test03b_walk_skips_empty_space(llvm):
-    """Where the TF leaves coarse macrocells empty, the walk crosses the cube
-    of empty ones around them in one step (``coarse_skip``, checked against
-    brute force) and still tiles each ray with the right majorants."""
+    """Where the TF leaves coarse macrocells empty, the walk crosses the
+    empty cube that stretches from them along the ray's octant in one step
+    (``coarse_skip``: per octant, the largest power-of-two cube up to
+    ``MAX_SKIP_EDGE`` with the macrocell as its corner that brute force
+    finds empty, or a smaller one only where the next one would reach below
+    the grid) and still tiles each ray with
+    the right majorants."""
     med = two_level_medium(res=32, f=2, tf=mi_amr.TransferFunction(
         [[1, 1, 1, 0], [1, 1, 1, 0], [1, 1, 1, 0], [1, 1, 1, 1]], (0.0, 1.0)))
     g = med.structures.grid
     rc = np.asarray(g.host.res) // g.refinement
     occupied = (g.coarse_mu.numpy() != 0).reshape(rc[2], rc[1], rc[0])
-    want = np.zeros(occupied.shape, int)
-    for r in (1, 2, 4):
-        pad = np.pad(occupied, r)
-        k = 2 * r + 1
-        windows = np.lib.stride_tricks.sliding_window_view(pad, (k, k, k)).any(axis=(3, 4, 5))
-        want = np.where(~windows, r, want)
-    np.testing.assert_array_equal(g.coarse_skip.numpy().reshape(occupied.shape), want)
-    assert (want > 0).any() and occupied.any()
+    got = g.coarse_skip.numpy().reshape(8, rc[2], rc[1], rc[0])
+    zs, ys, xs = np.meshgrid(*[np.arange(r) for r in rc[::-1]], indexing="ij")
+    for octant in range(8):
+        down = [(octant >> axis) & 1 for axis in range(3)]      # x, y, z
+        for z, y, x in zip(zs.ravel(), ys.ravel(), xs.ravel()):
+            k = got[octant, z, y, x]
+
+            def box(m):
+                lo = [c - (m - 1) * dn for c, dn in zip((x, y, z), down)]
+                return tuple(slice(max(l, 0), max(l + m, 0)) for l in lo[::-1])
+
+            def empty(m):
+                return not occupied[box(m)].any()
+            if occupied[z, y, x]:
+                assert k == 0
+                continue
+            assert 1 <= k <= MAX_SKIP_EDGE and k & (k - 1) == 0 and empty(k), (octant, x, y, z, k)
+            below = any(c - (2 * k - 1) * dn < 0 for c, dn in zip((x, y, z), down))
+            if 2 * k <= min(max(rc), MAX_SKIP_EDGE) and not below:
+                assert not empty(2 * k), (octant, x, y, z, k)     # the largest that brute force finds
+    assert (got[:, ~occupied] > 1).any() and occupied.any()
     steps = check_walk(med)
     med_plain = two_level_medium(res=32, f=2, tf=med.tf)
     g2 = med_plain.structures.grid
-    g2.coarse_skip = dr.zeros(mi.UInt32, g2.n_coarse)
+    g2.coarse_skip = dr.zeros(mi.UInt32, 8 * g2.n_coarse)
     assert steps < 0.8 * check_walk(med_plain)
 
 

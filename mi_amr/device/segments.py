@@ -15,7 +15,7 @@ unit cube). A *segment iterator* has two methods used inside symbolic loops:
 `GridSegments` walks the macrocell grid with a 3D DDA (Amanatides-Woo);
 `TwoLevelGridSegments` walks a two-level grid by locating the macrocell at
 the current point (the fine one where its coarse one is refined, the cube
-of empty coarse ones around an empty one);
+of empty coarse ones ahead of an empty one);
 `TreeSegments` walks the leaves of a kd-tree front to back by re-descending
 from the root at the current point ("kd-restart": no stack, exact ties).
 """
@@ -103,7 +103,8 @@ class TwoLevelGridSegments:
     fine macrocell just past the current point is located; where its coarse
     macrocell is refined, the segment is the fine macrocell, otherwise the
     whole coarse one, or, where that is empty, the cube of empty coarse
-    macrocells around it (``coarse_skip``). The exit is measured from the
+    macrocells that stretches from it along the ray's octant
+    (``coarse_skip``). The exit is measured from the
     located point, so every step moves forward."""
 
     def __init__(self, grid):
@@ -115,13 +116,16 @@ class TwoLevelGridSegments:
 
     def begin(self, o, d, t_lo, t_hi, active):
         res_f = mi.Vector3f(self.grid.res)
-        # per ray: t per fine macrocell width along each axis, and the
-        # direction-only part of the progress guard
-        return (mi.Float(t_lo),), (safe_rcp(d * res_f), direction_guard(d))
+        # per ray: t per fine macrocell width along each axis, the
+        # direction-only part of the progress guard, and where the ray's
+        # octant starts in ``coarse_skip``
+        octant = dr.select(d.x < 0.0, 1, 0) | dr.select(d.y < 0.0, 2, 0) | dr.select(d.z < 0.0, 4, 0)
+        return (mi.Float(t_lo),), (safe_rcp(d * res_f), direction_guard(d),
+                                   mi.UInt32(octant) * self.grid.n_coarse)
 
     def advance(self, o, d, state, fixed, t_hi, active):
         (t_cell,) = state
-        inv, guard = fixed
+        inv, guard, octant_base = fixed
         g = self.grid
         valid = mi.Bool(active) & (t_cell < t_hi)
         res_f = mi.Vector3f(g.res)
@@ -136,10 +140,12 @@ class TwoLevelGridSegments:
         mu_f = dr.gather(mi.Float, g.fine.majorant, fflat, refined)
         mu_min = dr.select(refined, dr.gather(mi.Float, g.fine.minorant, fflat, refined),
                            dr.gather(mi.Float, g.coarse_min, mi.UInt32(cflat), valid & ~refined))
-        # an empty coarse macrocell: the whole empty cube around it (skip radius r)
-        r = mi.Int32(dr.gather(mi.UInt32, g.coarse_skip, mi.UInt32(cflat), valid & ~refined))
-        lo = dr.select(refined, cell, dr.maximum(coarse - r, 0) << g.log2f)
-        hi = dr.select(refined, cell + 1, dr.minimum(coarse + r + 1, g.coarse_res) << g.log2f)
+        # an empty coarse macrocell: the empty cube of edge k that stretches
+        # from it along the ray's octant (k = 0, a non-empty one: itself)
+        k = mi.Int32(dr.gather(mi.UInt32, g.coarse_skip, octant_base + mi.UInt32(cflat), valid & ~refined))
+        k = dr.maximum(k, 1)
+        lo = dr.select(refined, cell, (coarse + 1 - k) << g.log2f)
+        hi = dr.select(refined, cell + 1, (coarse + k) << g.log2f)
         far = mi.Vector3f(dr.select(d >= 0, hi, lo))
         # >= t_at: a point rounded past the grid's last face (clamped) moves on too
         t_exit = t_at + dr.maximum(dr.min((far - p) * inv), 0.0)
