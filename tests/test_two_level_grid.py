@@ -121,8 +121,7 @@ def test03b_walk_skips_empty_space(llvm):
     (``coarse_skip``: per octant, the largest power-of-two cube up to
     ``MAX_SKIP_EDGE`` with the macrocell as its corner that brute force
     finds empty, or a smaller one only where the next one would reach below
-    the grid) and still tiles each ray with
-    the right majorants."""
+    the grid) and still tiles each ray with the right majorants."""
     med = two_level_medium(res=32, f=2, tf=mi_amr.TransferFunction(
         [[1, 1, 1, 0], [1, 1, 1, 0], [1, 1, 1, 0], [1, 1, 1, 1]], (0.0, 1.0)))
     g = med.structures.grid

@@ -211,9 +211,10 @@ class DeviceTwoLevelGrid:
         edge ``k``, a power of two, of an empty cube of ``k^3`` coarse
         macrocells that has ``c`` as its corner and stretches from it along
         the octant (cells past the grid count as empty; ``k`` at most
-        `MAX_SKIP_EDGE`); 0 where ``c`` is ``occupied``. A ray in ``c`` that runs along the octant stays in that
-        cube until it leaves through one of its three far faces, so it crosses
-        the cube in one step (empty-space skipping).
+        `MAX_SKIP_EDGE`); 0 where ``c`` is ``occupied``. A ray in ``c`` that
+        runs along the octant stays in that cube until it leaves through one
+        of its three far faces, so it crosses the cube in one step
+        (empty-space skipping).
 
         Tables ``F_m`` ("the cube of edge m with its lowest corner at q is
         empty", cut at the grid's upper faces) for m = 1, 2, 4, ... by
@@ -226,7 +227,7 @@ class DeviceTwoLevelGrid:
         short)."""
         n = self.n_coarse
         rc = self.coarse_res
-        rmax = int(max(int(v[0]) for v in (rc.x, rc.y, rc.z)))
+        rmax = int(np.max(-(-np.asarray(self.host.res) // self.refinement)))      # host side, no sync
 
         def corner(i):
             return mi.Vector3i(i % rc.x, (i // rc.x) % rc.y, i // (rc.x * rc.y))
