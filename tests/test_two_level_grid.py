@@ -8,7 +8,7 @@ import pytest
 
 import mi_amr
 from mi_amr.data.datasets import make_dataset
-from mi_amr.device.grid import MAX_SKIP_EDGE, DeviceTwoLevelGrid
+from mi_amr.device.grid import MAX_SKIP_EDGE, SKIP_BITS, DeviceTwoLevelGrid
 from mi_amr.device.ray import intersect_unit_cube, safe_rcp
 from mi_amr.device.segments import TwoLevelGridSegments
 from mi_amr.structures.cost_model import GridPlan, auto_grid, plan_cost, refine_gain
@@ -127,7 +127,8 @@ def test03b_walk_skips_empty_space(llvm):
     g = med.structures.grid
     rc = np.asarray(g.host.res) // g.refinement
     occupied = (g.coarse_mu.numpy() != 0).reshape(rc[2], rc[1], rc[0])
-    got = g.coarse_skip.numpy().reshape(8, rc[2], rc[1], rc[0])
+    words = g.coarse_skip.numpy().reshape(rc[2], rc[1], rc[0])
+    got = np.stack([1 << ((words >> (SKIP_BITS * o)) & 3) for o in range(8)])
     zs, ys, xs = np.meshgrid(*[np.arange(r) for r in rc[::-1]], indexing="ij")
     for octant in range(8):
         down = [(octant >> axis) & 1 for axis in range(3)]      # x, y, z
@@ -141,7 +142,7 @@ def test03b_walk_skips_empty_space(llvm):
             def empty(m):
                 return not occupied[box(m)].any()
             if occupied[z, y, x]:
-                assert k == 0
+                assert k == 1
                 continue
             assert 1 <= k <= MAX_SKIP_EDGE and k & (k - 1) == 0 and empty(k), (octant, x, y, z, k)
             below = any(c - (2 * k - 1) * dn < 0 for c, dn in zip((x, y, z), down))
@@ -151,7 +152,7 @@ def test03b_walk_skips_empty_space(llvm):
     steps = check_walk(med)
     med_plain = two_level_medium(res=32, f=2, tf=med.tf)
     g2 = med_plain.structures.grid
-    g2.coarse_skip = dr.zeros(mi.UInt32, 8 * g2.n_coarse)
+    g2.coarse_skip = dr.zeros(mi.UInt32, g2.n_coarse)
     assert steps < 0.8 * check_walk(med_plain)
 
 

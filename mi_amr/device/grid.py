@@ -111,6 +111,9 @@ class DeviceMacrocellGrid:
 #: at a third of the cost per TF change (docs/performance/frame-cost.md
 #: section 8).
 MAX_SKIP_EDGE = 4
+#: Bits per octant in ``coarse_skip`` (log2 of the edge; 8 octants in 32 bits).
+SKIP_BITS = 2
+assert MAX_SKIP_EDGE.bit_length() - 1 < 1 << SKIP_BITS
 
 
 @jit_struct(res="Vector3i", coarse_res="Vector3i", fine=DeviceMacrocellGrid, coarse_mu="Float",
@@ -129,10 +132,10 @@ class DeviceTwoLevelGrid:
     expected look-ups plus steps per unit length inside it; ``coarse_mu``
     holds its majorant, the largest of its fine ones, or -1 where refined;
     ``coarse_min`` its minorant, the smallest of its fine ones.
-    ``coarse_skip``: per octant of ray directions and coarse macrocell, the
+    ``coarse_skip``: per coarse macrocell and octant of ray directions, the
     edge of an empty cube of coarse macrocells that stretches from it along
-    the octant (0 where it is not empty, `_skip_cubes`), so that a ray may
-    cross that whole cube in one step (empty-space skipping).
+    the octant (`_skip_cubes`), so that a ray may cross that whole cube in
+    one step (empty-space skipping).
     """
 
     def __init__(self, grid, refinement: int, world_scale: float, step_costs):
@@ -163,7 +166,7 @@ class DeviceTwoLevelGrid:
         self.n_fine = dr.block_sum(mi.Float(inside), f ** 3)
         self.coarse_mu = dr.zeros(mi.Float, self.n_coarse)
         self.coarse_min = dr.zeros(mi.Float, self.n_coarse)
-        self.coarse_skip = dr.zeros(mi.UInt32, 8 * self.n_coarse)
+        self.coarse_skip = dr.zeros(mi.UInt32, self.n_coarse)
         self.keep_step, self.refine_step = mi.Float(step_costs[0]), mi.Float(step_costs[1])
         self.world_scale = mi.Float(world_scale)
         dr.make_opaque(self.res, self.coarse_res, self.fine_inside, self.n_fine, self.keep_step,
@@ -206,15 +209,16 @@ class DeviceTwoLevelGrid:
         dr.make_opaque(self.coarse_mu, self.coarse_min, self.coarse_skip)
 
     def _skip_cubes(self, occupied: mi.Bool) -> mi.UInt32:
-        """Per octant ``o`` and coarse macrocell ``c`` (entry ``o * n_coarse
-        + c``; bit ``i`` of ``o`` set where rays run down axis ``i``): the
-        edge ``k``, a power of two, of an empty cube of ``k^3`` coarse
-        macrocells that has ``c`` as its corner and stretches from it along
-        the octant (cells past the grid count as empty; ``k`` at most
-        `MAX_SKIP_EDGE`); 0 where ``c`` is ``occupied``. A ray in ``c`` that
-        runs along the octant stays in that cube until it leaves through one
-        of its three far faces, so it crosses the cube in one step
-        (empty-space skipping).
+        """Per coarse macrocell ``c``, one word; bits ``SKIP_BITS * o`` on of
+        it, for octant ``o`` (bit ``i`` of ``o`` set where rays run down axis
+        ``i``), hold ``log2 k``: ``k`` is the edge, a power of two, of an
+        empty cube of ``k^3`` coarse macrocells that has ``c`` as its corner
+        and stretches from it along the octant (cells past the grid count as
+        empty; ``k`` at most `MAX_SKIP_EDGE`); 0 (``k = 1``, the macrocell
+        itself) where ``c`` is ``occupied``. A ray in ``c`` that runs along
+        the octant stays in that cube until it leaves through one of its
+        three far faces, so it crosses the cube in one step (empty-space
+        skipping).
 
         Tables ``F_m`` ("the cube of edge m with its lowest corner at q is
         empty", cut at the grid's upper faces) for m = 1, 2, 4, ... by
@@ -247,17 +251,16 @@ class DeviceTwoLevelGrid:
                                                         half if k & 4 else 0))
             dr.eval(wider)
             tables.append(wider)
-        dr.eval(q)
-        per_octant = []
+        packed = mi.UInt32(0)
         for octant in range(8):
             down = [(octant >> axis) & 1 for axis in range(3)]
-            edge = mi.UInt32(0)               # the largest power of two that is empty
-            for lv, table in enumerate(tables):
+            log2_edge = mi.UInt32(0)          # of the largest power of two that is empty
+            for lv in range(1, len(tables)):
                 m = 1 << lv
                 corner_q = mi.Vector3i(*[dr.maximum(q[a] - (m - 1), 0) if down[a] else q[a] for a in range(3)])
-                edge = dr.select(at(table, corner_q) == 1, m, edge)
-            per_octant.append(edge)
-        return dr.concat(per_octant)
+                log2_edge = dr.select(at(tables[lv], corner_q) == 1, lv, log2_edge)
+            packed |= log2_edge << (SKIP_BITS * octant)
+        return packed
 
     def describe(self) -> str:
         rc = -(-np.asarray(self.host.res) // self.refinement)

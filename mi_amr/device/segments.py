@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+from .grid import SKIP_BITS
 from .ray import safe_rcp
 from .structs import jit_struct
 from .tree import DeviceTree
@@ -118,14 +119,13 @@ class TwoLevelGridSegments:
         res_f = mi.Vector3f(self.grid.res)
         # per ray: t per fine macrocell width along each axis, the
         # direction-only part of the progress guard, and where the ray's
-        # octant starts in ``coarse_skip``
+        # octant sits in a ``coarse_skip`` word
         octant = dr.select(d.x < 0.0, 1, 0) | dr.select(d.y < 0.0, 2, 0) | dr.select(d.z < 0.0, 4, 0)
-        return (mi.Float(t_lo),), (safe_rcp(d * res_f), direction_guard(d),
-                                   mi.UInt32(octant) * self.grid.n_coarse)
+        return (mi.Float(t_lo),), (safe_rcp(d * res_f), direction_guard(d), mi.UInt32(octant) * SKIP_BITS)
 
     def advance(self, o, d, state, fixed, t_hi, active):
         (t_cell,) = state
-        inv, guard, octant_base = fixed
+        inv, guard, octant_shift = fixed
         g = self.grid
         valid = mi.Bool(active) & (t_cell < t_hi)
         res_f = mi.Vector3f(g.res)
@@ -141,9 +141,9 @@ class TwoLevelGridSegments:
         mu_min = dr.select(refined, dr.gather(mi.Float, g.fine.minorant, fflat, refined),
                            dr.gather(mi.Float, g.coarse_min, mi.UInt32(cflat), valid & ~refined))
         # an empty coarse macrocell: the empty cube of edge k that stretches
-        # from it along the ray's octant (k = 0, a non-empty one: itself)
-        k = mi.Int32(dr.gather(mi.UInt32, g.coarse_skip, octant_base + mi.UInt32(cflat), valid & ~refined))
-        k = dr.maximum(k, 1)
+        # from it along the ray's octant (k = 1: the macrocell itself)
+        word = dr.gather(mi.UInt32, g.coarse_skip, mi.UInt32(cflat), valid & ~refined)
+        k = mi.Int32(1) << mi.Int32((word >> octant_shift) & ((1 << SKIP_BITS) - 1))
         lo = dr.select(refined, cell, (coarse + 1 - k) << g.log2f)
         hi = dr.select(refined, cell + 1, (coarse + k) << g.log2f)
         far = mi.Vector3f(dr.select(d >= 0, hi, lo))
