@@ -209,9 +209,9 @@ class DeviceTwoLevelGrid:
         dr.make_opaque(self.coarse_mu, self.coarse_min, self.coarse_skip)
 
     def _skip_cubes(self, occupied: mi.Bool) -> mi.UInt32:
-        """Per coarse macrocell ``c``, one word; bits ``SKIP_BITS * o`` on of
-        it, for octant ``o`` (bit ``i`` of ``o`` set where rays run down axis
-        ``i``), hold ``log2 k``: ``k`` is the edge, a power of two, of an
+        """Per coarse macrocell ``c``, one word: its ``SKIP_BITS`` bits from
+        bit ``SKIP_BITS * o`` on, for octant ``o`` (bit ``i`` of ``o`` set
+        where rays run down axis ``i``), hold ``log2 k``: ``k`` is the edge, a power of two, of an
         empty cube of ``k^3`` coarse macrocells that has ``c`` as its corner
         and stretches from it along the octant (cells past the grid count as
         empty; ``k`` at most `MAX_SKIP_EDGE`); 0 (``k = 1``, the macrocell
