@@ -128,7 +128,7 @@ def test03b_walk_skips_empty_space(llvm):
     rc = np.asarray(g.host.res) // g.refinement
     occupied = (g.coarse_mu.numpy() != 0).reshape(rc[2], rc[1], rc[0])
     words = g.coarse_skip.numpy().reshape(rc[2], rc[1], rc[0])
-    got = np.stack([1 << ((words >> (SKIP_BITS * o)) & 3) for o in range(8)])
+    got = np.stack([1 << ((words >> (SKIP_BITS * o)) & ((1 << SKIP_BITS) - 1)) for o in range(8)])
     zs, ys, xs = np.meshgrid(*[np.arange(r) for r in rc[::-1]], indexing="ij")
     for octant in range(8):
         down = [(octant >> axis) & 1 for axis in range(3)]      # x, y, z

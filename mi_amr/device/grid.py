@@ -145,6 +145,7 @@ class DeviceTwoLevelGrid:
         self.host, self.refinement, self.log2f = grid, f, f.bit_length() - 1
         rf = np.asarray(grid.res, dtype=np.int64)
         rc = -(-rf // f)
+        self.coarse_shape = rc                  # coarse_res on the host (x, y, z)
         self.res = mi.Vector3i(*[int(r) for r in rf])
         self.coarse_res = mi.Vector3i(*[int(r) for r in rc])
         self.n_coarse = int(np.prod(rc))
@@ -211,14 +212,14 @@ class DeviceTwoLevelGrid:
     def _skip_cubes(self, occupied: mi.Bool) -> mi.UInt32:
         """Per coarse macrocell ``c``, one word: its ``SKIP_BITS`` bits from
         bit ``SKIP_BITS * o`` on, for octant ``o`` (bit ``i`` of ``o`` set
-        where rays run down axis ``i``), hold ``log2 k``: ``k`` is the edge, a power of two, of an
-        empty cube of ``k^3`` coarse macrocells that has ``c`` as its corner
-        and stretches from it along the octant (cells past the grid count as
-        empty; ``k`` at most `MAX_SKIP_EDGE`); 0 (``k = 1``, the macrocell
-        itself) where ``c`` is ``occupied``. A ray in ``c`` that runs along
-        the octant stays in that cube until it leaves through one of its
-        three far faces, so it crosses the cube in one step (empty-space
-        skipping).
+        where rays run down axis ``i``), hold ``log2 k``: ``k`` is the edge,
+        a power of two, of an empty cube of ``k^3`` coarse macrocells that
+        has ``c`` as its corner and stretches from it along the octant
+        (cells past the grid count as empty; ``k`` at most `MAX_SKIP_EDGE`);
+        0 (``k = 1``, the macrocell itself) where ``c`` is ``occupied``. A
+        ray in ``c`` that runs along the octant stays in that cube until it
+        leaves through one of its three far faces, so it crosses the cube in
+        one step (empty-space skipping).
 
         Tables ``F_m`` ("the cube of edge m with its lowest corner at q is
         empty", cut at the grid's upper faces) for m = 1, 2, 4, ... by
@@ -231,7 +232,7 @@ class DeviceTwoLevelGrid:
         short)."""
         n = self.n_coarse
         rc = self.coarse_res
-        rmax = int(np.max(-(-np.asarray(self.host.res) // self.refinement)))      # host side, no sync
+        rmax = int(self.coarse_shape.max())
 
         def corner(i):
             return mi.Vector3i(i % rc.x, (i // rc.x) % rc.y, i // (rc.x * rc.y))
@@ -263,8 +264,7 @@ class DeviceTwoLevelGrid:
         return packed
 
     def describe(self) -> str:
-        rc = -(-np.asarray(self.host.res) // self.refinement)
-        return (f"two-level grid {'x'.join(str(int(r)) for r in rc)} refined {self.refinement}x "
+        return (f"two-level grid {'x'.join(str(int(r)) for r in self.coarse_shape)} refined {self.refinement}x "
                 f"in {self.refined_fraction():.0%} of its macrocells")
 
     def refined_fraction(self) -> float:
@@ -286,8 +286,7 @@ class DeviceTwoLevelGrid:
     def grid_order(self, values) -> np.ndarray:
         """Per-fine-macrocell values in block order (f^3 per coarse
         macrocell) as a [z, y, x] array of the fine grid, padding dropped."""
-        f, rf = self.refinement, self.host.res
-        rc = -(-np.asarray(rf) // f)
+        f, rf, rc = self.refinement, self.host.res, self.coarse_shape
         a = np.asarray(values).reshape(rc[2], rc[1], rc[0], f, f, f).transpose(0, 3, 1, 4, 2, 5)
         return a.reshape(rc[2] * f, rc[1] * f, rc[0] * f)[:rf[2], :rf[1], :rf[0]]
 
