@@ -43,11 +43,13 @@ def grid_bytes(n_macrocells: int, n_cells: int) -> float:
     return BYTES_PER_MACROCELL * float(n_macrocells) + 12.0 * min(n_cells, CHUNK)
 
 
-def hash_bytes(n_blocks: int, method: str) -> float:
-    """Peak host bytes of the block hash (keys, payload and build rounds;
-    for ``tent`` also ghost blocks and neighbour rows), without the device
-    copy of the values."""
-    return (600.0 if method == "tent" else 250.0) * n_blocks
+def hash_bytes(n_blocks: int, method) -> float:
+    """Peak host bytes of the block hash for the reconstruction ``method``
+    (name or object; keys, payload and build rounds, and the ghost blocks
+    and neighbour rows of a method that needs them), without the device copy
+    of the values: ``Reconstruction.hash_bytes_per_block`` per block."""
+    from .reconstruction import reconstruction_method
+    return reconstruction_method(method).hash_bytes_per_block * n_blocks
 
 
 class MemoryLimitError(MemoryError):

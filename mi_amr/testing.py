@@ -10,34 +10,21 @@ import mitsuba as mi
 import numpy as np
 
 from .data.cells import AMRCells
-from .data.reconstruction import WEIGHT_EPS, check_method
+from .reconstruction import Reconstruction, reconstruction_method
 
 
-def brute_force(cells: AMRCells, x, method: str = "tent", chunk: int = 256):
+def brute_force(cells: AMRCells, x, method: str | Reconstruction = "tent", chunk: int = 256):
     """Reconstruct at points ``x`` (M, 3), absolute finest units, by looping
-    over all cells (vectorised). Returns ``(value, found)``."""
-    check_method(method)
+    over all cells (vectorised; `Reconstruction.brute_force_chunk`).
+    Returns ``(value, found)``."""
+    method = reconstruction_method(method)
     x = np.asarray(x, dtype=np.float64)
     w = cells.width.astype(np.float64)
     lo = cells.pos.astype(np.float64)
     val = np.zeros(len(x))
     found = np.zeros(len(x), dtype=bool)
     for s in range(0, len(x), chunk):
-        xs = x[s:s + chunk, None, :]
-        if method == "tent":
-            c = lo + 0.5 * w[:, None]
-            phi = np.prod(np.maximum(0.0, 1.0 - np.abs(xs - c) / w[:, None]), axis=2)
-            sw = phi.sum(axis=1)
-            found[s:s + chunk] = sw > WEIGHT_EPS
-            val[s:s + chunk] = np.where(sw > WEIGHT_EPS, (phi * cells.value).sum(axis=1) / np.maximum(sw, 1e-300), 0.0)
-        else:
-            inside = np.all((xs >= lo) & (xs < lo + w[:, None]), axis=2)
-            # finest containing cell: smallest width among those that contain x
-            wm = np.where(inside, w, np.inf)
-            j = np.argmin(wm, axis=1)
-            hit = inside[np.arange(len(j)), j]
-            found[s:s + chunk] = hit
-            val[s:s + chunk] = np.where(hit, cells.value[j], 0.0)
+        val[s:s + chunk], found[s:s + chunk] = method.brute_force_chunk(lo, w, cells.value, x[s:s + chunk, None, :])
     return val, found
 
 

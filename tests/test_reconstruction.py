@@ -1,5 +1,7 @@
-"""Reconstruction (nearest, tent) against brute force, and the macrocell
-value ranges that bound it."""
+"""Reconstruction (nearest, tent) against brute force, the macrocell
+value ranges that bound it, and the registry of methods."""
+
+import re
 
 import mitsuba as mi
 import numpy as np
@@ -8,6 +10,7 @@ import pytest
 import mi_amr
 from mi_amr.structures.macrocell_grid import MacrocellGrid
 from mi_amr.device.hash_sampler import DeviceReconstruction
+from mi_amr.reconstruction import METHODS, reconstruction_method
 from mi_amr.structures.host_reconstruction import HostReconstruction
 from mi_amr.testing import brute_force
 
@@ -63,3 +66,61 @@ def test06_macrocell_ranges_contain_reconstructed_values(method):
     # and every level that contributes is in the macrocell's level mask
     assert np.all(grid.level_bits[flat] != 0)
 
+
+@pytest.mark.parametrize("name", list(METHODS))
+def test07_support_box_matches_brute_force(name):
+    """Every registered method: a cell gives a value only inside its
+    support box (`Reconstruction.support_box`, which the macrocell grid, the
+    region trees and the value masks splat), and up to its faces: points
+    one step inside each face are found by the method's own oracle."""
+    method = reconstruction_method(name)
+    rng = np.random.default_rng(5)
+    for L in (0, 1, 3):
+        w = float(1 << L)
+        lo = rng.integers(-8, 8, 3).astype(np.float64) * w
+        a, b = method.support_box(lo, w)
+        assert np.all(a <= lo) and np.all(b >= lo + w)           # a support holds its cell
+
+        def found_at(x):
+            return method.brute_force_chunk(lo[None], np.array([w]), np.array([1.0]), x[:, None, :])[1]
+        step = w / 64
+        t = -3 * w + step * np.arange(7 * 64 + 1)           # through the cell centre, well past the box
+        for axis in range(3):
+            x = np.tile(lo + 0.5 * w, (len(t), 1))
+            x[:, axis] = lo[axis] + t
+            f = found_at(x)
+            assert f.any()
+            assert np.all((x[f, axis] >= a[axis]) & (x[f, axis] <= b[axis])), (name, L, axis)
+            assert x[f, axis].min() - a[axis] <= step and b[axis] - x[f, axis].max() <= step, (name, L, axis)
+        x = lo + 0.5 * w + rng.uniform(-3 * w, 3 * w, (4000, 3))
+        f = found_at(x)
+        assert f.any() and np.all((x[f] >= a) & (x[f] <= b))
+
+
+def test08_methods_are_resolved_once_from_their_names():
+    """Each name resolves to its method object (an object passes through
+    and prints as its name), an unknown name is a clear error at every
+    entry point, and an object gives what its name gives."""
+    for name, cls in METHODS.items():
+        method = reconstruction_method(name)
+        assert method.name == name and str(method) == name and method == cls()
+        assert reconstruction_method(method) is method
+    message = re.escape(f"unknown reconstruction 'cubic' (choose from {', '.join(METHODS)})")
+    with pytest.raises(ValueError, match=message):
+        reconstruction_method("cubic")
+    with pytest.raises(ValueError, match="unknown reconstruction None"):
+        reconstruction_method(None)
+    cells = random_amr(11, n=8, levels=2)
+    with pytest.raises(ValueError, match=message):
+        MacrocellGrid(cells, resolution=4, support="cubic")
+    with pytest.raises(ValueError, match=message):
+        brute_force(cells, np.zeros((1, 3)), "cubic")
+    x = np.random.default_rng(6).uniform(-1, 9, (500, 3))
+    host = HostReconstruction(cells)
+    for name in METHODS:
+        by_name, by_object = host(x, name), host(x, reconstruction_method(name))
+        np.testing.assert_array_equal(by_name[0], by_object[0])
+        np.testing.assert_array_equal(by_name[1], by_object[1])
+        grids = [MacrocellGrid(cells, resolution=4, support=m) for m in (name, reconstruction_method(name))]
+        np.testing.assert_array_equal(grids[0].vmin, grids[1].vmin)
+        np.testing.assert_array_equal(grids[0].level_bits, grids[1].level_bits)

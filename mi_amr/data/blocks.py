@@ -21,6 +21,7 @@ import mitsuba as mi
 
 from ..memory import CHUNK
 from ..progress import progress
+from ..reconstruction import Reconstruction, reconstruction_method
 from .cells import AMRCells, check_cells
 
 #: Block sizes tried by `choose_block_size` (cells per side).
@@ -98,7 +99,8 @@ class BlockVolume(mi.Object):
                    int(np.count_nonzero(~np.isnan(blocks[keep]))), source)
 
     @classmethod
-    def from_cells(cls, cells: AMRCells, block: int | None = None, method: str = "tent") -> "BlockVolume":
+    def from_cells(cls, cells: AMRCells, block: int | None = None,
+                   method: str | Reconstruction = "tent") -> "BlockVolume":
         """Blocks of validated ``cells`` (in memory); ``method``: the
         reconstruction they will serve (it weighs the block size)."""
         lo, hi = cells.bounds
@@ -112,7 +114,7 @@ class BlockVolume(mi.Object):
 
     @classmethod
     def from_chunks(cls, chunks, source: str, overlap: str = "error", block: int | None = None,
-                    sample=None, method: str = "tent", total: int | None = None):
+                    sample=None, method: str | Reconstruction = "tent", total: int | None = None):
         """Blocks from a re-iterable source of raw cells: ``chunks()`` yields
         ``(pos (m, 3) ints, level (m,), value (m,))``, read three times
         (validation and bounds, blocks, values). Each chunk is validated as
@@ -287,9 +289,9 @@ def sample_runs(n: int, read):
 
 def choose_block_size(block_counts: dict, ghost_counts: dict | None = None) -> int:
     """Block size with the fewest resident bytes: for ``K(B)`` blocks,
-    ``K (4 B^3 + hash)``, plus, for tent reconstruction (``ghost_counts``
-    given: ``G(B)`` ghost blocks), ``(K + G)`` neighbour rows and ``G`` hash
-    entries (see `BlockVolume.stencil_index`)."""
+    ``K (4 B^3 + hash)``, plus, for a reconstruction whose hash needs ghost
+    blocks (tent; ``ghost_counts`` given: ``G(B)`` of them), ``(K + G)``
+    neighbour rows and ``G`` hash entries (see `BlockVolume.stencil_index`)."""
     cost = {}
     for b, k in block_counts.items():
         cost[b] = k * (4.0 * b ** 3 + HASH_BYTES_PER_BLOCK)
@@ -365,8 +367,9 @@ def _distinct(keys: np.ndarray) -> np.ndarray:
 
 
 def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="tent", bar=None):
-    """Choose the block size (from ``sample()``, or the first chunk), then
-    two passes over ``chunks()``: the set of blocks, then the values."""
+    """Choose the block size (from ``sample()``, or the first chunk, for
+    the reconstruction ``method``: name or object), then two passes over
+    ``chunks()``: the set of blocks, then the values."""
     origin = (np.asarray(lo, dtype=np.int64) >> lmax) << lmax
     sizes = BLOCK_SIZES if block is None else (int(block),)
     for b in sizes:
@@ -378,6 +381,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
         L = level.astype(np.int64)
         return _block_keys(((pos.astype(np.int64) - origin) >> L[:, None]) // b, L, packed)
     # ---- Block size: fewest bytes per cell on the sample ----
+    with_ghosts = reconstruction_method(method).needs_ghosts
     if len(sizes) > 1:
         runs = list(sample() if sample is not None else [next(iter(chunks()))])
         counts, ghosts = {}, {}
@@ -386,9 +390,9 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
             for p, lv, _ in runs:
                 c, L = _unpack_keys(_distinct(block_keys(p, lv, b)), packed)
                 counts[b] += len(L)
-                if method == "tent":
+                if with_ghosts:
                     ghosts[b] += len(ghost_blocks(c, L)[1])
-        b = choose_block_size(counts, ghosts if method == "tent" else None)
+        b = choose_block_size(counts, ghosts if with_ghosts else None)
     else:
         b = sizes[0]
     # ---- Pass 1: the blocks ----

@@ -2,14 +2,15 @@
 
 The data live in a `BlockVolume`: aligned B^3 blocks of same-level cells.
 One hash table per level maps a block coordinate to its block; a cell's
-value is then one gather (docs/design.md sections 3 and 9). ``nearest``
-probes level by level, coarsest first, and stops at the first cell present
-(leaf cells do not overlap, so any order finds the same cell; look-ups fall
-uniformly in the volume of a macrocell and coarse cells fill most of it:
-1.25-1.78 levels probed per look-up against 1.44-2.50 finest first on the
-20k data, docs/performance/frame-cost.md section 7); ``tent`` visits the
-2x2x2 stencil of every contributing level, probing once per distinct block
-the stencil touches (usually one).
+value is then one gather (docs/design.md sections 3 and 9). The look-up
+loop is shared; the reconstruction method (`mi_amr.reconstruction`) picks
+the order of the levels and supplies the body for one level. ``nearest``
+probes coarsest first and stops at the first cell present: leaf cells do
+not overlap, so any order finds the same cell, and look-ups fall uniformly
+in the volume of a macrocell, most of which coarse cells fill, so fewer
+levels are probed than finest first (docs/performance/frame-cost.md
+section 7). ``tent`` visits the 2x2x2 stencil of every contributing level,
+probing once per distinct block the stencil touches (usually one).
 """
 
 from __future__ import annotations
@@ -20,14 +21,11 @@ import numpy as np
 
 from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
-from ..data.reconstruction import WEIGHT_EPS, check_method
+from ..reconstruction import Reconstruction, reconstruction_method
 from ..structures.level_hash import LevelHash, hash_u32, pack_key
 from .ray import in_unit_cube
 from .structs import jit_struct
 from .values import device_values, shares_host_values
-
-#: Stencil corner c = dx + 2 dy + 4 dz.
-CORNERS = [(c & 1, (c >> 1) & 1, (c >> 2) & 1) for c in range(8)]
 
 
 class BlockHash(LevelHash):
@@ -50,12 +48,12 @@ class DeviceReconstruction:
     """Reconstruction at points, in Dr.Jit, from the blocks of a `BlockVolume`
     (an `AMRCells` is converted first)."""
 
-    def __init__(self, volume: BlockVolume | AMRCells, method: str):
-        self.method = check_method(method)
+    def __init__(self, volume: BlockVolume | AMRCells, method: str | Reconstruction):
+        self.method = reconstruction_method(method)
         if isinstance(volume, AMRCells):
-            volume = BlockVolume.from_cells(volume, method=method)
+            volume = BlockVolume.from_cells(volume, method=self.method)
         self.volume = volume
-        if method == "tent":                # ghost blocks and neighbours: one probe per stencil
+        if self.method.needs_ghosts:        # ghost blocks and neighbours: one probe per stencil
             ghost_coord, ghost_level, neighbours = volume.stencil_index()
             self.hash = BlockHash(volume, (ghost_coord, ghost_level))
         else:
@@ -84,7 +82,7 @@ class DeviceReconstruction:
         return (self.hash.nbytes + 4 * dr.width(self.neighbours)
                 + (0 if self.shares_values else 4 * dr.width(self.values)))
 
-    def _probe(self, qb: mi.Vector3u, L, probe, active):
+    def probe_block(self, qb: mi.Vector3u, L, probe, active):
         """One linear-probing step for block ``qb`` of level ``L``:
         ``(hit, finished, block index)``."""
         key = pack_key(mi.UInt64(qb.x), mi.UInt64(qb.y), mi.UInt64(qb.z), self.wide)
@@ -98,7 +96,7 @@ class DeviceReconstruction:
         finished = hit | ~active | (k == 0xFFFFFFFFFFFFFFFF) | (probe + 1 >= self.max_probe)
         return hit, finished, dr.gather(mi.UInt32, self.payload, slot, hit)
 
-    def _local(self, q: mi.Vector3u):
+    def cell_slot(self, q: mi.Vector3u):
         """Index of cell ``q`` (level coordinates) inside its block."""
         m = self.block - 1
         return (q.x & m) + self.block * ((q.y & m) + self.block * (q.z & m))
@@ -109,94 +107,25 @@ class DeviceReconstruction:
 
         ``level_bits``: the levels that may contribute at ``x`` (from the
         macrocell grid). Returns ``(value, found)``. Each loop iteration does
-        one probe; a level takes at most ``max_probe`` probes per block
-        (``nearest``: one block; ``tent``: at most 8).
+        one probe, at the level the method picks, and runs the method's body
+        for that level (`Reconstruction.hash_step`); a level takes at most
+        ``max_probe`` probes per block it visits.
         """
-        tent = self.method == "tent"
         limit = float(min(self.hash.coord_limit << self.log2_block, 1 << 31))
-        b3 = self.block ** 3
         remaining = dr.select(active, level_bits, 0)
         probe = mi.UInt32(0)
         # loop state: only what this reconstruction changes (docs/design.md section 6)
-        done = mi.UInt32(0) if tent else 0     # tent: stencil corners handled at this level
-        sum_w = mi.Float(0.0) if tent else 0.0
-        sum_wv = mi.Float(0.0)
-        found = False if tent else mi.Bool(False)
+        state = self.method.hash_state()
         while dr.hint(remaining != 0, label="amr_reconstruct", exclude=[self, x]):
-            if dr.hint(tent, mode="scalar"):
-                L = dr.tzcnt(remaining)
-            else:
-                L = 31 - dr.lzcnt(remaining)       # coarsest first: see the module docstring
+            L = self.method.hash_level(remaining)
             # x / 2^L is exact; fractions stay small numbers so that no
             # sub-cell offset is rounded away near 2^24 (float32 spacing 1)
             xl = x * dr.rcp(mi.Float(mi.UInt32(1) << L))
             fl = dr.floor(xl)
-            frac = xl - fl
-            if dr.hint(tent, mode="scalar"):
-                # Stencil b + {0,1}^3 with b = floor(xl - 1/2); tent weights
-                # (Eq. phi_i, docs/design.md section 3) from t1, the offset
-                # of x from corner 0's centre
-                upper = frac >= 0.5
-                base = fl - dr.select(upper, 0.0, 1.0)
-                t1 = dr.select(upper, frac - 0.5, frac + 0.5)
-                t0 = 1.0 - t1
-                ok_corner = []
-                for c, (dx, dy, dz) in enumerate(CORNERS):
-                    qc = base + mi.Vector3f(dx, dy, dz)
-                    w = (t1.x if dx else t0.x) * (t1.y if dy else t0.y) * (t1.z if dz else t0.z)
-                    ok_corner.append(dr.all((qc >= 0.0) & (qc < limit)) & (w > 0.0))
-                    done |= dr.select(ok_corner[c], 0, 1 << c)
-                need = done != 0xFF
-                # Probe the block of the base cell b (a ghost when it has no
-                # cell but a neighbour does): its upper neighbours hold every
-                # other corner, and no such block means no corner at this
-                # level. At the data's lower edge (b < 0) probe the block of
-                # the first corner not handled yet and take the corners in it.
-                use_base = need & dr.all(base >= 0.0)
-                c0 = dr.tzcnt(~done & 0xFF)
-                q0 = base + mi.Vector3f(mi.Float(c0 & 1), mi.Float((c0 >> 1) & 1), mi.Float((c0 >> 2) & 1))
-                target = dr.select(use_base, base, q0)
-                qb = mi.Vector3u(dr.select(need, target, 0.0)) >> self.log2_block
-                hit, finished, blk = self._probe(qb, L, probe, need)
-                base_local = mi.Vector3u(dr.select(use_base, base, 0.0)) & (self.block - 1)
-                for c, (dx, dy, dz) in enumerate(CORNERS):
-                    qc = base + mi.Vector3f(dx, dy, dz)
-                    qi = mi.Vector3u(dr.select(ok_corner[c], qc, 0.0))
-                    open_c = finished & need & ok_corner[c] & ((done & (1 << c)) == 0)
-                    # from the base block: the neighbour direction of corner c
-                    d = (dr.select(base_local.x + 1 >= self.block, dx, 0)
-                         | dr.select(base_local.y + 1 >= self.block, 2 * dy, 0)
-                         | dr.select(base_local.z + 1 >= self.block, 4 * dz, 0))
-                    via_nb = open_c & use_base & hit & (d != 0)
-                    blk_c = dr.select(via_nb, dr.gather(mi.UInt32, self.neighbours, blk * 7 + d - 1, via_nb), blk)
-                    mine = open_c & (use_base | dr.all((qi >> self.log2_block) == qb))
-                    has = mine & hit & (blk_c < self.n_blocks)      # ghosts and "none" hold no values
-                    w = (t1.x if dx else t0.x) * (t1.y if dy else t0.y) * (t1.z if dz else t0.z)
-                    v = dr.gather(mi.Float, self.values, blk_c * b3 + self._local(qi), has)
-                    use = has & ~dr.isnan(v)
-                    sum_w += dr.select(use, w, 0.0)
-                    sum_wv += dr.select(use, w * v, 0.0)
-                    done |= dr.select(mine, 1 << c, 0)
-                probe = dr.select(finished, 0, probe + 1)
-                level_done = done == 0xFF
-                done = dr.select(level_done, 0, done)
-            else:
-                in_range = dr.all((fl >= 0.0) & (fl < limit))
-                qi = mi.Vector3u(dr.select(in_range, fl, 0.0))
-                hit, level_done, blk = self._probe(qi >> self.log2_block, L, probe, in_range)
-                v = dr.gather(mi.Float, self.values, blk * b3 + self._local(qi), hit)
-                found |= hit & ~dr.isnan(v)
-                sum_wv = dr.select(hit & ~dr.isnan(v), v, sum_wv)
-                probe = dr.select(level_done, 0, probe + 1)
+            level_done, probe, state = self.method.hash_step(self, L, xl, fl, limit, probe, state)
             remaining = dr.select(level_done, remaining & ~(mi.UInt32(1) << L), remaining)
-            if dr.hint(not tent, mode="scalar"):
-                remaining = dr.select(found, 0, remaining)
-        if dr.hint(tent, mode="scalar"):
-            found = sum_w > WEIGHT_EPS
-            value = dr.select(found, sum_wv / dr.maximum(sum_w, WEIGHT_EPS), 0.0)
-        else:
-            value = dr.select(found, sum_wv, 0.0)
-        return value, found
+            remaining = self.method.hash_stop(remaining, state)
+        return self.method.hash_result(state)
 
 
 class HashSampler:

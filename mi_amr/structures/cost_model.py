@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..data.cells import AMRCells
+from ..reconstruction import Reconstruction
 from ..transfer.function import range_majorants_host
 from .macrocell_grid import MacrocellGrid
 from .value_masks import mask_max_alpha_host
@@ -100,7 +101,7 @@ def plan_cost(mu: np.ndarray, plan: GridPlan):
 
 
 def auto_grid(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.0,
-              support: str = "tent", candidates=CANDIDATES, grids: dict | None = None,
+              support: str | Reconstruction = "tent", candidates=CANDIDATES, grids: dict | None = None,
               masks: bool = False, refinements=(1,) + REFINEMENTS):
     """The `GridPlan` of least expected tracking cost per unit of ray
     length in the unit cube, and ``{plan: cost}``.
@@ -125,7 +126,9 @@ def auto_grid(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.
     grids only; one factor f > 1: that one, with the finest candidate as
     the fine level if f R* is not a candidate).
 
-    ``world_scale`` converts local to world length. The value ranges are
+    ``world_scale`` converts local to world length; ``support``: the
+    reconstruction method (name or object) whose supports the value ranges
+    cover (`MacrocellGrid`). The value ranges are
     splatted once at the finest candidate and pooled by powers of two for
     the coarser ones; ``grids``, when given, receives the finest grid
     (``grids[R] = grid``), from which `MacrocellGrid.pooled` makes the

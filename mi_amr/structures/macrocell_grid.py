@@ -22,6 +22,7 @@ from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..memory import grid_bytes, require
 from ..progress import progress
+from ..reconstruction import Reconstruction, reconstruction_method
 from .boxes import expand_boxes
 from .value_masks import ValueBins, value_masks
 
@@ -56,9 +57,11 @@ class MacrocellGrid:
     resolution : int or (3,) ints, optional
         Macrocells per axis (x, y, z). ``None`` picks `default_resolution`;
         a single int is the count along the longest axis.
-    support : {"tent", "nearest"}
-        ``tent`` splats each cell's tent support ``[c - w, c + w]``;
-        ``nearest`` only the cell itself.
+    support : str or Reconstruction
+        The reconstruction method (a name in
+        `mi_amr.reconstruction.METHODS`, or the object): each cell is
+        splatted over its support box (`Reconstruction.support_box`:
+        ``tent`` ``[c - w, c + w]``, ``nearest`` the cell itself).
     chunk : int
         Macrocell entries expanded at once (bounds the build's temporaries).
     memory_limit : float, optional
@@ -69,8 +72,9 @@ class MacrocellGrid:
         `mi_amr.structures.value_masks`), else ``masks`` is None.
     """
 
-    def __init__(self, cells: AMRCells | BlockVolume, resolution=None, support: str = "tent",
+    def __init__(self, cells: AMRCells | BlockVolume, resolution=None, support: str | Reconstruction = "tent",
                  chunk: int = 1 << 20, memory_limit: float | None = None, masks: bool = False):
+        support = reconstruction_method(support)
         lo, hi = cells.bounds
         ext = (hi - lo).astype(np.float64)
         if resolution is None:
@@ -184,7 +188,7 @@ class _RangeSplat:
         """First and last macrocell (``i0``, ``i1``, clipped) that the support
         of cells with lower corners ``qw`` (finest units relative to lo,
         along ``axis``, or all three) overlaps; ``w`` the cell width."""
-        a, b = (qw - 0.5 * w, qw + 1.5 * w) if self.support == "tent" else (qw, qw + w)
+        a, b = self.support.support_box(qw, w)
         top = self.res[axis] - 1
         return (np.clip(np.floor(a * self.scale[axis]), 0, top).astype(np.int64),
                 np.clip(np.floor(b * self.scale[axis]), 0, top).astype(np.int64))

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..memory import BYTES_PER_TREE_ITEM, BYTES_PER_TREE_NODE, BYTES_PER_TREE_PAIR, require
 from ..progress import progress
+from ..reconstruction import Reconstruction, reconstruction_method
 
 
 #: Tent ABR leaves are not split once no side is longer than this many cells
@@ -330,11 +331,12 @@ def _depth(axis, child) -> int:
     return int(best)
 
 
-def exact_value_ranges(tree: RegionTree, bricks, method: str = "tent", own_lists: bool = False,
+def exact_value_ranges(tree: RegionTree, bricks, method: str | Reconstruction = "tent", own_lists: bool = False,
                        chunk: int = 1 << 22):
     """Exact value range of each leaf of ``tree`` (built over boxes in
-    doubled finest units): min/max over the cells whose tent support
-    (``tent``) or cell box (``nearest``) overlaps the leaf's interior.
+    doubled finest units): min/max over the cells whose support box
+    (`Reconstruction.support_box` of ``method``: the tent support for
+    ``tent``, the cell box for ``nearest``) overlaps the leaf's interior.
     Candidate bricks are those whose domain overlaps the leaf: the leaves'
     own lists when the tree was built over the supports of ``method``
     (``own_lists``: the brick domains for ``tent``, the ABRs; the brick
@@ -345,6 +347,7 @@ def exact_value_ranges(tree: RegionTree, bricks, method: str = "tent", own_lists
     leaf gives its own range, of the others only the sub-box of cells that
     reach the leaf is read."""
     from ..device.values import device_values
+    below, above = _support_half_cells(method)
     n = tree.n_leaves
     if own_lists:
         li, b = np.repeat(np.arange(n, dtype=np.uint32), tree.list_count), tree.items
@@ -363,8 +366,7 @@ def exact_value_ranges(tree: RegionTree, bricks, method: str = "tent", own_lists
         "offset": UInt32(bricks.offset.astype(np.uint32)),
         "vmin": Float(bricks.vmin), "vmax": Float(bricks.vmax), "values": values,
         "block": int(bricks.stride[1]),
-        # support reach below / above a cell's lower corner, in half cells
-        "ext": (3, 1) if method == "tent" else (2, 0),
+        "ext": (above, below),          # support reach above / below a cell's lower corner, half cells
     }
     # ranges are folded as order-preserving integer keys of the float values:
     # integer min/max atomics exist on every backend and GPU
@@ -377,6 +379,17 @@ def exact_value_ranges(tree: RegionTree, bricks, method: str = "tent", own_lists
             dr.eval(out_min, out_max)
             bar.update(len(li[s:s + chunk]))
     return _from_order_keys(out_min.numpy()), _from_order_keys(out_max.numpy())
+
+
+def _support_half_cells(method) -> tuple[int, int]:
+    """How far a cell's support reaches below and above its lower corner,
+    in half cells (the region trees count in doubled finest units)."""
+    method = reconstruction_method(method)
+    a, b = method.support_box(0.0, 2.0)             # a cell of two units at 0
+    if a != round(a) or b != round(b):
+        raise ValueError(f"reconstruction {method}: support radius {method.support_radius} "
+                         "is not a multiple of half a cell")
+    return -int(round(a)), int(round(b))
 
 
 def _order_keys(v):
@@ -399,9 +412,10 @@ def _from_order_keys(k: np.ndarray) -> np.ndarray:
 @dr.syntax
 def _fold_pairs(li, b, dev, out_min, out_max):
     """Fold the cells of brick ``b[k]`` that reach leaf ``li[k]`` into the
-    leaf's range: cells ``i`` with ``lo + (i - ext0/2) w < leaf_hi`` and
-    ``lo + (i + 1 + ext1/2) w > leaf_lo`` (doubled units, integer shifts:
-    ``w = 2^level``)."""
+    leaf's range: with ``(e0, e1) = ext``, the reach of a cell's support
+    above and below its lower corner in half cells, cells ``i`` with
+    ``lo + (i - e1/2) w < leaf_hi`` and ``lo + (i + e0/2) w > leaf_lo``
+    (``w = 2^level``; in doubled units, by integer shifts)."""
     Float, Int64, Int32 = type(dev["values"]), type(dev["lo"][0]), type(dev["level"])
     UInt32 = type(li)
     level = Int64(dr.gather(Int32, dev["level"], b))

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..data.cells import AMRCells
 from ..structures.host_reconstruction import HostReconstruction
-from ..data.reconstruction import check_method
+from ..reconstruction import Reconstruction, reconstruction_method
 from ..transfer.function import TransferFunction
 
 #: Default memory limit of the dense reference (sigma_t + albedo), bytes.
@@ -37,7 +37,7 @@ def dense_bytes(cells: AMRCells, resolution=None) -> int:
     return 16 * int(np.prod(dense_shape(cells, resolution)))
 
 
-def resample_dense(cells: AMRCells, method: str = "tent", resolution=None,
+def resample_dense(cells: AMRCells, method: str | Reconstruction = "tent", resolution=None,
                    memory_limit: int = DEFAULT_MEMORY_LIMIT, chunk: int = 1 << 22,
                    device: bool | None = None):
     """Reconstruct the field at the voxel centres of a dense grid covering
@@ -45,7 +45,7 @@ def resample_dense(cells: AMRCells, method: str = "tent", resolution=None,
 
     ``device``: evaluate with the Dr.Jit reconstruction (fast, multi-threaded;
     the default when a JIT variant is active) or with the numpy one."""
-    check_method(method)
+    method = reconstruction_method(method)
     need = dense_bytes(cells, resolution)
     if need > memory_limit:
         nz, ny, nx = dense_shape(cells, resolution)
@@ -82,17 +82,19 @@ def resample_dense(cells: AMRCells, method: str = "tent", resolution=None,
 
 
 def reference_medium(cells: AMRCells, tf: TransferFunction, density_scale: float = 1.0,
-                     method: str = "tent", to_world=None, resolution=None,
+                     method: str | Reconstruction = "tent", to_world=None, resolution=None,
                      memory_limit: int = DEFAULT_MEMORY_LIMIT) -> dict:
     """A ``heterogeneous`` medium dict equivalent to an ``amr`` medium with
     the same data, TF, scale, reconstruction and ``to_world``.
 
+    The ``gridvolume`` filter is the method's (`Reconstruction.grid_filter`):
     ``nearest`` uses ``filter_type="nearest"``, ``tent`` uses trilinear.
     """
+    method = reconstruction_method(method)
     value, found = resample_dense(cells, method, resolution, memory_limit)
     rgba = tf(value)
     rgba[~found] = 0.0
-    filter_type = "nearest" if method == "nearest" else "trilinear"
+    filter_type = method.grid_filter
     from ..plugins.options import as_transform4f
     to_world = as_transform4f(to_world)
 
