@@ -56,8 +56,8 @@ def ratio_tracking(med, o, d, replicas, seed=0, control=False):
     ray = mi.Ray3f(mi.Point3f(O.T.copy()), mi.Vector3f(D.T.copy()))
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
-    T, counts = med.transmittance(ray, mi.Float(np.inf), sampler, mi.Bool(True), control)
-    return T.numpy().reshape(len(o), replicas), counts
+    estimate = med.transmittance(ray, mi.Float(np.inf), sampler, mi.Bool(True), control)
+    return estimate.T.numpy().reshape(len(o), replicas), estimate.counts
 
 
 def grid_majorant_at(med, u):

@@ -36,7 +36,7 @@ def test09_loop_bounds_trigger_finite_and_reported(llvm):
     longest probe, kd descent by the tree depth, brick lists by the longest
     list, the shadow walk by 4096 surfaces."""
     from conftest import volume_scene
-    from mi_amr.device.tracking import span_majorant
+    from mi_amr.device.tracking import LocalRay, SpanMajorant, walk_segments
     from mi_amr.device.ray import intersect_unit_cube, safe_rcp
     cells = constant_cells(16)
     med = mi.load_dict({"type": "amr", "data": cells, "transfer_function": "constant", "density_scale": 0.5,
@@ -55,11 +55,11 @@ def test09_loop_bounds_trigger_finite_and_reported(llvm):
     ray_d = mi.Vector3f(d.T.astype(np.float32))
     hit, t0, t1 = intersect_unit_cube(ray_o, safe_rcp(ray_d))
     seg = med.structures.segments()
-    found, t_first, t_last, mu, cap = span_majorant(seg, ray_o, ray_d, dr.maximum(t0, 0.0), t1, hit, 2,
-                                                    mi.Float(med.global_majorant))
-    assert cap.numpy().all() and found.numpy().all()
-    np.testing.assert_allclose(t_last.numpy(), t1.numpy())
-    np.testing.assert_allclose(mu.numpy(), med.global_majorant)
+    span = walk_segments(seg, LocalRay(o=ray_o, d=ray_d, t_lo=dr.maximum(t0, 0.0), t_hi=t1, scale=mi.Float(1.0)),
+                         hit, SpanMajorant(mi.Float(med.global_majorant)), 2)
+    assert span.capped.numpy().all() and span.found.numpy().all()
+    np.testing.assert_allclose(span.t_last.numpy(), t1.numpy())
+    np.testing.assert_allclose(span.mu.numpy(), med.global_majorant)
     # a whole render with the tiny bound
     scene = mi.load_dict(dict(volume_scene({"type": "amr", "data": cells, "transfer_function": "constant",
                                             "density_scale": 0.5, "grid_resolution": 16, "max_iterations": 4},

@@ -1,34 +1,62 @@
-"""Delta and ratio tracking through local-majorant segments
-(docs/design.md section 5), in one Dr.Jit symbolic loop, optionally with the
-segments' minorants as control extinction (section 5b).
+"""Estimators along local-majorant segments (docs/design.md sections 5 and
+5b), as consumers of one segment walk.
 
-Per segment ``[t0, t1]`` with majorant ``mu``: skip it if ``mu == 0`` (no
-density look-up); otherwise ``t -= ln(1 - xi) / mu`` from ``max(t, t0)``;
-past ``t1`` move on to the next segment; a tentative collision at ``t`` is
-real with probability ``sigma_t / mu`` (delta tracking) or multiplies the
-transmittance by ``1 - sigma_t / mu`` (ratio tracking, with Russian
-roulette once the transmittance falls below `RATIO_RR_THRESHOLD`).
+`walk_segments` is the one loop (the shape of pbrt-v4's ``SampleT_maj``):
+it takes the traversal's segments ``[t0, t1]`` front to back, moves ``t``
+through each, counts its iterations and stops at a bound. What happens in a
+segment is the consumer's: an estimator object built per call, whose
+attributes are per-ray constants and whose changing values live in its own
+typed loop state. It provides
 
-With a control extinction ``mu_c`` (the segment's minorant, ``0 <= mu_c <=
-sigma_t``), only the residual ``sigma_t - mu_c`` is tracked, against
-``mu - mu_c``:
+* ``label``: the name of the Dr.Jit loop (``amr_track``, ``amr_span_majorant``);
+* ``begin(ray, active) -> state``: the initial loop state;
+* ``enter(state, ray, seg, entered, t, seg_end) -> state``: lanes
+  ``entered`` have just taken the segment ``seg`` and stand at ``t`` in
+  ``[seg.t0, seg_end]``;
+* ``step(state, ray, t, seg_end, alive) -> (state, t, alive)``: one move
+  in the current segment, to a collision or to ``seg_end``; ``alive``
+  false ends the lane;
+* ``result(state, ray, end) -> result``: a typed result from the last state
+  and the walk's `WalkEnd`.
 
-* residual ratio tracking (Novak et al. 2014): the transmittance takes the
-  factor ``exp(-mu_c * length)`` of each segment analytically, and each
-  tentative collision (rate ``mu - mu_c``) multiplies it by ``1 - (sigma_t -
-  mu_c) / (mu - mu_c)``;
-* decomposition tracking (Kutz et al. 2017): two exponential clocks run,
-  the control one (rate ``mu_c``) and the residual one (rate ``mu - mu_c``);
-  if the control clock rings first the collision is real with probability
-  one and needs no look-up, otherwise it is real with probability
-  ``(sigma_t - mu_c) / (mu - mu_c)``. A real collision needs the albedo,
-  which for a TF of several colours is itself a look-up: then the control
-  clock would save nothing, and it runs only where the albedo is known
-  without one (``known_albedo``: a TF of one colour; a per-lane flag, so a
-  TF change never changes the kernel).
+The consumers:
 
-With ``mu_c = 0`` both take exactly the random numbers and steps of plain
-delta and ratio tracking: the same image for the same seed.
+* `DeltaTracking` (free flights): per segment ``[t0, t1]`` with majorant
+  ``mu``, skip it if ``mu == 0`` (no density look-up); otherwise ``t -=
+  ln(1 - xi) / mu`` from ``max(t, t0)``; past ``t1`` move on to the next
+  segment; a tentative collision at ``t`` is real with probability
+  ``sigma_t / mu``. Result: `FreeFlight`.
+* `RatioTracking` (shadow rays): the same steps, each multiplying the
+  transmittance by ``1 - sigma_t / mu``, with Russian roulette once it falls
+  below `RATIO_RR_THRESHOLD`. Result: `Transmittance`.
+* `ResidualRatioTracking` (Novak et al. 2014): with the segment's minorant
+  as control extinction ``mu_c`` (``0 <= mu_c <= sigma_t``), the
+  transmittance takes the factor ``exp(-mu_c * length)`` of each segment
+  analytically, and each tentative collision (rate ``mu - mu_c``) multiplies
+  it by ``1 - (sigma_t - mu_c) / (mu - mu_c)``.
+* `DecompositionTracking` (Kutz et al. 2017): two exponential clocks run,
+  the control one (rate ``mu_c``) and the residual one (rate ``mu -
+  mu_c``); if the control clock rings first the collision is real with
+  probability one and needs no look-up, otherwise it is real with
+  probability ``(sigma_t - mu_c) / (mu - mu_c)``. A real collision needs the
+  albedo, which for a TF of several colours is itself a look-up: then the
+  control clock would save nothing, and it runs only where the albedo is
+  known without one (``known_albedo``: a TF of one colour; a per-lane flag,
+  so a TF change never changes the kernel).
+* `SpanMajorant`: no collisions, one segment per iteration; the span of the
+  segments with a non-zero majorant and the largest majorant met (the
+  ray-wise majorant for Mitsuba's stock volpath, docs/design.md section 6).
+  Result: `MajorantSpan`.
+
+With ``mu_c = 0`` the minorant estimators take exactly the random numbers
+and steps of plain delta and ratio tracking: the same image for the same
+seed.
+
+Every loop state holds only what the loop changes (docs/design.md section
+6): read-only names are excluded, per-ray constants are attributes of the
+consumer or of the `LocalRay`, what a consumer never changes (``mu_c``
+without minorants) is a Python constant, and the random numbers come from a
+stream of the consumer's own (`Rng`) rather than from the sampler.
 """
 
 from __future__ import annotations
@@ -41,15 +69,28 @@ from .structs import jit_struct
 
 #: Ratio tracking plays Russian roulette once its transmittance falls below
 #: this: a shadow ray that is mostly blocked stops early, unbiased (it goes
-#: on with probability T / threshold, carrying the threshold). Efficiency
-#: 1.01-1.12x on five 20k benchmark cases (docs/performance/frame-cost.md):
-#: the variance it adds is lost in the rest of the path's.
+#: on with probability T / threshold, carrying the threshold). The variance
+#: it adds is lost in the rest of the path's, and the work it saves is not;
+#: measured in docs/performance/frame-cost.md section 5.
 RATIO_RR_THRESHOLD = 0.5
+
+
+class _Fields:
+    """Keyword construction for a `jit_struct`: every field defaults to
+    None (Dr.Jit makes empty instances and fills them in)."""
+
+    def __init__(self, **values):
+        for name in self.JIT_FIELDS:
+            setattr(self, name, values.pop(name, None))
+        if values:
+            raise TypeError(f"{type(self).__name__}: unknown fields {sorted(values)}")
 
 
 @jit_struct(lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32", capped="UInt32")
 class TrackingCounts:
-    """Per-lane event counts of one tracking call."""
+    """Per-lane event counts of one tracking call: density look-ups, null
+    and real collisions, segments entered, and walks that used all their
+    iterations (``capped``)."""
 
     def __init__(self, lookups=None, null=None, real=None, steps=None, capped=None):
         self.lookups = mi.UInt32(0) if lookups is None else lookups
@@ -64,168 +105,349 @@ class TrackingCounts:
                               self.capped + other.capped)
 
 
-@dr.syntax
-def track_segments(segments, density, o, d, t_lo, t_hi, sampler, active, ratio: bool,
-                   max_iterations, length_scale=1.0, control: bool = False, known_albedo=None):
-    """Track along the local ray ``o + t d`` over ``[t_lo, t_hi]``.
+# ---- The walk -------------------------------------------------------------------
+@jit_struct(o="Point3f", d="Vector3f", t_lo="Float", t_hi="Float", scale="Float")
+class LocalRay(_Fields):
+    """A ray ``o + t d`` in the medium's local space (the unit cube), walked
+    over ``[t_lo, t_hi]``; ``scale``: local ``t`` per world ``t`` (the
+    world ray's point at ``t`` is the local one at ``scale * t``). Majorants
+    and sigma_t are per world length, and the estimators report world ``t``
+    (`world_t`)."""
 
-    ``segments``: a segment walker (`mi_amr.device.segments`); ``sampler``:
-    a Mitsuba sampler or an `Rng`, which seeds the loop's own stream;
-    ``density = (lookup, albedo_of)``: ``lookup(u, active) -> (value,
-    sigma_t)`` at local points, ``albedo_of(value, active) -> rgb`` (called
-    once, after the loop, for the lanes that collided: a null collision needs
-    no colour); majorants and sigma_t are
-    per world length, and ``length_scale`` is local ``t`` per world length.
-    ``control``: use the segments' minorants as control extinction
-    (residual ratio tracking, decomposition tracking); ``known_albedo``: a
-    per-lane flag, set where every value has the same colour (decomposition
-    tracking runs its control clock only then, and ``albedo_of`` colours a
-    control collision from any value). At a control collision the returned
-    sigma_t is the minorant (no look-up is made).
-    Returns ``(collided, t, albedo, sigma_t_or_T, counts)`` (``t`` local):
-    for delta tracking the first real collision (``collided``, its ``t``,
-    albedo and sigma_t); for ratio tracking ``T`` in the 4th slot. The loop
-    stops after ``max_iterations`` iterations (counted in ``counts.capped``).
+    def world_t(self, t):
+        """The world ray's ``t`` of local ``t``."""
+        return t * dr.rcp(dr.select(self.scale > 0.0, self.scale, 1.0))
+
+
+@jit_struct(t="Float", exhausted="Bool", cut="Bool")
+class WalkEnd(_Fields):
+    """Where a walk ended: ``t`` (local), ``exhausted`` where it used all
+    ``max_iterations`` iterations, and ``cut`` where it still had work left
+    then (a walk that ends on its last iteration is exhausted, not cut)."""
+
+
+@dr.syntax
+def walk_segments(segments, ray: LocalRay, active, consumer, max_iterations):
+    """Walk ``consumer`` through the segments of ``ray`` over ``[ray.t_lo,
+    ray.t_hi]`` and return its result.
+
+    ``segments``: a segment walker (`mi_amr.device.segments`); ``consumer``:
+    an estimator (`DeltaTracking`, `DecompositionTracking`, `RatioTracking`,
+    `ResidualRatioTracking`, `SpanMajorant`, or anything with their hooks,
+    see the module docstring). A lane stops when the consumer ends it, when
+    the segments run out, or after ``max_iterations`` iterations.
     """
-    # The loop state holds only what the loop changes (docs/design.md
-    # section 6): what a mode leaves unchanged is a Python constant there,
-    # per-ray constants are excluded, and the random numbers come from a
-    # stream of our own (`Rng`) rather than from the sampler.
-    use_control = control and (ratio or known_albedo is not None)
-    lookup, albedo_of = density
-    state, fixed = segments.begin(o, d, t_lo, t_hi, active)
-    rng = Rng.derive(sampler, active)
-    t = mi.Float(t_lo)
-    seg_end = mi.Float(t_lo)
-    mu = mi.Float(0.0)
-    mu_c = mi.Float(0.0) if use_control else 0.0
-    collided = False if ratio else mi.Bool(False)
-    value = 0.0 if ratio else mi.Float(0.0)     # the value at the real collision
-    result = mi.Float(1.0 if ratio else 0.0)
-    lookups = mi.UInt32(0)
-    n_null = mi.UInt32(0)
-    n_real = 0 if ratio else mi.UInt32(0)
-    steps = mi.UInt32(0)
+    seg_state, fixed = segments.begin(ray.o, ray.d, ray.t_lo, ray.t_hi, active)
+    state = consumer.begin(ray, active)
+    t = mi.Float(ray.t_lo)
+    seg_end = mi.Float(ray.t_lo)
     it = mi.UInt32(0)
-    alive = mi.Bool(active)
-    while dr.hint(alive, label="amr_track",
-                  exclude=[segments, lookup, albedo_of, fixed, o, d, t_hi, max_iterations, length_scale,
-                           known_albedo]):
+    alive = mi.Bool(active) & (ray.t_lo < ray.t_hi)
+    # the loop state: the walker's and the consumer's state, t, the current
+    # segment's end, the iteration count and the live lanes
+    while dr.hint(alive & (it < max_iterations), label=consumer.label,
+                  exclude=[segments, ray, consumer, fixed, max_iterations]):
         # ---- Next segment once the current one is used up ----
         need = alive & (t >= seg_end)
-        state, seg = segments.advance(o, d, state, fixed, t_hi, need)
+        seg_state, seg = segments.advance(ray.o, ray.d, seg_state, fixed, ray.t_hi, need)
         seg_end = dr.select(need, seg.t1, seg_end)
-        mu = dr.select(need, seg.mu, mu)
         t = dr.select(need, dr.maximum(t, seg.t0), t)
-        steps += dr.select(need & seg.valid, 1, 0)
         alive &= ~need | seg.valid
-        if dr.hint(use_control, mode="scalar"):
-            mu_c_new = dr.clip(seg.mu_min, 0.0, seg.mu)
-            if dr.hint(not ratio, mode="scalar"):
-                # no control clock without a known albedo: plain delta tracking
-                mu_c_new = dr.select(known_albedo, mu_c_new, 0.0)
-            mu_c = dr.select(need, mu_c_new, mu_c)
-            if dr.hint(ratio, mode="scalar"):
-                # the control part of this segment's transmittance, analytically
-                enter = need & alive
-                result = dr.select(enter, result * dr.exp(-mu_c * (seg_end - t) * dr.rcp(length_scale)), result)
+        state = consumer.enter(state, ray, seg, need & seg.valid, t, seg_end)
+        # ---- The consumer's move in the segment ----
+        state, t, alive = consumer.step(state, ray, t, seg_end, alive)
+        it += 1
+    # a lane still alive here was stopped by the bound
+    return consumer.result(state, ray, WalkEnd(t=t, exhausted=it >= max_iterations, cut=alive))
 
-        # ---- Tentative collision in the segment (none if mu == 0) ----
-        residual = mu - mu_c
+
+# ---- Tracking estimators ----------------------------------------------------------
+class TentativeCollision:
+    """One move of a tracking estimator in its segment, as its collision
+    hook sees it: ``inside`` where a tentative collision fell in the segment
+    (elsewhere the lane reached the segment's end), ``by_control`` where the
+    control clock rang first (no look-up), ``look`` where the density was
+    looked up, the ``value`` and ``sigma_t`` found there, and the segment's
+    control extinction ``mu_c`` and residual majorant ``residual = mu - mu_c``."""
+
+    __slots__ = ("inside", "by_control", "look", "value", "sigma_t", "mu_c", "residual")
+
+    def __init__(self, inside, by_control, look, value, sigma_t, mu_c, residual):
+        self.inside, self.by_control, self.look = inside, by_control, look
+        self.value, self.sigma_t, self.mu_c, self.residual = value, sigma_t, mu_c, residual
+
+
+class _Tracking:
+    """What the tracking estimators share: a random stream of their own
+    (seeded from ``sampler``: a Mitsuba sampler or a parent `Rng`), the
+    segment's majorant in the loop state, and tentative collisions at the
+    residual rate ``mu - mu_c`` with a density look-up at each.
+
+    ``lookup(u, active) -> (value, sigma_t)`` at local points (sigma_t per
+    world length). Subclasses provide the initial state (`begin`), the
+    collision hook (`collide`) and the result."""
+
+    label = "amr_track"
+
+    def __init__(self, lookup, sampler):
+        self.lookup = lookup
+        self.sampler = sampler
+
+    def control(self, state):
+        """The current segment's control extinction ``mu_c``: none here, a
+        Python constant (no loop variable)."""
+        return 0.0
+
+    def enter(self, state, ray, seg, entered, t, seg_end):
+        """The walk's hook: the new segment's majorant, one more step."""
+        state.mu = dr.select(entered, seg.mu, state.mu)
+        state.steps += dr.select(entered, 1, 0)
+        return state
+
+    def clocks(self, state, ray, t, mu_c, residual, alive):
+        """``(t_c, by_control)``: the next tentative collision (``inf``
+        where there is none: ``residual == 0``) and where the control clock
+        set it (never here)."""
         go = alive & (residual > 0.0)
-        xi = rng.next_1d(go)
-        t_c = t - dr.log(1.0 - xi) * dr.rcp(dr.select(go, residual, 1.0)) * length_scale
-        t_c = dr.select(go, t_c, float("inf"))
-        by_control = mi.Bool(False)
-        if dr.hint(control and not ratio and known_albedo is not None, mode="scalar"):
-            # decomposition tracking: the control clock (rate mu_c) may ring first
-            ctl = alive & (mu_c > 0.0)
-            xi_c = rng.next_1d(ctl)
-            t_ctl = t - dr.log(1.0 - xi_c) * dr.rcp(dr.select(ctl, mu_c, 1.0)) * length_scale
-            by_control = ctl & (t_ctl < t_c)
-            t_c = dr.select(by_control, t_ctl, t_c)
+        xi = state.rng.next_1d(go)
+        # t -= ln(1 - xi) / (mu - mu_c), rates per world length, t local
+        t_c = t - dr.log(1.0 - xi) * dr.rcp(dr.select(go, residual, 1.0)) * ray.scale
+        return dr.select(go, t_c, float("inf")), mi.Bool(False)
+
+    @dr.syntax
+    def step(self, state, ray, t, seg_end, alive):
+        """The walk's hook: the next tentative collision in the segment (or
+        its end), the density there, then the estimator's `collide`."""
+        mu_c = self.control(state)
+        residual = state.mu - mu_c
+        t_c, by_control = self.clocks(state, ray, t, mu_c, residual, alive)
         inside = alive & (t_c < seg_end)
         by_control &= inside
         t = dr.select(inside, t_c, dr.select(alive, seg_end, t))
         look = inside & ~by_control
-        v = mi.Float(0.0)
+        value = mi.Float(0.0)
         sigma_t = mi.Float(0.0)
-        x = o + d * t
+        lookup = self.lookup
+        x = ray.o + ray.d * t
         if dr.hint(look, exclude=[lookup, x]):
             # a symbolic conditional: a SIMD packet in which no lane looks
             # up the density (all stepping through segments) skips it
-            v, sigma_t = lookup(x, look)
-        lookups += dr.select(look, 1, 0)
-        excess = sigma_t - mu_c
-        inv_res = dr.rcp(dr.select(residual > 0.0, residual, 1.0))
-        if dr.hint(ratio, mode="scalar"):
-            # (Residual) ratio tracking: T *= 1 - (sigma_t - mu_c) / (mu - mu_c)
-            result = dr.select(inside, result * dr.maximum(1.0 - excess * inv_res, 0.0), result)
-            n_null += dr.select(inside, 1, 0)
-            # Russian roulette below RATIO_RR_THRESHOLD: go on with probability
-            # T / threshold and T = threshold, else stop with T = 0 (unbiased)
-            low = inside & (result < RATIO_RR_THRESHOLD)
-            survive = rng.next_1d(low) * RATIO_RR_THRESHOLD < result
-            result = dr.select(low, dr.select(survive, RATIO_RR_THRESHOLD, 0.0), result)
-            alive &= result > 0.0
-        else:
-            # Delta / decomposition tracking: real with probability
-            # (sigma_t - mu_c) / (mu - mu_c), or 1 at a control collision
-            accept = by_control | (look & (rng.next_1d(look) * residual < excess))
-            collided |= accept
-            if dr.hint(known_albedo is not None, mode="scalar"):
-                sigma_t = dr.select(by_control, mu_c, sigma_t)
-            value = dr.select(accept & ~by_control, v, value)
-            result = dr.select(accept, sigma_t, result)
-            n_null += dr.select(inside & ~accept, 1, 0)
-            n_real += dr.select(accept, 1, 0)
-            alive &= ~accept
-        it += 1
-        capped = alive & (it >= max_iterations)
-        alive &= ~capped
-    counts = TrackingCounts(lookups, n_null, mi.UInt32(n_real), steps, dr.select(it >= max_iterations, 1, 0))
-    if dr.hint(ratio, mode="scalar"):
-        return mi.Bool(collided), t, mi.Color3f(0.0), result, counts
-    # a control collision happens only where the colour is known (one
-    # colour for every value), so the value left there colours it too
-    return collided, t, albedo_of(value, collided), result, counts
+            value, sigma_t = lookup(x, look)
+        state.lookups += dr.select(look, 1, 0)
+        state, alive = self.collide(state, TentativeCollision(inside, by_control, look, value, sigma_t, mu_c,
+                                                              residual), alive)
+        return state, t, alive
 
 
-@dr.syntax
-def span_majorant(segments, o, d, t_lo, t_hi, active, max_steps, global_mu):
-    """Walk all segments over ``[t_lo, t_hi]`` and return ``(found, t_first,
-    t_last, mu_max, capped)``: the span from the start of the first to the
-    end of the last segment with a non-zero majorant, and the largest
-    majorant met (the "ray-wise" majorant for Mitsuba's stock volpath,
-    docs/design.md section 6).
+@jit_struct(rng=Rng, mu="Float", collided="Bool", value="Float", sigma_t="Float",
+            lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32")
+class DeltaState(_Fields):
+    """Loop state of `DeltaTracking`: the stream, the segment's majorant,
+    the real collision so far (its value and sigma_t) and the counts."""
 
-    At most ``max_steps`` segments are visited. A walk cut short there
-    (``capped``) falls back to a conservative answer: the span runs on to
-    ``t_hi`` with the global majorant ``global_mu``.
-    """
-    state, fixed = segments.begin(o, d, t_lo, t_hi, active)
-    found = mi.Bool(False)
-    t_first = mi.Float(t_hi)
-    t_last = mi.Float(t_lo)
-    t_seen = mi.Float(t_lo)
-    mu_max = mi.Float(0.0)
-    it = mi.UInt32(0)
-    capped = mi.Bool(False)
-    alive = mi.Bool(active) & (t_lo < t_hi)
-    while dr.hint(alive, label="amr_span_majorant", exclude=[segments, fixed, o, d, t_hi, max_steps, global_mu]):
-        state, seg = segments.advance(o, d, state, fixed, t_hi, alive)
-        nonzero = seg.valid & (seg.mu > 0.0)
-        t_first = dr.select(nonzero & ~found, seg.t0, t_first)
-        t_last = dr.select(nonzero, seg.t1, t_last)
-        t_seen = dr.select(seg.valid, seg.t1, t_seen)
-        mu_max = dr.select(seg.valid, dr.maximum(mu_max, seg.mu), mu_max)
-        found |= nonzero
-        it += 1
-        alive &= seg.valid & (seg.t1 < t_hi)
-        capped |= alive & (it >= max_steps)
-        alive &= ~capped
-    t_first = dr.select(capped & ~found, t_seen, t_first)
-    t_last = dr.select(capped, t_hi, t_last)
-    mu_max = dr.select(capped, dr.maximum(mu_max, global_mu), mu_max)
-    found |= capped & (global_mu > 0.0)
-    return found, t_first, t_last, mu_max, capped
+
+@jit_struct(collided="Bool", t="Float", albedo="Color3f", sigma_t="Float", counts=TrackingCounts)
+class FreeFlight(_Fields):
+    """Result of a free flight: ``collided`` where a real collision
+    happened, at the world ray's ``t`` (`LocalRay.world_t`; where none
+    happened, where the walk ended), with its ``albedo`` and ``sigma_t``;
+    and the counts."""
+
+
+class DeltaTracking(_Tracking):
+    """Delta tracking: the first real collision.
+
+    ``albedo_of(value, active) -> rgb`` is called once, after the loop, for
+    the lanes that collided (a null collision needs no colour)."""
+
+    def __init__(self, lookup, albedo_of, sampler):
+        super().__init__(lookup, sampler)
+        self.albedo_of = albedo_of
+
+    def begin(self, ray, active):
+        return DeltaState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), collided=mi.Bool(False),
+                          value=mi.Float(0.0), sigma_t=mi.Float(0.0), lookups=mi.UInt32(0),
+                          null=mi.UInt32(0), real=mi.UInt32(0), steps=mi.UInt32(0))
+
+    def real_sigma_t(self, c: TentativeCollision):
+        """sigma_t reported at a real collision: the one looked up."""
+        return c.sigma_t
+
+    def collide(self, state, c: TentativeCollision, alive):
+        # real with probability (sigma_t - mu_c) / (mu - mu_c), or 1 at a
+        # control collision
+        excess = c.sigma_t - c.mu_c
+        accept = c.by_control | (c.look & (state.rng.next_1d(c.look) * c.residual < excess))
+        state.collided |= accept
+        state.value = dr.select(accept & ~c.by_control, c.value, state.value)
+        state.sigma_t = dr.select(accept, self.real_sigma_t(c), state.sigma_t)
+        state.null += dr.select(c.inside & ~accept, 1, 0)
+        state.real += dr.select(accept, 1, 0)
+        return state, alive & ~accept
+
+    def result(self, state, ray, end: WalkEnd) -> FreeFlight:
+        counts = TrackingCounts(state.lookups, state.null, state.real, state.steps,
+                                dr.select(end.exhausted, 1, 0))
+        return FreeFlight(collided=state.collided, t=ray.world_t(end.t),
+                          albedo=self.albedo_of(state.value, state.collided), sigma_t=state.sigma_t, counts=counts)
+
+
+@jit_struct(**DeltaState.JIT_FIELDS, mu_c="Float")
+class DecompositionState(DeltaState):
+    """Loop state of `DecompositionTracking`: `DeltaState` and the
+    segment's control extinction."""
+
+
+class DecompositionTracking(DeltaTracking):
+    """Decomposition tracking against the segments' minorants, where
+    ``known_albedo`` (a per-lane flag) says every value has the same colour;
+    plain delta tracking elsewhere. A control collision makes no look-up and
+    reports ``mu_c`` as its sigma_t; the value left in the state colours it
+    (any value has that one colour)."""
+
+    def __init__(self, lookup, albedo_of, sampler, known_albedo):
+        super().__init__(lookup, albedo_of, sampler)
+        self.known_albedo = known_albedo
+
+    def begin(self, ray, active):
+        return DecompositionState(**vars(super().begin(ray, active)), mu_c=mi.Float(0.0))
+
+    def control(self, state):
+        return state.mu_c
+
+    def enter(self, state, ray, seg, entered, t, seg_end):
+        state = super().enter(state, ray, seg, entered, t, seg_end)
+        # no control clock without a known albedo: plain delta tracking there
+        mu_c = dr.select(self.known_albedo, dr.clip(seg.mu_min, 0.0, seg.mu), 0.0)
+        state.mu_c = dr.select(entered, mu_c, state.mu_c)
+        return state
+
+    def clocks(self, state, ray, t, mu_c, residual, alive):
+        t_c, _ = super().clocks(state, ray, t, mu_c, residual, alive)
+        # the control clock (rate mu_c) may ring first
+        ctl = alive & (mu_c > 0.0)
+        xi_c = state.rng.next_1d(ctl)
+        t_ctl = t - dr.log(1.0 - xi_c) * dr.rcp(dr.select(ctl, mu_c, 1.0)) * ray.scale
+        by_control = ctl & (t_ctl < t_c)
+        return dr.select(by_control, t_ctl, t_c), by_control
+
+    def real_sigma_t(self, c: TentativeCollision):
+        return dr.select(c.by_control, c.mu_c, c.sigma_t)
+
+
+@jit_struct(rng=Rng, mu="Float", T="Float", lookups="UInt32", null="UInt32", steps="UInt32")
+class RatioState(_Fields):
+    """Loop state of `RatioTracking`: the stream, the segment's majorant,
+    the transmittance so far and the counts."""
+
+
+@jit_struct(T="Float", counts=TrackingCounts)
+class Transmittance(_Fields):
+    """Result of a transmittance estimate: ``T`` and the counts (``real``
+    is 0: ratio tracking has no real collisions)."""
+
+
+class RatioTracking(_Tracking):
+    """Ratio tracking with Russian roulette below `RATIO_RR_THRESHOLD`."""
+
+    def begin(self, ray, active):
+        return RatioState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), T=mi.Float(1.0),
+                          lookups=mi.UInt32(0), null=mi.UInt32(0), steps=mi.UInt32(0))
+
+    def collide(self, state, c: TentativeCollision, alive):
+        # T *= 1 - (sigma_t - mu_c) / (mu - mu_c) at every tentative collision
+        excess = c.sigma_t - c.mu_c
+        inv_res = dr.rcp(dr.select(c.residual > 0.0, c.residual, 1.0))
+        state.T = dr.select(c.inside, state.T * dr.maximum(1.0 - excess * inv_res, 0.0), state.T)
+        state.null += dr.select(c.inside, 1, 0)
+        # Russian roulette below RATIO_RR_THRESHOLD: go on with probability
+        # T / threshold and T = threshold, else stop with T = 0 (unbiased)
+        low = c.inside & (state.T < RATIO_RR_THRESHOLD)
+        survive = state.rng.next_1d(low) * RATIO_RR_THRESHOLD < state.T
+        state.T = dr.select(low, dr.select(survive, RATIO_RR_THRESHOLD, 0.0), state.T)
+        return state, alive & (state.T > 0.0)
+
+    def result(self, state, ray, end: WalkEnd) -> Transmittance:
+        counts = TrackingCounts(state.lookups, state.null, mi.UInt32(0), state.steps,
+                                dr.select(end.exhausted, 1, 0))
+        return Transmittance(T=state.T, counts=counts)
+
+
+@jit_struct(**RatioState.JIT_FIELDS, mu_c="Float")
+class ResidualRatioState(RatioState):
+    """Loop state of `ResidualRatioTracking`: `RatioState` and the
+    segment's control extinction."""
+
+
+class ResidualRatioTracking(RatioTracking):
+    """Residual ratio tracking against the segments' minorants."""
+
+    def begin(self, ray, active):
+        return ResidualRatioState(**vars(super().begin(ray, active)), mu_c=mi.Float(0.0))
+
+    def control(self, state):
+        return state.mu_c
+
+    def enter(self, state, ray, seg, entered, t, seg_end):
+        state = super().enter(state, ray, seg, entered, t, seg_end)
+        state.mu_c = dr.select(entered, dr.clip(seg.mu_min, 0.0, seg.mu), state.mu_c)
+        # the control part of this segment's transmittance, analytically
+        state.T = dr.select(entered, state.T * dr.exp(-state.mu_c * (seg_end - t) * dr.rcp(ray.scale)), state.T)
+        return state
+
+
+# ---- The ray-wise majorant ----------------------------------------------------------
+@jit_struct(found="Bool", t_first="Float", t_last="Float", t_seen="Float", mu_max="Float")
+class SpanState(_Fields):
+    """Loop state of `SpanMajorant`: whether a non-zero majorant was met,
+    from where to where, the end of the last segment seen and the largest
+    majorant."""
+
+
+@jit_struct(found="Bool", t_first="Float", t_last="Float", mu="Float", capped="Bool")
+class MajorantSpan(_Fields):
+    """Result of `SpanMajorant`: ``found`` where the span holds a non-zero
+    majorant, the span ``[t_first, t_last]`` (the world ray's ``t``,
+    `LocalRay.world_t`), its majorant ``mu``, and ``capped`` where the walk
+    was cut short (then the span runs on to ``t_hi`` with at least the
+    global majorant)."""
+
+
+class SpanMajorant:
+    """The span from the start of the first to the end of the last segment
+    with a non-zero majorant, and the largest majorant met.
+
+    The walk's bound (its ``max_iterations``: one segment per iteration) is
+    a number of segments; a walk cut short there falls back to a
+    conservative answer: the span runs on to ``t_hi`` with the global
+    majorant ``global_mu``."""
+
+    label = "amr_span_majorant"
+
+    def __init__(self, global_mu):
+        self.global_mu = global_mu
+
+    def begin(self, ray, active):
+        return SpanState(found=mi.Bool(False), t_first=mi.Float(ray.t_hi), t_last=mi.Float(ray.t_lo),
+                         t_seen=mi.Float(ray.t_lo), mu_max=mi.Float(0.0))
+
+    def enter(self, state, ray, seg, entered, t, seg_end):
+        nonzero = entered & (seg.mu > 0.0)
+        state.t_first = dr.select(nonzero & ~state.found, seg.t0, state.t_first)
+        state.t_last = dr.select(nonzero, seg.t1, state.t_last)
+        state.t_seen = dr.select(entered, seg.t1, state.t_seen)
+        state.mu_max = dr.select(entered, dr.maximum(state.mu_max, seg.mu), state.mu_max)
+        state.found |= nonzero
+        return state
+
+    def step(self, state, ray, t, seg_end, alive):
+        # no collisions: on to the segment's end, the last one at t_hi
+        return state, dr.select(alive, seg_end, t), alive & (seg_end < ray.t_hi)
+
+    def result(self, state, ray, end: WalkEnd) -> MajorantSpan:
+        cut = end.cut
+        return MajorantSpan(found=state.found | (cut & (self.global_mu > 0.0)),
+                            t_first=ray.world_t(dr.select(cut & ~state.found, state.t_seen, state.t_first)),
+                            t_last=ray.world_t(dr.select(cut, ray.t_hi, state.t_last)),
+                            mu=dr.select(cut, dr.maximum(state.mu_max, self.global_mu), state.mu_max),
+                            capped=cut)

@@ -29,6 +29,10 @@ MAX_SHADOW_CROSSINGS = 4096
 #: stopped loops and crossings of an amr medium (transmittance estimates).
 COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped",
                  "shadow_lookups", "shadow_steps", "shadow_capped", "shadow_crossings")
+#: The parameters ``amrvolpath`` accepts (the README's table and the
+#: docstring's are tested against this set: tests/test_docs.py).
+KNOWN = {"max_depth", "rr_depth", "hide_emitters", "counters",
+         "residual_ratio_tracking", "decomposition_tracking"}
 
 
 def _mitsuba_helpers():
@@ -68,8 +72,9 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
          minorant; the minorant's part of the transmittance is exact.
          Default: per medium, on where its minorants carry at least half of
          its majorants at load (``minorants_pay``), where it pays; off
-         elsewhere, where it costs about 10% of frame time. With zero minorants
-         it is plain ratio tracking.
+         elsewhere, where each segment's minorant costs more frame time than
+         it saves (docs/performance/minorants.md). With zero minorants it is
+         plain ratio tracking.
      * - decomposition_tracking
        - |bool|
        - Free flights sample collisions with the minorant analytically
@@ -81,8 +86,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
     def __init__(self, props: mi.Properties):
         require_jit_rgb_variant("the 'amrvolpath' integrator")
         type(self).__base__.__init__(self, props)
-        check_known(props, "amrvolpath", {"max_depth", "rr_depth", "hide_emitters", "counters",
-                                          "residual_ratio_tracking", "decomposition_tracking"})
+        check_known(props, "amrvolpath", KNOWN)
         md = get_int(props, "amrvolpath", "max_depth", -1)
         if md < -1:
             raise ParameterError(f"amrvolpath: max_depth must be -1 (infinite) or >= 0, got {md}")
@@ -191,11 +195,11 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             for k in range(len(amr_media)):
                 is_k = active_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.decomposition, amr_media[k])
-                hit, t, albedo, sigma_t, c = amr_media[k].free_flight(ray, si.t, rng, is_k, control)
-                counts = counts + c
-                real = is_k & hit
-                mei[real] = self._medium_interaction(ray, t, albedo, sigma_t, amr_ptrs[k])
-                throughput[real] *= albedo               # sigma_s / sigma_t
+                flight = amr_media[k].free_flight(ray, si.t, rng, is_k, control)
+                counts = counts + flight.counts
+                real = is_k & flight.collided
+                mei[real] = self._medium_interaction(ray, flight, amr_ptrs[k])
+                throughput[real] *= flight.albedo        # sigma_s / sigma_t
                 act_scatter |= real
 
             # ---- other media: Mitsuba's sample_interaction, as in volpath ----
@@ -298,18 +302,19 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         return L, valid_ray, []
 
     @staticmethod
-    def _medium_interaction(ray, t, albedo, sigma_t, ptr):
+    def _medium_interaction(ray, flight, ptr):
+        """The interaction at a free flight's real collision (`FreeFlight`)."""
         mei = dr.zeros(mi.MediumInteraction3f)
-        mei.t = t
-        mei.p = ray(t)
+        mei.t = flight.t
+        mei.p = ray(flight.t)
         mei.wi = -ray.d
         mei.sh_frame = mi.Frame3f(mei.wi)
         mei.time = ray.time
         mei.wavelengths = ray.wavelengths
         mei.medium = ptr
-        mei.sigma_t = mi.Color3f(sigma_t)
-        mei.sigma_s = albedo * sigma_t
-        mei.combined_extinction = mi.Color3f(sigma_t)
+        mei.sigma_t = mi.Color3f(flight.sigma_t)
+        mei.sigma_s = flight.albedo * flight.sigma_t
+        mei.combined_extinction = mi.Color3f(flight.sigma_t)
         return mei
 
     @dr.syntax
@@ -347,10 +352,11 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             for k in range(len(amr_media)):
                 is_k = in_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.residual, amr_media[k])
-                Tk, c = amr_media[k].transmittance(ray, seg, rng, is_k, control)
+                estimate = amr_media[k].transmittance(ray, seg, rng, is_k, control)
+                c = estimate.counts
                 c.real = mi.UInt32(dr.select(is_k, 1, 0))      # shadow counts: crossings
                 counts = counts + c
-                T[is_k] *= Tk
+                T[is_k] *= estimate.T
             if dr.hint(has_other, mode="scalar"):
                 is_other = in_medium
                 for p in amr_ptrs:
