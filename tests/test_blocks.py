@@ -180,9 +180,10 @@ def test08_a_medium_from_a_file_keeps_only_blocks(llvm, tmp_path):
     assert isinstance(med.volume, BlockVolume) and med.structures._given_cells is None
     # brick structures build from the blocks, level by level, and keep no per-cell records
     bricked = mi.load_dict({"type": "amr", "filename": str(path), "traversal": "brick", "sampling": "brick"})
-    cache = bricked.volume.__dict__.get("_mi_amr_cache", {})
-    assert "bricks" in bricked.structures.host and cache
-    assert not any(isinstance(v, mi_amr.AMRCells) for v in cache.values())
+    from mi_amr.structures.cache import HOST_CACHE
+    cached = [HOST_CACHE.peek(bricked.volume, k) for k in HOST_CACHE.keys(bricked.volume)]
+    assert "bricks" in bricked.structures.host and cached
+    assert not any(isinstance(v, mi_amr.AMRCells) for v in cached)
     assert med.volume.nbytes / len(med.volume) < 4.1
     # besides the blocks: the macrocell grid, and the block hash with (tent)
     # ghost blocks and each block's 7 upper neighbours, small beside the

@@ -106,10 +106,10 @@ def test01b_device_tables_do_not_alias_the_callers_arrays(variant):
     the majorants always match the table the kernels read."""
     tf = mi_amr.TransferFunction.preset("spiky", (0.0, 1.0))
     medium = amr_medium(amr_scene("amrvolpath", transfer_function=tf))
-    table, param = medium.tf_device.rgba.numpy().copy(), medium._tf_rgba.numpy().copy()
+    table, param = medium.tf_device.rgba.numpy().copy(), medium.classification.tf_rgba.numpy().copy()
     tf.rgba[:, 3] = 1.0
     np.testing.assert_array_equal(medium.tf_device.rgba.numpy(), table)
-    np.testing.assert_array_equal(medium._tf_rgba.numpy(), param)
+    np.testing.assert_array_equal(medium.classification.tf_rgba.numpy(), param)
     medium.set_transfer_function(tf)
     assert medium.tf_device.rgba.numpy()[3::4].min() == 1.0
     tf.rgba[:, 3] = 0.0
@@ -237,7 +237,7 @@ def test05_plugins_follow_the_variant_active_at_instantiation(tmp_path):
                                    {"type": "tabphase", "values": "0.4, 1.0, 1.8"},
                                    {"type": "blendphase", "weight": 0.4, "phase1": {"type": "isotropic"},
                                     "phase2": {"type": "hg", "g": -0.5}}])
-def test05_every_phase_function_agrees_with_volpath(llvm, phase):
+def test06_every_phase_function_agrees_with_volpath(llvm, phase):
     """amrvolpath draws the path's numbers from its own stream (independent
     sampler) while the phase function context still names the sampler: every
     built-in phase function but the refused microflake ones gives the image

@@ -16,13 +16,13 @@ import mitsuba as mi
 import numpy as np
 
 from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
-from ..device.structs import owned
-from ..device.tracking import span_majorant, track_segments
+from ..device.tracking import (DecompositionTracking, DeltaTracking, FreeFlight, LocalRay, RatioTracking,
+                               ResidualRatioTracking, SpanMajorant, Transmittance, walk_segments)
 from ..params import ParameterError
 from ..pipeline import Structures
-from ..transfer.device import DeviceTransferFunction
+from ..transfer.classification import Classification
 from ..transfer.function import TransferFunction
-from .options import check_density_scale, parse_medium_options
+from .options import parse_medium_options
 from .variant_class import VariantPlugin
 
 
@@ -97,25 +97,28 @@ def live_media() -> int:
 
 #: ``amrvolpath`` uses residual ratio and decomposition tracking on a medium
 #: (unless told otherwise) when its minorants carry at least this share of
-#: its majorants at load (volume-weighted): measured in
-#: docs/performance/minorants.md, they cost about 10% of frame time where the
-#: share is below 0.4 and gain up to 1.7x where it is near 1.
+#: its majorants at load (volume-weighted). Every segment pays for its
+#: minorant (a gather and an exponential), and what that buys, look-ups and
+#: variance, grows with the minorants' share: they pay where it is large and
+#: cost frame time where it is small (timings: docs/performance/minorants.md,
+#: "2026-12-01: timed pass by pass, and the per-medium default").
 MINORANTS_PAY_FRACTION = 0.5
 
 #: Settings that cannot be made as efficient as Mitsuba's own heterogeneous
-#: medium, and why (docs/performance/settings.md); the medium warns once per
-#: process when one is chosen.
+#: medium, and why; the medium warns once per process when one is chosen.
+#: The measured efficiencies are in docs/performance/settings.md, which the
+#: warnings cite rather than copy.
 SLOW_SETTINGS = {
     ("majorant", "global"): (
-        "majorant='global' tracks with one majorant, as Mitsuba's heterogeneous medium does, but an "
-        "AMR density look-up (a hash probe per level) costs more than a dense texture fetch, so it "
-        "runs at 0.45-1.04x of that medium's efficiency; majorant='ray' (the default) skips empty "
-        "space (0.7-18x in volpath; amrvolpath, with segment-wise majorants, 1.7-21x)"),
+        "majorant='global' tracks with one majorant, as Mitsuba's heterogeneous medium does, so it "
+        "makes as many density look-ups, and an AMR look-up (a hash probe per level) costs more than "
+        "a dense texture fetch: it is at best as efficient as that medium. majorant='ray' (the "
+        "default) skips empty space and is faster (figures: docs/performance/settings.md)"),
     ("traversal", "kdtree"): (
         "traversal='kdtree' re-descends the SAH kd-tree from its root at every segment (about 12 "
-        "levels for 4096 leaves), which costs more than the look-ups its leaves save on most data "
-        "(0.4-3.5x of the heterogeneous medium's efficiency); traversal='grid' (the default) runs "
-        "at 1.7-21x"),
+        "levels for 4096 leaves), which costs more than the look-ups its leaves save on most data; "
+        "traversal='grid' (the default) is faster on every benchmark data set (figures: "
+        "docs/performance/settings.md)"),
 }
 _WARNED: set = set()
 
@@ -248,22 +251,20 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         _warn_slow_settings(options)
         _LIVE.add(self)
         self.options = options
-        self.tf = options.tf
-        self.density_scale = options.density_scale
         self.majorant_mode = options.majorant
 
         # ---- Dr.Jit state (direct attributes and structs: dr.freeze sees them) ----
         self._to_local = mi.Transform4f(options.to_world.inverse())
-        self._scale = mi.Float(self.density_scale)
         self._max_iterations = mi.UInt32(options.max_iterations)
-        self._tf_rgba = owned(mi.Float, self.tf.rgba)     # not the TF's memory: structs.owned
-        self._tf_domain = mi.Float(self.tf.domain)
-        dr.make_opaque(self._to_local, self._scale, self._max_iterations, self._tf_rgba, self._tf_domain)
-        self.tf_device = DeviceTransferFunction(self.tf)
-        self.structures = Structures(options.data, options.structures, self.tf, self.density_scale,
-                                     options.world_scale)
+        dr.make_opaque(self._to_local, self._max_iterations)
+        # the one owner of the TF and the density scale: every change goes
+        # through it and then reclassifies the structures
+        self.classification = Classification(options.tf, options.density_scale)
+        self.structures = Structures(options.data, options.structures, self.classification,
+                                     options.world_scale).build()
+        self.classification.on_change = self.structures.reclassify
         self._ray_majorant = _RayMajorant()
-        self.update_majorants()
+        self.structures.update_majorants()
         # whether amrvolpath's minorant estimators pay on these data (decided
         # once, with the TF given at load: a later TF change compiles nothing)
         self.minorant_fraction = self.structures.minorant_fraction()
@@ -280,6 +281,21 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         """The data as per-cell records (`AMRCells`): the object given as
         ``data``, or made from the blocks on first use (small data only)."""
         return self.structures.cells
+
+    @property
+    def tf(self) -> TransferFunction:
+        """The transfer function (host form; `classification` owns it)."""
+        return self.classification.tf
+
+    @property
+    def density_scale(self) -> float:
+        """Extinction of opacity 1, inverse world units (`classification` owns it)."""
+        return self.classification.density_scale
+
+    @property
+    def tf_device(self):
+        """The TF tables the kernels read (`classification` owns them)."""
+        return self.classification.device
 
     @property
     def reconstruction(self) -> str:
@@ -327,28 +343,26 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         return self.structures.grid.effective_majorants()
 
     def update_majorants(self):
-        """Recompute every majorant from the value ranges, TF and scale."""
-        self.structures.update_majorants(self.tf_device, self._scale)
+        """Recompute every majorant from the value ranges and the classification."""
+        self.structures.update_majorants()
 
     # ---- Density ----------------------------------------------------------------
     def eval_local(self, u: mi.Vector3f, active=True):
         """``(albedo, sigma_t)`` at local point ``u`` (unit cube); sigma_t in
         inverse world units, 0 outside the data or where no value exists."""
         value, found = self.structures.sampler().eval(u, active)
-        rgb, alpha = self.tf_device.eval(value, found)
-        return rgb, dr.select(found, self._scale * alpha, 0.0)
+        return self.classification.albedo_and_sigma_t(value, found)
 
     def value_local(self, u: mi.Vector3f, active=True):
         """``(value, sigma_t)`` at local point ``u``: the reconstructed value
         and sigma_t as in `eval_local`, without the colour (tracking takes
         the albedo of its one real collision from the value, `albedo_of`)."""
         value, found = self.structures.sampler().eval(u, active)
-        alpha = self.tf_device.eval_alpha(value, found)
-        return value, dr.select(found, self._scale * alpha, 0.0)
+        return value, self.classification.sigma_t(value, found)
 
     def albedo_of(self, value, active=True):
         """The TF's colour (the albedo) at ``value``."""
-        return self.tf_device.eval_rgb(value, active)
+        return self.classification.device.eval_rgb(value, active)
 
     # ---- Local-majorant tracking (used by the amrvolpath integrator) ---------
     def local_ray(self, ray: mi.Ray3f):
@@ -364,47 +378,50 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         s = m * dr.norm(d * dr.rcp(m))
         return o, flush_tiny(d * dr.rcp(s)), s
 
-    def free_flight(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active, control: bool = False):
+    def free_flight(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False) -> FreeFlight:
         """Delta tracking through local-majorant segments along ``ray`` up to
         ``t_max`` (decomposition tracking against the minorants with
-        ``control``). Returns ``(collided, t, albedo, sigma_t, counts)``."""
-        return self._track(ray, t_max, sampler, active, ratio=False, control=control)
+        ``control``): a `FreeFlight`, its ``t`` in world units along ``ray``.
+        ``sampler``: a Mitsuba sampler or an `Rng`, which seeds the
+        tracking's own random stream."""
+        if control:
+            tracking = DecompositionTracking(self.value_local, self.albedo_of, sampler,
+                                             self.tf_device.rgb_constant)
+        else:
+            tracking = DeltaTracking(self.value_local, self.albedo_of, sampler)
+        return self._track(ray, t_max, active, tracking)
 
-    def transmittance(self, ray: mi.Ray3f, t_max, sampler: mi.Sampler, active, control: bool = False):
+    def transmittance(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False) -> Transmittance:
         """Ratio-tracking estimate of transmittance along ``ray`` over
         ``[0, t_max]`` (residual ratio tracking against the minorants with
-        ``control``). Returns ``(T, counts)``."""
-        _, _, _, T, counts = self._track(ray, t_max, sampler, active, ratio=True, control=control)
-        return T, counts
+        ``control``): a `Transmittance`."""
+        tracking = (ResidualRatioTracking if control else RatioTracking)(self.value_local, sampler)
+        return self._track(ray, t_max, active, tracking)
 
-    def _track(self, ray, t_max, sampler, active, ratio, control=False):
+    def _track(self, ray, t_max, active, tracking):
+        """The result of the estimator ``tracking`` walked along ``ray`` in
+        the unit cube up to ``t_max`` (`walk_segments`)."""
         o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
-        t_lo = dr.maximum(t0, 0.0)
-        t_hi = dr.minimum(t1, t_max * s)
-        active = mi.Bool(active) & hit & (s > 0.0) & (t_lo < t_hi) & (self.structures.global_majorant > 0.0)
-        collided, t, albedo, result, counts = track_segments(
-            self.structures.segments(), (self.value_local, self.albedo_of), o, d, t_lo, t_hi, sampler,
-            active, ratio, self._max_iterations, s, control, self.tf_device.rgb_constant)
-        return collided, t * dr.rcp(dr.select(s > 0.0, s, 1.0)), albedo, result, counts
+        local = LocalRay(o=o, d=d, t_lo=dr.maximum(t0, 0.0), t_hi=dr.minimum(t1, t_max * s), scale=s)
+        active = (mi.Bool(active) & hit & (s > 0.0) & (local.t_lo < local.t_hi)
+                  & (self.structures.global_majorant > 0.0))
+        return walk_segments(self.structures.segments(), local, active, tracking, self._max_iterations)
 
     # ---- Mitsuba medium interface -------------------------------------------
     def intersect_aabb(self, ray: mi.Ray3f):
         key = self._ray_majorant.key_of(ray)
         o, d, s = self.local_ray(ray)
-        inv_s = dr.rcp(dr.select(s > 0.0, s, 1.0))
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
         hit &= s > 0.0
         global_mu = self.structures.global_majorant
+        local = LocalRay(o=o, d=d, t_lo=dr.maximum(t0, 0.0), t_hi=dr.minimum(t1, ray.maxt * s), scale=s)
         if self.majorant_mode == "global":
-            return hit & (global_mu > 0.0), t0 * inv_s, t1 * inv_s
-        t_start = dr.maximum(t0, 0.0)
-        t_end = dr.minimum(t1, ray.maxt * s)
+            return hit & (global_mu > 0.0), local.world_t(t0), local.world_t(t1)
         segments = self.structures.segments()
-        found, t_first, t_last, mu, _ = span_majorant(segments, o, d, t_start, t_end, hit,
-                                                      segments.max_steps(), global_mu)
-        self._ray_majorant.store(key, mu)
-        return found, t_first * inv_s, t_last * inv_s
+        span = walk_segments(segments, local, hit, SpanMajorant(global_mu), segments.max_steps())
+        self._ray_majorant.store(key, span.mu)
+        return span.found, span.t_first, span.t_last
 
     def _majorant_for(self, mei):
         """The ray-wise majorant where ``mei`` belongs to the ray last passed
@@ -429,61 +446,23 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
     def traverse(self, callback):
         """Expose ``density_scale``, the TF table ``tf_rgba`` (flat float
         array, N x 4, row major), ``tf_domain`` ([lo, hi]) and the nested
-        phase function; ``params.update()`` then recomputes the majorants."""
-        callback.put("density_scale", self._scale, mi.ParamFlags.NonDifferentiable)
-        callback.put("tf_rgba", self._tf_rgba, mi.ParamFlags.NonDifferentiable)
-        callback.put("tf_domain", self._tf_domain, mi.ParamFlags.NonDifferentiable)
+        phase function; ``params.update()`` then reclassifies the medium
+        exactly as `set_transfer_function` does."""
+        self.classification.traverse(callback)
         callback.put("phase_function", self.phase_function(), mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys=None):
         """Validate the updated parameters (a bad value raises and the last
-        valid ones are put back), then use them."""
-        keys = set(keys or [])
-        if not keys & {"tf_rgba", "tf_domain", "density_scale"} and keys:
-            return                                  # only the phase function changed
-        tf, scale = None, None
-        try:
-            if keys & {"tf_rgba", "tf_domain"}:
-                rgba = np.asarray(self._tf_rgba.numpy(), dtype=np.float64)
-                dom = self._tf_domain.numpy()
-                if rgba.size % 4 or dom.size != 2:
-                    raise ParameterError(f"amr: tf_rgba must hold N x 4 values and tf_domain 2, "
-                                         f"got {rgba.size} and {dom.size}")
-                tf = TransferFunction(rgba.reshape(-1, 4), (float(dom[0]), float(dom[1])))
-            if "density_scale" in keys:
-                scale = check_density_scale(float(self._scale.numpy()[0]))
-        except ValueError:
-            self.set_transfer_function(self.tf, self.density_scale, update=False)
-            raise
-        if tf is not None:
-            self.set_transfer_function(tf, update=False)
-        if scale is not None:
-            self.density_scale = scale
-            self.structures.set_transfer_function(self.tf, scale, rebuild=False)
-        # values put by SceneParameters may be literals: opaque, so that no
-        # kernel is recompiled (or frozen function recorded) for a new value
-        dr.make_opaque(self._scale, self._tf_rgba, self._tf_domain)
-        self.update_majorants()
+        valid ones are put back), then use them (`Classification.apply_parameters`)."""
+        self.classification.apply_parameters(keys or None)
 
-    def set_transfer_function(self, tf: TransferFunction, density_scale=None, update: bool = True):
-        """Use a new TF (new table, domain or size) and/or density scale:
-        uploads the small table and recomputes every majorant; the kernels are
-        not recompiled (all TF data are opaque). The pre-classified kd-tree is
-        rebuilt, since its topology was chosen for the old TF."""
-        if not isinstance(tf, TransferFunction):
-            raise ValueError(f"amr: expected a TransferFunction, got {type(tf).__name__}")
-        self.tf = tf
-        self.tf_device.set(tf)
-        # the traversed parameters are updated in place (SceneParameters hold them)
-        mi.set_property(self._tf_rgba, owned(mi.Float, tf.rgba))
-        mi.set_property(self._tf_domain, mi.Float(tf.domain))
-        if density_scale is not None:
-            self.density_scale = check_density_scale(density_scale)
-            mi.set_property(self._scale, mi.Float(self.density_scale))
-        dr.make_opaque(self._tf_rgba, self._tf_domain, self._scale)
-        self.structures.set_transfer_function(self.tf, self.density_scale)
-        if update:
-            self.update_majorants()
+    def set_transfer_function(self, tf: TransferFunction, density_scale=None):
+        """Use a new TF (new table, domain or size) and/or density scale: the
+        same path as ``params.update()`` (`Classification.set`): uploads the
+        small table, rebuilds what was built for the old classification (the
+        pre-classified kd-tree) and recomputes every majorant; no kernel is
+        recompiled (all TF data are opaque)."""
+        self.classification.set(tf, density_scale)
 
     def to_string(self):
         return (f"AMRMedium[\n  cells = {len(self.volume)},\n  levels = "

@@ -14,6 +14,8 @@ reach.
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from ..data.blocks import BlockVolume
@@ -35,12 +37,24 @@ class Bricks:
     stride : (1, B, B^2)   steps in ``values`` along x, y, z inside a brick
     """
 
+    @property
+    def volume(self) -> BlockVolume:
+        """The blocks whose cells these bricks group."""
+        volume = self._volume()
+        if volume is None:
+            raise RuntimeError("amr: the data of these bricks no longer exist")
+        return volume
+
     def __init__(self, data: AMRCells | BlockVolume, max_width: int = 8):
         if max_width < 1:
             raise ValueError(f"max_width must be >= 1, got {max_width}")
-        if isinstance(data, AMRCells):
-            data = BlockVolume.from_cells(data)
-        self.volume = data
+        # bricks are cached per data object (`mi_amr.structures.cache`), so they
+        # hold the data they were given weakly: a strong reference from the
+        # cache entry would keep its own key alive. Blocks made here are
+        # the bricks' own.
+        self._own_volume = BlockVolume.from_cells(data) if isinstance(data, AMRCells) else None
+        self._volume = weakref.ref(self._own_volume if self._own_volume is not None else data)
+        data = self.volume
         B = data.block
         self.stride = (1, B, B * B)
         los, dims, levels, offsets, vmins, vmaxs = [], [], [], [], [], []

@@ -4,7 +4,8 @@ A macrocell's value range ``[vmin, vmax]`` bounds every reconstructed value in
 it, but it is the hull of many cells: a TF peak between two cell values
 raises the majorant although no point of the macrocell takes a value near the
 peak. The mask keeps one bit per value bin that the reconstruction can reach
-inside the macrocell (docs/design.md section 4):
+inside the macrocell (docs/design.md section 4); what an item is and which
+bins it holds is the reconstruction method's (`Reconstruction.mask_items`):
 
 * ``nearest``: the bin of every cell whose box overlaps the macrocell (the
   field takes only cell values);
@@ -26,9 +27,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..data.blocks import UPPER_OFFSETS, BlockVolume
+from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..progress import progress
+from ..reconstruction import Reconstruction, reconstruction_method
 
 N_BINS = 64
 ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
@@ -44,11 +46,10 @@ class ValueBins:
 
     @classmethod
     def of(cls, volume: BlockVolume) -> "ValueBins":
-        """The bins of a data set (cached on it)."""
-        cache = volume.__dict__.setdefault("_mi_amr_cache", {})
-        if "value_bins" not in cache:
-            cache["value_bins"] = cls(float(np.nanmin(volume.values)), float(np.nanmax(volume.values)))
-        return cache["value_bins"]
+        """The bins of a data set (made once per data object: `HOST_CACHE`)."""
+        from .cache import HOST_CACHE
+        return HOST_CACHE.get(volume, "value_bins",
+                              lambda: cls(float(np.nanmin(volume.values)), float(np.nanmax(volume.values))))
 
     def index(self, v) -> np.ndarray:
         """Bin of each finite value ``v`` (int64)."""
@@ -77,19 +78,21 @@ class ValueBins:
         return np.where(ok, upto & ~below, np.uint64(0))
 
 
-def value_masks(data: AMRCells | BlockVolume, grid, method: str, bins: ValueBins | None = None) -> np.ndarray:
+def value_masks(data: AMRCells | BlockVolume, grid, method: str | Reconstruction,
+                bins: ValueBins | None = None) -> np.ndarray:
     """The value mask (uint64) of every macrocell of ``grid`` (a
     `MacrocellGrid`: ``res``, ``lo``, ``extent``), for ``method`` (see the
-    module docstring). Read block by block (tent: with the ghost blocks and
-    upper neighbours of `BlockVolume.stencil_index`)."""
+    module docstring): the bins of the method's items (`Reconstruction.mask_items`,
+    read block by block) folded into the macrocells their boxes
+    (`Reconstruction.mask_item_box`) overlap."""
     from .macrocell_grid import block_windows       # (it imports this module)
+    method = reconstruction_method(method)
     volume = BlockVolume.from_cells(data, method=method) if isinstance(data, AMRCells) else data
     bins = bins or ValueBins.of(volume)
     res = np.asarray(grid.res, dtype=np.int64)
     masks = np.zeros(int(np.prod(res)), dtype=np.uint64)
     scale = res / np.asarray(grid.extent, dtype=np.float64)
     rel = volume.origin - np.asarray(grid.lo, dtype=np.int64)
-    shift = 0.5 if method == "tent" else 0.0            # stencil boxes start at base-cell centres
     B = volume.block
 
     def fold(level, coord, bits):
@@ -99,10 +102,8 @@ def value_masks(data: AMRCells | BlockVolume, grid, method: str, bins: ValueBins
             w = float(1 << L)
 
             def span(q, axis):
-                a = (q + shift) * w + rel[axis]
-                b = (a + w) * scale[axis]
-                if shift:       # stencils based at -1 (not stored) hold a subset of the
-                    a = np.where(q == 0, a - w, a)      # corners of those based at 0
+                a, b = method.mask_item_box(q, w)
+                a, b = a + rel[axis], (b + rel[axis]) * scale[axis]
                 top = res[axis] - 1
                 return (np.clip(np.floor(a * scale[axis]), 0, top).astype(np.int64),
                         np.clip(np.floor(b), 0, top).astype(np.int64))
@@ -112,54 +113,10 @@ def value_masks(data: AMRCells | BlockVolume, grid, method: str, bins: ValueBins
             np.bitwise_or.at(masks, idx[ok], m[ok])
 
     with progress(len(volume), f"value masks {'x'.join(str(int(r)) for r in res)}") as bar:
-        if method == "nearest":
-            for level, coord, values in volume.block_chunks():
-                present = ~np.isnan(values)
-                bit = np.uint64(1) << bins.index(np.where(present, values, bins.lo)).astype(np.uint64)
-                fold(level, coord, np.where(present, bit, np.uint64(0)))
-                bar.update(int(np.count_nonzero(present)))
-        else:
-            for level, coord, smin, smax, n in _stencil_chunks(volume):
-                fold(level, coord, bins.bits(smin, smax))
-                bar.update(n)
+        for level, coord, bits, n in method.mask_items(volume, bins):
+            fold(level, coord, bits)
+            bar.update(n)
     return masks
-
-
-def _stencil_chunks(volume: BlockVolume, max_cells: int = 1 << 20):
-    """Per chunk of blocks and ghost blocks: ``(level, coord, smin, smax,
-    cells)`` with ``smin``/``smax`` (k, B, B, B) the min/max over the present
-    corners of the stencil based at each cell ([block, z, y, x]; +inf/-inf
-    where none is present) and ``cells`` the present cells of the chunk."""
-    ghost_coord, ghost_level, neighbours = volume.stencil_index()
-    K, B = len(volume.level), volume.block
-    level = np.concatenate([volume.level, ghost_level])
-    coord = np.concatenate([volume.coord.astype(np.int64), ghost_coord.astype(np.int64)])
-    values = volume.values.reshape(K, B, B, B)
-    step = max(1, max_cells // B ** 3)
-    for s in range(0, len(level), step):
-        ids = np.arange(s, min(s + step, len(level)))
-        ext = np.full((len(ids), B + 1, B + 1, B + 1), np.nan, dtype=np.float32)    # [block, z, y, x]
-        own = ids < K
-        ext[own, :B, :B, :B] = values[ids[own]]
-        for d, off in enumerate(UPPER_OFFSETS):
-            nb = neighbours[ids, d].astype(np.int64)
-            has = nb < K                                  # a block with values (ghosts have none)
-            if not has.any():
-                continue
-            # the slab of the neighbour that the extended block takes: index 0
-            # along each axis where the offset is 1, everything where it is 0
-            src = tuple(slice(0, 1) if o else slice(0, B) for o in off[::-1])
-            dst = tuple(slice(B, B + 1) if o else slice(0, B) for o in off[::-1])
-            ext[(np.nonzero(has)[0],) + dst] = values[nb[has]][(slice(None),) + src]
-        lo = np.where(np.isnan(ext), np.inf, ext)
-        hi = np.where(np.isnan(ext), -np.inf, ext)
-        smin = np.full((len(ids), B, B, B), np.inf, np.float32)
-        smax = np.full((len(ids), B, B, B), -np.inf, np.float32)
-        for c in range(8):
-            dz, dy, dx = (c >> 2) & 1, (c >> 1) & 1, c & 1
-            np.minimum(smin, lo[:, dz:dz + B, dy:dy + B, dx:dx + B], out=smin)
-            np.maximum(smax, hi[:, dz:dz + B, dy:dy + B, dx:dx + B], out=smax)
-        yield level[ids], coord[ids], smin, smax, int(np.count_nonzero(~np.isnan(ext[own, :B, :B, :B])))
 
 
 def mask_max_alpha_host(bin_alpha: np.ndarray, masks: np.ndarray) -> np.ndarray:

@@ -76,12 +76,14 @@ def dense_volume(cells, args):
     import numpy as np
 
     from ..data.blocks import BlockVolume
+    from ..reconstruction import reconstruction_method
     from .reference import resample_dense
-    if args.reconstruction != "nearest":
+    method = reconstruction_method(args.reconstruction)
+    if not method.dense_exact:          # a dense resampling is that field exactly
         raise ValueError("dense16 resamples the nearest field: run it with --reconstruction nearest")
     key = id(cells)
     if key not in _DENSE:
-        value, found = resample_dense(cells, "nearest", memory_limit=int(args.memory_limit * 2**30))
+        value, found = resample_dense(cells, method, memory_limit=int(args.memory_limit * 2**30))
         _DENSE.clear()                                      # one data set at a time
         _DENSE[key] = BlockVolume.from_dense(np.where(found, value, np.nan), 16, f"{cells.source} (dense)")
     return _DENSE[key]
@@ -90,7 +92,7 @@ def dense_volume(cells, args):
 def check_alone(config):
     """Refuse to time ``config`` while amr media of another scene are alive:
     Dr.Jit dispatches virtual calls over every live instance, so a second
-    scene in memory shifts timings (up to 2x measured)."""
+    scene in memory shifts timings (docs/design.md section 7)."""
     from ..plugins.medium import live_media
     if live_media():
         raise RuntimeError(f"benchmark: {live_media()} amr media of another scene are alive while "
@@ -108,8 +110,9 @@ def wait_idle(slice_s: float = 0.02, busy_share: float = 0.25, limit_s: float = 
     """Wait until this process is idle before a timed frame: slices of
     ``slice_s`` seconds until one uses less than ``busy_share`` of a core
     (a thread left spinning, e.g. OpenBLAS's workers after a BLAS call, takes
-    a core from the render: measured 2x slower frames on 2 cores), at most
-    ``limit_s``. Returns the seconds waited; warns when the limit is hit."""
+    a core from the render and slows the timed frame:
+    docs/performance/frame-cost.md section 3), at most ``limit_s``. Returns
+    the seconds waited; warns when the limit is hit."""
     t_start = time.perf_counter()
     while True:
         c0, t0 = process_cpu_seconds(), time.perf_counter()
@@ -227,8 +230,9 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
             dr.sync_thread()
         rec["majorant_update_s"] = (time.perf_counter() - t0) / 5
         rec["build_detail_s"] = dict(med.build_seconds)
-        rec["resolved"] = (f"{med.options.structures.traversal}/{med.options.structures.sampling}, "
-                           f"{med.structures.grid.describe()}")
+        grid = med.structures.device.get("grid")
+        rec["resolved"] = f"{med.options.structures.traversal}/{med.options.structures.sampling}" + \
+            (f", {grid.describe()}" if grid is not None else "")
     return rec, acc / len(times)
 
 
@@ -302,6 +306,7 @@ def apply_timing(rec, times, mses):
 
 
 def main(argv=None):
+    from ..reconstruction import METHODS
     p = argparse.ArgumentParser(prog="python -m mi_amr.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="example:\n  python -m mi_amr.bench --quick --out out/bench-quick\n"
@@ -326,14 +331,15 @@ def main(argv=None):
                         "loads; log10 values and density scale chosen as mi-amr render chooses them)")
     p.add_argument("--field", help="field of --data (e.g. density)")
     p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
-    p.add_argument("--reconstruction", default="nearest", choices=("nearest", "tent"))
+    p.add_argument("--reconstruction", default="nearest", choices=tuple(METHODS))
     p.add_argument("--grid-refinement", type=int, default=None, metavar="F",
                    help="grid_refinement of every amr medium (1: uniform grids only; default: the cost model's)")
     p.add_argument("--no-value-masks", action="store_true",
                    help="range majorants only (the A/B of the value masks; nearest)")
     p.add_argument("--memory-limit", type=float, default=4.0,
                    help="GiB allowed for the dense reference; larger data sets skip it")
-    p.add_argument("--variant", default="llvm_ad_rgb")
+    p.add_argument("--variant", default="llvm_ad_rgb",
+                   help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb (a GPU; make test-gpu)")
     p.add_argument("--curve-spp", type=int, nargs="*", default=[1, 2, 4, 8],
                    help="sample counts of the error-against-time curves")
     p.add_argument("--sweep", type=int, nargs="*", default=[8, 12, 16, 24, 32, 48, 64, 96],
@@ -574,6 +580,7 @@ def frozen_frame_timing(mi, scene, spp: int, rounds: int = 5, change=None):
 def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
     """Efficiency of amrvolpath/grid/hash over uniform grid resolutions, and
     of the grid `auto_grid` picks (uniform or two-level; Fig. 8 of the paper)."""
+    from ..reconstruction import reconstruction_method
     from ..structures.cost_model import REFINEMENTS, auto_grid
     rows = []
     for r in args.sweep:
@@ -583,7 +590,8 @@ def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
                      "lookups_per_collision": rec["lookups_per_collision"]})
     refinements = (1,) + REFINEMENTS if args.grid_refinement is None else (args.grid_refinement,)
     plan, costs = auto_grid(cells, tf, scale, support=args.reconstruction, refinements=refinements,
-                            masks=args.reconstruction == "nearest" and not args.no_value_masks)
+                            masks=reconstruction_method(args.reconstruction).value_masks_tighten
+                            and not args.no_value_masks)
     auto = str(plan.resolution) if plan.refinement == 1 else f"{plan.resolution}/{plan.refinement} two-level"
     rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img,
                         grid_resolution=plan.resolution, grid_refinement=plan.refinement)

@@ -1,0 +1,165 @@
+"""How each structure of a medium is built: one function per component.
+
+A *component* is one structure a traversal or a sampling needs: the
+macrocell grid, the bricks, the region trees over them, the SAH kd-tree,
+the block hash, the bricks' device copy and the brick lists. Each entry of
+`COMPONENTS` says how to build it from a `mi_amr.pipeline.Structures`
+(which gives the data, the build options, the classification and the
+host-structure cache), what it needs first, its estimated peak bytes
+(checked against the memory budget before the build), whether its leaves
+carry majorants (recomputed on every TF or density-scale change), and
+whether its shape depends on the classification (rebuilt on a change).
+
+Spaces: host structures in finest-level cell units; device structures in
+the medium's local space, where the data bounds are the unit cube.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .device.bricks import DeviceBrickLists, DeviceBricks
+from .device.grid import DeviceMacrocellGrid, DeviceTwoLevelGrid
+from .device.hash_sampler import DeviceReconstruction
+from .device.tree import DeviceTree
+from .memory import bricks_bytes, hash_bytes
+from .structures.brick_lists import BrickLists
+from .structures.bricks import Bricks
+from .structures.cost_model import REFINEMENTS, GridPlan, auto_grid
+from .structures.kdtree_sah import build_sah_kdtree
+from .structures.macrocell_grid import MacrocellGrid, axis_resolution, default_resolution
+from .structures.region_tree import brick_region_tree, exact_value_ranges
+
+
+@dataclass(frozen=True)
+class Component:
+    """How one structure is built (see the module docstring).
+
+    ``build(s)``: the structure, for `Structures` ``s`` (its dependencies
+    built first through ``s.require``); ``need(s)``: estimated peak bytes;
+    ``device``: a device struct (kept where ``dr.freeze`` sees it) rather
+    than a host-only one; ``majorants``: it has ``update_majorants(tf,
+    density_scale, minorants)``; ``classified``: built for the current TF
+    and scale, so rebuilt when they change; ``shares``: its memory is
+    another component's (not counted again)."""
+    build: Callable
+    need: Callable = lambda s: 0.0
+    device: bool = True
+    majorants: bool = False
+    classified: bool = False
+    shares: str | None = None
+
+
+# ---- The components ------------------------------------------------------------
+def build_grid(s):
+    """The macrocell grid: resolution and refinement as given, else from the
+    cost model of the data and the classification (`auto_grid`)."""
+    o = s.options
+    res, f = o.grid_resolution, o.grid_refinement
+    host = None
+    if res is None:
+        grids = {}
+        c = s.classification
+        plan, _ = auto_grid(s.volume, c.tf, c.density_scale, s.world_scale, o.method, grids=grids,
+                            masks=o.grid_masks, refinements=(f,) if f else (1,) + REFINEMENTS)
+        res, f = plan.resolution, plan.refinement
+        # the chosen grid from the finest one, if they tile
+        host = next((p for p in (g.pooled(res) for g in grids.values()) if p is not None), None)
+    f = f or 1
+    if host is None:
+        host = MacrocellGrid(s.volume, res, support=o.method, memory_limit=o.memory_limit,
+                             masks=o.grid_masks)
+    if f == 1:
+        return DeviceMacrocellGrid(host)
+    return DeviceTwoLevelGrid(host, f, s.world_scale, GridPlan(int(res), f).step_costs())
+
+
+def build_bricks(s) -> Bricks:
+    size = s.options.brick_size
+    return s.cache.get(s.volume, ("bricks", size), lambda: Bricks(s.volume, size))
+
+
+def _need_bricks(s) -> float:
+    return bricks_bytes(len(s.volume), s.volume.partial_block_cells)
+
+
+def _region_tree(over_domains: bool, name: str):
+    """A kd-tree over the bricks' domains (``over_domains``: the regions
+    their cells reconstruct under a method whose support reaches past the
+    cell) or over their bounds; leaves carry the exact value ranges of the
+    method's supports."""
+    def build(s) -> DeviceTree:
+        bricks = s.require("bricks")
+        method = s.options.method
+        lo, hi = s.volume.bounds
+
+        def make_host():
+            tree = brick_region_tree(bricks, lo, hi, over_domains, memory_limit=s.options.memory_limit,
+                                     what=f"amr: the {name} structure of {s.volume.source} ({len(s.volume)} cells)")
+            # the tree is over the supports of the method unless it is the bounds tree of a wider method
+            vmin, vmax = exact_value_ranges(tree, bricks, method, own_lists=over_domains or not s.support_beyond_cell)
+            return tree, vmin, vmax
+
+        tree, vmin, vmax = s.cache.get(s.volume, (name, s.options.brick_size, method.name), make_host)
+        return DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), vmin, vmax)
+    return build
+
+
+def build_kdtree(s) -> DeviceTree:
+    """SAH kd-tree built for the current classification over a macrocell grid
+    four times finer than the default one (at most 128 per axis)."""
+    res = int(min(128, 4 * default_resolution(s.volume).max()))
+    o = s.options
+    g = s.cache.get(s.volume, ("kd_grid", res, o.reconstruction),
+                    lambda: MacrocellGrid(s.volume, res, support=o.method, memory_limit=o.memory_limit))
+    r = g.res
+    shape = (r[2], r[1], r[0])
+    # host majorants in inverse local units, for the SAH cost
+    mu = s.classification.host_majorants(g.vmin, g.vmax) * s.world_scale
+    maj = mu.reshape(shape).transpose(2, 1, 0)
+    vmin = g.vmin.reshape(shape).transpose(2, 1, 0)
+    vmax = g.vmax.reshape(shape).transpose(2, 1, 0)
+    tree, lmin, lmax = build_sah_kdtree(maj, vmin, vmax, o.kdtree_leaves)
+    return DeviceTree(tree, np.zeros(3), 1.0 / r, lmin, lmax)
+
+
+def build_hash(s) -> DeviceReconstruction:
+    return DeviceReconstruction(s.volume, s.options.method)
+
+
+def _need_hash(s) -> float:
+    return hash_bytes(len(s.volume.level), s.options.method) + s.volume.values.nbytes
+
+
+def build_device_bricks(s) -> DeviceBricks:
+    return DeviceBricks(s.require("bricks"), s.volume.origin)
+
+
+def build_brick_lists(s) -> DeviceBrickLists:
+    lo, hi = s.volume.bounds
+    return DeviceBrickLists(BrickLists(s.require("bricks"), lo, hi - lo, _list_grid_resolution(s.volume),
+                                       memory_limit=s.options.memory_limit))
+
+
+def _list_grid_resolution(volume):
+    """Brick-list grid: about two finest cells per list cell (short lists),
+    at most 128 along the longest axis."""
+    lo, hi = volume.bounds
+    ext = (hi - lo).astype(np.float64)
+    return axis_resolution(int(np.clip(ext.max() / 2, 1, 128)), ext)
+
+
+#: Every component by name; the order is the order majorants are updated in.
+COMPONENTS = {
+    "grid": Component(build_grid, majorants=True),
+    "abr_tree": Component(_region_tree(True, "abr_tree"), majorants=True),
+    "brick_tree": Component(_region_tree(False, "brick_tree"), majorants=True),
+    "kdtree": Component(build_kdtree, majorants=True, classified=True),
+    "bricks": Component(build_bricks, need=_need_bricks, device=False),
+    "hash": Component(build_hash, need=_need_hash),
+    "device_bricks": Component(build_device_bricks, shares="bricks"),
+    "brick_lists": Component(build_brick_lists),
+}
