@@ -7,7 +7,7 @@ RUN   := DRJIT_LIBLLVM_PATH="$$(tools/find-llvm19)" $(PY)
 SPP   ?= 64
 PYTEST_ARGS ?=
 
-.PHONY: setup demo gallery test test-all bench bench-quick bench-scale clean
+.PHONY: setup demo gallery test test-all test-gpu bench bench-quick bench-scale clean
 
 setup:
 	@tools/setup.sh
@@ -24,6 +24,12 @@ test: setup
 
 test-all: setup
 	$(RUN) -m pytest -q -m "" $(PYTEST_ARGS)
+
+# on a machine with a CUDA GPU: the fast suite on cuda_ad_rgb and the 20k
+# benchmark on CUDA in under 10 minutes, written to docs/performance/cuda.md;
+# without a GPU it says so and fails
+test-gpu: setup
+	$(RUN) tools/gpu-check
 
 clean:
 	rm -rf out .pytest_cache

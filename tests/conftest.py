@@ -1,5 +1,7 @@
 """Shared fixtures: the Mitsuba variant and small data factories."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -17,7 +19,17 @@ def stress_size(request):
     return request.config.getoption("--stress-size")
 
 
+#: ``MI_AMR_VARIANT=cuda_ad_rgb`` (``make test-gpu``, tools/gpu-check) runs the
+#: variant-dependent tests on that variant alone, those asking for ``llvm``
+#: included.
+FORCED_VARIANT = os.environ.get("MI_AMR_VARIANT") or None
+
+
 def _jit_rgb_variants():
+    if FORCED_VARIANT:
+        if FORCED_VARIANT not in mi.variants():
+            raise pytest.UsageError(f"MI_AMR_VARIANT={FORCED_VARIANT}: not a variant of this Mitsuba")
+        return [FORCED_VARIANT]
     out = []
     for v in ("llvm_ad_rgb", "cuda_ad_rgb"):
         if v not in mi.variants():
@@ -42,8 +54,10 @@ def variant(request):
 
 @pytest.fixture
 def llvm():
-    mi.set_variant("llvm_ad_rgb")
-    return "llvm_ad_rgb"
+    """``llvm_ad_rgb``, or the variant ``MI_AMR_VARIANT`` names."""
+    v = FORCED_VARIANT or "llvm_ad_rgb"
+    mi.set_variant(v)
+    return v
 
 
 # ---- Data factories --------------------------------------------------------

@@ -142,7 +142,7 @@ def test09_frametime_reports_three_configurations(tmp_path):
     assert rows[-1]["speedup_vs_reference"] == pytest.approx(1.0)
 
 
-def test07_commands_share_render_flags_and_end_help_with_an_example():
+def test10_commands_share_render_flags_and_end_help_with_an_example():
     import argparse
     from mi_amr.tools.cli import build_parser
     p = build_parser()
@@ -158,7 +158,7 @@ def test07_commands_share_render_flags_and_end_help_with_an_example():
         assert args.quiet and args.spp == 3 and args.seed == 2 and args.define == ["a=b"], name
 
 
-def test08_a_scene_that_fails_to_load_gives_one_error_line(tmp_path):
+def test11_a_scene_that_fails_to_load_gives_one_error_line(tmp_path):
     """A scene whose data file is missing: exit code 2 and the plugin's
     error (file named), not a Python traceback."""
     xml = cloud_scene_xml(tmp_path, cells="missing.cells")

@@ -1,5 +1,9 @@
-"""The README's Python example and the notebooks run as written."""
+"""The README's Python example and the notebooks run as written, and the
+words around the code keep up with it: cited paths, doc sections, dotted
+names and test numbers exist, test names are unique, and the README's
+parameter tables match what the plugins accept."""
 
+import ast
 import json
 import re
 from pathlib import Path
@@ -48,3 +52,195 @@ def test03_every_image_the_readme_links_is_in_the_repository():
         assert path.is_file(), f"README links {link}, which is not in the repository"
         if link.startswith("docs/images/"):
             assert path.stat().st_size < 200_000, f"{link}: {path.stat().st_size} bytes"
+
+
+# ---- Words that keep: names, references and tables that follow the code ----
+# Cheap checks (text and `ast` only, no Dr.Jit kernel): a renamed module, a
+# moved function, a renumbered doc section or a parameter added to the parser
+# fails here instead of leaving a stale word behind.
+
+def _text_files():
+    """The package, the plugin shim, the tests, the tools and every doc."""
+    files = [ROOT / "README.md", ROOT / "Makefile"]
+    for pattern in ("mi_amr/**/*.py", "plugins/*.py", "tests/*.py", "tools/*", "docs/**/*.md"):
+        files += sorted(p for p in ROOT.glob(pattern) if p.is_file() and p.suffix not in (".png", ".json"))
+    return [f for f in files if f != Path(__file__).resolve()]      # this file's examples are placeholders
+
+
+def _module_path(parts):
+    """The source file of the module ``.``.join(parts), or None."""
+    base = ROOT.joinpath(*parts)
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def _defined_names(body):
+    """Names a module or class body defines: defs, classes, assignments,
+    imports (name -> the node that defines it)."""
+    names = {}
+    for node in body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names[node.name] = node
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            for target in node.targets if isinstance(node, ast.Assign) else [node.target]:
+                for n in ast.walk(target):
+                    if isinstance(n, ast.Name):
+                        names[n.id] = node
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            for alias in node.names:
+                names[(alias.asname or alias.name).split(".")[0]] = node
+        elif isinstance(node, (ast.If, ast.Try)):
+            names.update(_defined_names(node.body))
+    return names
+
+
+def _resolves(dotted: str) -> bool:
+    """Whether ``mi_amr.a.b.c`` names a module, or a name defined in one
+    (followed through ``from .x import name``), or a class attribute."""
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        path = _module_path(parts[:i])
+        if path is not None:
+            break
+    else:
+        return False
+    attrs = parts[i:]
+    if not attrs:
+        return True
+    tree = ast.parse(path.read_text())
+    node = _defined_names(tree.body).get(attrs[0])
+    if isinstance(node, ast.ImportFrom):                 # follow it to where it is defined
+        pkg = parts[:i] if path.name == "__init__.py" else parts[:i - 1]
+        mod = (pkg[:len(pkg) - node.level + 1] if node.level else []) + (node.module or "").split(".")
+        alias = next(a for a in node.names if (a.asname or a.name) == attrs[0])
+        return _resolves(".".join([m for m in mod if m] + [alias.name] + attrs[1:]))
+    if node is None:
+        return False
+    if len(attrs) == 1:
+        return True
+    if not isinstance(node, ast.ClassDef):
+        return False
+    members = _defined_names(node.body)
+    for fn in node.body:                        # attributes set on self in the methods
+        if isinstance(fn, ast.FunctionDef):
+            for n in ast.walk(fn):
+                if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name) and n.value.id == "self":
+                    members.setdefault(n.attr, n)
+    return attrs[1] in members and len(attrs) == 2
+
+
+def _headings(md: Path) -> set:
+    """Section numbers of a Markdown file's headings (``## 5b. Minorants`` -> 5b)."""
+    return set(re.findall(r"^#+\s+(\d+[a-z]?)[.\s]", md.read_text(), re.M))
+
+
+_SECTIONS = re.compile(r"sections?\s+(\d+[a-z]?(?:(?:,\s*|\s+and\s+)\d+[a-z]?(?![\d.]))*)")
+_DOC_SECTION = re.compile(r"(docs/[\w./-]+\.md)[,\s#:]*" + _SECTIONS.pattern)
+_PATH = re.compile(r"\b((?:docs|mi_amr|tests|tools|scenes|notebooks|plugins)/[\w./*-]*[\w*])")
+_DOTTED = re.compile(r"\bmi_amr(?:\.[A-Za-z_]\w*)+")
+_TEST_AFTER = re.compile(r"tests/(test_\w+)\.py`?[\s,;:]+((?:test\d+[a-z]*\b(?:,\s*|\s+and\s+)?)+)")
+_TEST_BEFORE = re.compile(r"\b(test\d+[a-z]*)\s+(?:of|in)\s+(?:tests/)?(test_\w+?)(?:\.py)?\b")
+
+
+def test04_every_reference_resolves():
+    """Every repository path (``docs/...md``, ``mi_amr/...py``, ...), every
+    ``docs/X.md section N`` (and, inside a doc, every bare ``section N`` of
+    that doc), every ``mi_amr.x.y`` dotted name and every numbered test
+    (``tests/test_x.py test03``, ``test03 of test_x``) cited in the package,
+    the tests, the tools and the docs exists."""
+    bad = []
+    for f in _text_files():
+        text = f.read_text(errors="replace")
+        rel = f.relative_to(ROOT)
+        for p in set(_PATH.findall(text)):
+            p = p.rstrip(".")
+            if re.search(r"[A-Z]{3,}", p):              # placeholders: docs/images/NAME.png
+                continue
+            if not (any(ROOT.glob(p)) if "*" in p else (ROOT / p).exists()):
+                bad.append(f"{rel}: path {p}")
+        for doc, nums in _DOC_SECTION.findall(text):
+            if (ROOT / doc).is_file():
+                missing = set(re.findall(r"\d+[a-z]?", nums)) - _headings(ROOT / doc)
+                bad += [f"{rel}: {doc} section {n}" for n in sorted(missing)]
+        if f.suffix == ".md":
+            own = _headings(f)
+            cited = [m.span() for m in _DOC_SECTION.finditer(text)]
+            for m in _SECTIONS.finditer(text):
+                if own and not any(a <= m.start() < b for a, b in cited):
+                    bad += [f"{rel}: section {n}" for n in re.findall(r"\d+[a-z]?", m.group(1)) if n not in own]
+        made_here = set()                  # module names a file makes itself (sys.modules[name] = ...)
+        if f.suffix == ".py":
+            made_here = {n.value for n in ast.walk(ast.parse(text))
+                         if isinstance(n, ast.Constant) and isinstance(n.value, str) and _DOTTED.fullmatch(n.value)}
+        for name in set(_DOTTED.findall(text)) - made_here:
+            if not _resolves(name):
+                bad.append(f"{rel}: {name}")
+        cited = [(f, re.findall(r"test\d+[a-z]*", tests)) for f, tests in _TEST_AFTER.findall(text)]
+        cited += [(f, [t]) for t, f in _TEST_BEFORE.findall(text)]
+        for name, tests in cited:
+            path = ROOT / "tests" / f"{name}.py"
+            have = set(re.findall(r"^def (test\d+[a-z]*)_", path.read_text(), re.M)) if path.is_file() else set()
+            bad += [f"{rel}: {t} of tests/{name}.py" for t in tests if t not in have]
+    assert not bad, "stale references:\n" + "\n".join(sorted(bad))
+
+
+def test05_test_names_are_unique_within_each_file():
+    """No two test functions of a file share a name (the second would hide
+    the first) or a number (``test05_...`` twice reads as one test)."""
+    bad = []
+    for f in sorted((ROOT / "tests").glob("test_*.py")):
+        names = [n.name for n in ast.walk(ast.parse(f.read_text()))
+                 if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.name.startswith("test")]
+        numbers = [m.group(0) for m in map(re.compile(r"test\d+[a-z]*(?=_|$)").match, names) if m]
+        for label, items in (("name", names), ("number", numbers)):
+            bad += [f"{f.name}: {label} {x} x{items.count(x)}" for x in sorted(set(items)) if items.count(x) > 1]
+    assert not bad, "\n".join(bad)
+
+
+def _readme_table(heading: str) -> set:
+    """The names in the first column of the first table after ``heading``."""
+    src = (ROOT / "README.md").read_text()
+    start = src.index(heading)
+    rows = re.search(r"\n(\|.*\|\n)+", src[start:]).group(0).strip().splitlines()[2:]
+    names = set()
+    for row in rows:
+        cell = row.split("|")[1]
+        if not cell.strip().startswith("("):              # "(nested)" phase function
+            names |= set(re.findall(r"`([^`]+)`", cell))
+    return names
+
+
+def _docstring_table(path: str, cls: str) -> set:
+    """The parameter names of a plugin class's ``.. pluginparameters::`` table."""
+    tree = ast.parse((ROOT / path).read_text())
+    doc = next(ast.get_docstring(n) for n in ast.walk(tree) if isinstance(n, ast.ClassDef) and n.name == cls)
+    table = doc.split(".. pluginparameters::", 1)[1]
+    names = set()
+    for entry in re.findall(r"^\s*\* - (.+)$", table, re.M):
+        if not entry.strip().startswith("("):              # "(nested phase function)"
+            names |= {n.strip() for n in entry.split(",")}
+    return names
+
+
+def _known_set(path: str, name: str) -> set:
+    """A module-level set literal ``name = {...}`` (or frozenset({...})), read without importing."""
+    tree = ast.parse((ROOT / path).read_text())
+    node = next(n for n in tree.body if isinstance(n, ast.Assign)
+                and any(isinstance(t, ast.Name) and t.id == name for t in n.targets))
+    return set(ast.literal_eval(node.value.args[0] if isinstance(node.value, ast.Call) else node.value))
+
+
+@pytest.mark.parametrize("heading,module,cls", [
+    ("### Parameters of `amr`", "mi_amr/plugins/options.py", "AMRMedium"),
+    ("## The `amrvolpath` integrator", "mi_amr/plugins/integrator.py", "AMRVolpathIntegrator"),
+])
+def test06_readme_parameter_tables_match_the_parsers(heading, module, cls):
+    """The README's parameter table of each plugin names exactly the
+    parameters its parser accepts (`KNOWN`, given to `check_known`), and so
+    does the plugin docstring's ``.. pluginparameters::`` table."""
+    known = _known_set(module, "KNOWN")
+    doc_path = "mi_amr/plugins/medium.py" if cls == "AMRMedium" else module
+    assert _readme_table(heading) == known, f"README ({heading}) against {module} KNOWN"
+    assert _docstring_table(doc_path, cls) == known, f"{doc_path} {cls} docstring against {module} KNOWN"

@@ -3,9 +3,10 @@
 A BLAS call on a long vector (numpy's ``dot``, ``@``) wakes OpenBLAS's
 worker threads, which then spin on a core for about 0.1 s: on two cores the
 first frames after a load ran at half speed, and every benchmark pass that
-timed a frame just after loading its scene measured that (docs/design.md
-section 6). The check: the process's CPU time while the caller sleeps right
-after the load stays far below that of a BLAS call's spin.
+timed a frame just after loading its scene measured that
+(docs/performance/frame-cost.md section 3). The check: the process's CPU
+time while the caller sleeps right after the load stays far below that of
+a BLAS call's spin.
 """
 
 import time

@@ -2,7 +2,7 @@
 
 Statistical tests compare per-block image means of two estimators over
 independent passes: |z| < 4 for every block, z from the passes' standard
-errors (see `mi_amr.tools.reference.block_z_scores`).
+errors (see `mi_amr.testing.block_z_scores`).
 """
 
 import drjit as dr

@@ -107,9 +107,9 @@ class DeviceMacrocellGrid:
 
 
 #: The largest edge (coarse macrocells) of an empty cube in ``coarse_skip``:
-#: on the 20k data, edges up to 4 save the same steps as edges up to 64,
-#: at a third of the cost per TF change (docs/performance/frame-cost.md
-#: section 8).
+#: larger edges saved no further steps on the benchmark data, and edges up
+#: to 4 (``log2`` in two bits) let the eight octants share one 32-bit word
+#: (docs/performance/frame-cost.md section 8).
 MAX_SKIP_EDGE = 4
 #: Bits per octant in ``coarse_skip`` (log2 of the edge; 8 octants in 32 bits).
 SKIP_BITS = 2
@@ -225,8 +225,9 @@ class DeviceTwoLevelGrid:
         empty", cut at the grid's upper faces) for m = 1, 2, 4, ... by
         doubling, each the AND of eight ``F_{m/2}`` at offsets 0 and m/2;
         then per entry the largest power of two m whose cube is empty (the
-        largest edge of any size, by bisection, saved 4-6% more steps on the
-        20k data, no frame time, at 3x the cost of a TF change). A cube
+        largest edge of any size, found by bisection, saved a few more steps
+        but no frame time, and made each TF change dearer:
+        docs/performance/frame-cost.md section 8). A cube
         that reaches below the grid is looked up at its corner moved up to 0
         (a larger cube in the grid: conservative, so there ``k`` may fall
         short)."""
