@@ -6,6 +6,10 @@ PY    := .venv/bin/python
 RUN   := DRJIT_LIBLLVM_PATH="$$(tools/find-llvm19)" $(PY)
 SPP   ?= 64
 PYTEST_ARGS ?=
+# test processes: one per core (pytest-xdist), whole files per process so that
+# module fixtures are made once; JOBS=0 runs the suite in this process
+JOBS  ?= auto
+XDIST  = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadfile)
 
 .PHONY: setup demo gallery test test-all test-gpu bench bench-quick bench-scale clean
 
@@ -20,16 +24,17 @@ gallery: setup
 	$(RUN) -m mi_amr.tools.gallery
 
 test: setup
-	$(RUN) -m pytest -q $(PYTEST_ARGS)
+	$(RUN) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 test-all: setup
-	$(RUN) -m pytest -q -m "" $(PYTEST_ARGS)
+	$(RUN) -m pytest -q -m "" $(XDIST) $(PYTEST_ARGS)
 
 # on a machine with a CUDA GPU: the fast suite on cuda_ad_rgb and the 20k
 # benchmark on CUDA in under 10 minutes, written to docs/performance/cuda.md;
-# without a GPU it says so and fails
-test-gpu: setup
-	$(RUN) tools/gpu-check
+# without a GPU it says so and fails. Uses .venv, else the wheels in .whl/
+# (tools/gpu-wheels: for a GPU machine without network); see tools/test-gpu
+test-gpu:
+	@tools/test-gpu $(GPU_CHECK_ARGS)
 
 clean:
 	rm -rf out .pytest_cache

@@ -60,6 +60,22 @@ def llvm():
     return v
 
 
+#: What Dr.Jit says when it finds no libLLVM (a GPU machine without it,
+#: tools/test-gpu): a test that needs the LLVM backend there is skipped, not
+#: failed; where libLLVM is found these words never come.
+NO_LLVM = "the LLVM backend is inactive"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed and call.excinfo is not None and NO_LLVM in report.longreprtext:
+        report.outcome = "skipped"
+        report.longrepr = (str(item.path), item.location[1] or 0,
+                           "Skipped: needs Dr.Jit's LLVM backend, and no libLLVM was found here")
+
+
 # ---- Data factories --------------------------------------------------------
 def random_amr(seed=0, n=16, levels=3, quantize=4):
     """Small random AMR data: a smooth random volume, quantised so that block
