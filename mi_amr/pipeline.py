@@ -27,7 +27,6 @@ import numpy as np
 from .builds import COMPONENTS
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
-from .device.segments import TreeSegments
 from .device.structs import jit_struct
 from .memory import require
 from .reconstruction import Reconstruction, reconstruction_method
@@ -203,14 +202,7 @@ class Structures:
         """The share of the majorant that the minorant carries over the
         traversal structure, volume-weighted: ``sum(V mu_min) / sum(V mu_max)``
         over its leaves (0 with no majorant). Read back on the host."""
-        walker = self.segments()
-        if isinstance(walker, TreeSegments):
-            t = walker.tree
-            lo, hi = t.minorant.numpy(), t.majorant.numpy()
-            vol = np.prod(t.host.leaf_hi - t.host.leaf_lo, axis=1)
-        else:                                          # grids: equal macrocells (the fine ones)
-            lo, hi = walker.grid.minorant.numpy(), walker.grid.majorant.numpy()
-            vol = np.ones(len(hi))
+        lo, hi, vol = self.segments().leaf_bounds()
         # elementwise sums, not np.dot: a BLAS dot of this length wakes
         # OpenBLAS's worker threads, which then spin on a core and slow the
         # first frames after a load (docs/performance/frame-cost.md)

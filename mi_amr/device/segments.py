@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 from .grid import SKIP_BITS
 from .ray import safe_rcp
 from .structs import jit_struct
@@ -45,6 +46,12 @@ class GridSegments:
 
     def __init__(self, grid):
         self.grid = grid
+
+    def leaf_bounds(self):
+        """``(minorant, majorant, volume)`` per leaf on the host (numpy):
+        the fine macrocells, all of one volume."""
+        hi = self.grid.majorant.numpy()
+        return self.grid.minorant.numpy(), hi, np.ones(len(hi))
 
     def max_steps(self):
         return self.grid.res.x + self.grid.res.y + self.grid.res.z + 3
@@ -111,6 +118,12 @@ class TwoLevelGridSegments:
     def __init__(self, grid):
         self.grid = grid
 
+    def leaf_bounds(self):
+        """``(minorant, majorant, volume)`` per leaf on the host (numpy):
+        the fine macrocells, all of one volume."""
+        hi = self.grid.majorant.numpy()
+        return self.grid.minorant.numpy(), hi, np.ones(len(hi))
+
     def max_steps(self):
         g = self.grid
         return g.res.x + g.res.y + g.res.z + g.coarse_res.x + g.coarse_res.y + g.coarse_res.z + 3
@@ -160,6 +173,12 @@ class TreeSegments:
 
     def __init__(self, tree: DeviceTree):
         self.tree = tree
+
+    def leaf_bounds(self):
+        """``(minorant, majorant, volume)`` per leaf on the host (numpy;
+        volumes in the tree's host units)."""
+        t = self.tree
+        return t.minorant.numpy(), t.majorant.numpy(), np.prod(t.host.leaf_hi - t.host.leaf_lo, axis=1)
 
     def max_steps(self):
         return mi.UInt32(self.tree.n_leaves + 2)

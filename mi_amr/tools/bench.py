@@ -30,8 +30,6 @@ from pathlib import Path
 
 from .._llvm import ensure_llvm_path
 
-TRAVERSALS = ("grid", "abr", "brick", "kdtree")
-SAMPLINGS = ("hash", "abr", "brick")
 SCALES = {("cloud", "spiky"): 60.0, ("cloud", "foggy"): 150.0,
           ("shell", "spiky"): 60.0, ("shell", "foggy"): 200.0,
           ("stadium", "spiky"): 300.0, ("stadium", "foggy"): 300.0,
@@ -48,6 +46,7 @@ def all_configs():
     no structure options (its record names what it resolved to)."""
     out = ["reference", "dense16", "volpath/global", "volpath/ray", "amrvolpath/default"]
     out += [f"amrvolpath/default-{v}" for v in TRACKING_VARIANTS]
+    from ..strategies import SAMPLINGS, TRAVERSALS     # every registered pair
     out += [f"amrvolpath/{t}/{s}" for t in TRAVERSALS for s in SAMPLINGS]
     return out
 
@@ -625,10 +624,20 @@ def curve_style(record) -> dict:
     if config.split("/")[1].startswith("default"):            # drawn as what it resolved to
         traversal, sampling = record.get("resolved", "grid/hash").split(",")[0].split("/")
         variant = config.split("/")[1][len("default-"):]
-        return {"color": TRAVERSAL_COLOURS[traversal], "ls": VARIANT_STYLES.get(variant, SAMPLING_STYLES[sampling]),
+        return {"color": _colour(traversal), "ls": VARIANT_STYLES.get(variant, _line(sampling)),
                 "lw": 1.6 if variant else 3.0, "label": f"{config} (= {traversal}/{sampling})"}
     _, traversal, sampling = config.split("/")
-    return {"color": TRAVERSAL_COLOURS[traversal], "ls": SAMPLING_STYLES[sampling], "lw": 1.3, "label": config}
+    return {"color": _colour(traversal), "ls": _line(sampling), "lw": 1.3, "label": config}
+
+
+def _colour(traversal: str) -> str:
+    """A traversal's colour (one registered after these were chosen: olive)."""
+    return TRAVERSAL_COLOURS.get(traversal, "tab:olive")
+
+
+def _line(sampling: str):
+    """A sampling's line style (one registered after these were chosen: dash-dot)."""
+    return SAMPLING_STYLES.get(sampling, "-.")
 
 
 def plot_curves(records, out: Path):
