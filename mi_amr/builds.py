@@ -98,7 +98,8 @@ def _region_tree(over_domains: bool, name: str):
 
         def make_host():
             tree = brick_region_tree(bricks, lo, hi, over_domains, memory_limit=s.options.memory_limit,
-                                     what=f"amr: the {name} structure of {s.volume.source} ({len(s.volume)} cells)")
+                                     what=f"amr: the {name} structure of {s.volume.source} ({len(s.volume)} cells)",
+                                     method=method)
             # the tree is over the supports of the method unless it is the bounds tree of a wider method
             vmin, vmax = exact_value_ranges(tree, bricks, method, own_lists=over_domains or not s.support_beyond_cell)
             return tree, vmin, vmax
@@ -141,7 +142,7 @@ def build_device_bricks(s) -> DeviceBricks:
 def build_brick_lists(s) -> DeviceBrickLists:
     lo, hi = s.volume.bounds
     return DeviceBrickLists(BrickLists(s.require("bricks"), lo, hi - lo, _list_grid_resolution(s.volume),
-                                       memory_limit=s.options.memory_limit))
+                                       memory_limit=s.options.memory_limit, method=s.options.method))
 
 
 def _list_grid_resolution(volume):

@@ -11,6 +11,7 @@ import mi_amr
 from mi_amr.structures.macrocell_grid import MacrocellGrid
 from mi_amr.device.hash_sampler import DeviceReconstruction
 from mi_amr.reconstruction import METHODS, reconstruction_method
+from mi_amr.reconstruction.tent import Tent
 from mi_amr.structures.host_reconstruction import HostReconstruction
 from mi_amr.testing import brute_force
 
@@ -124,3 +125,29 @@ def test08_methods_are_resolved_once_from_their_names():
         grids = [MacrocellGrid(cells, resolution=4, support=m) for m in (name, reconstruction_method(name))]
         np.testing.assert_array_equal(grids[0].vmin, grids[1].vmin)
         np.testing.assert_array_equal(grids[0].level_bits, grids[1].level_bits)
+
+
+class _Wide(Tent):
+    """A method of wider support than tent's (1.5 cells), for the structures
+    that splat supports: only its reach matters here."""
+    name = "wide"
+    support_radius = 1.5
+
+
+@pytest.mark.parametrize("method", [*METHODS, _Wide()])
+def test09_brick_domains_are_the_union_of_their_cells_supports(method):
+    """`Bricks.domains` (what the ABRs and the brick lists cover) is, for
+    every registered method and for a wider one, exactly the union of the
+    support boxes of each brick's cells (brute force over the cells)."""
+    from mi_amr.structures.bricks import Bricks
+    cells = random_amr(12, n=12, levels=3)
+    bricks = Bricks(cells, 4)
+    m = reconstruction_method(method)
+    dlo, dhi = bricks.domains(m)
+    for b in range(len(bricks)):
+        w = float(bricks.width[b])
+        idx = np.stack(np.meshgrid(*[np.arange(int(d)) for d in bricks.dims[b]], indexing="ij"), -1).reshape(-1, 3)
+        lo_cells = bricks.lo[b] + w * idx
+        a, c = m.support_box(lo_cells.astype(np.float64), w)
+        np.testing.assert_array_equal(dlo[b], a.min(axis=0))
+        np.testing.assert_array_equal(dhi[b], c.max(axis=0))

@@ -13,14 +13,15 @@ BYTES_PER_LIST_ENTRY = 120
 
 
 class BrickLists:
-    """Per-cell lists of the bricks whose extended domain overlaps the cell,
+    """Per-cell lists of the bricks whose extended domain (under the
+    reconstruction ``method``: `Bricks.domains`) overlaps the cell,
     on a uniform grid of ``res`` cells over ``[lo, lo + extent]`` (finest
     units). Host arrays: ``count``, ``offset`` (per cell, x fastest) and
     ``items`` (brick ids)."""
 
-    def __init__(self, bricks: Bricks, lo, extent, res, memory_limit: float | None = None):
+    def __init__(self, bricks: Bricks, lo, extent, res, memory_limit: float | None = None, method="tent"):
         res = np.asarray(res, dtype=np.int64)
-        dlo, dhi = bricks.domains()
+        dlo, dhi = bricks.domains(method)
         scale = res / np.asarray(extent, dtype=np.float64)
         i0 = np.clip(np.floor((dlo - lo) * scale), 0, res - 1).astype(np.int64)
         i1 = np.clip(np.floor((dhi - lo) * scale), 0, res - 1).astype(np.int64)

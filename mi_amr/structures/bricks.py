@@ -21,6 +21,7 @@ import numpy as np
 from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..progress import progress
+from ..reconstruction import Reconstruction, reconstruction_method
 
 
 class Bricks:
@@ -92,10 +93,15 @@ class Bricks:
     def hi(self) -> np.ndarray:
         return self.lo + self.dims * self.width[:, None]
 
-    def domains(self) -> tuple[np.ndarray, np.ndarray]:
-        """Extended domains ``[lo - w/2, hi + w/2]`` (float64, finest units)."""
-        h = 0.5 * self.width[:, None]
-        return self.lo - h, self.hi + h
+    def domains(self, method: str | Reconstruction = "tent") -> tuple[np.ndarray, np.ndarray]:
+        """Extended domains: the union of the supports of each brick's cells
+        under the reconstruction ``method`` (float64, finest units; tent's,
+        ``[lo - w/2, hi + w/2]``, by default)."""
+        m = reconstruction_method(method)
+        w = self.width[:, None].astype(np.float64)
+        lo, _ = m.support_box(self.lo.astype(np.float64), w)
+        _, hi = m.support_box(self.hi.astype(np.float64) - w, w)
+        return lo, hi
 
     def cell_index(self, b, x, y, z):
         """Index in ``values`` of cell ``(x, y, z)`` (brick-local) of brick ``b``."""

@@ -263,7 +263,7 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi, leaf_extent=None, memory
 
 
 def brick_region_tree(bricks, lo, hi, over_domains: bool, leaf_cells: int | None = None,
-                      memory_limit=None, what: str = "region tree") -> RegionTree:
+                      memory_limit=None, what: str = "region tree", method="tent") -> RegionTree:
     """The region tree of ``bricks`` over the data bounds ``[lo, hi]``
     (finest units): over the brick domains (``over_domains``: the ABRs of
     ``tent``), leaves not split below ``leaf_cells`` cells of the finest
@@ -272,11 +272,12 @@ def brick_region_tree(bricks, lo, hi, over_domains: bool, leaf_cells: int | None
     times two. ``memory_limit``, ``what``: see `build_region_tree`."""
     leaf_cells = ABR_LEAF_CELLS if leaf_cells is None else leaf_cells
     if over_domains:
-        blo, bhi = bricks.domains()
+        blo, bhi = bricks.domains(method)
         floor = 2 * leaf_cells * bricks.width if leaf_cells else None
     else:
         blo, bhi, floor = bricks.lo.astype(np.float64), bricks.hi.astype(np.float64), None
-    return build_region_tree(np.round(2 * blo).astype(np.int64), np.round(2 * bhi).astype(np.int64),
+    # in half cells, grown outwards where a support does not end on one
+    return build_region_tree(np.floor(2 * blo).astype(np.int64), np.ceil(2 * bhi).astype(np.int64),
                              2 * np.asarray(lo), 2 * np.asarray(hi), floor, memory_limit, what)
 
 
@@ -352,8 +353,8 @@ def exact_value_ranges(tree: RegionTree, bricks, method: str | Reconstruction = 
     if own_lists:
         li, b = np.repeat(np.arange(n, dtype=np.uint32), tree.list_count), tree.items
     else:
-        dlo, dhi = bricks.domains()
-        b, li = tree.overlapping_leaves(np.round(2 * dlo).astype(np.int64), np.round(2 * dhi).astype(np.int64))
+        dlo, dhi = bricks.domains(method)
+        b, li = tree.overlapping_leaves(np.floor(2 * dlo).astype(np.int64), np.ceil(2 * dhi).astype(np.int64))
     values = device_values(bricks.volume)
     Float = type(values)
     Int64, Int32, UInt32 = dr.int64_array_t(Float), dr.int32_array_t(Float), dr.uint32_array_t(Float)
