@@ -20,7 +20,8 @@ bins it holds is the reconstruction method's (`Reconstruction.mask_items`):
 
 The bins are uniform in value over the data's ``[min, max]`` and fixed at
 build time, so a TF or TF-domain change only recomputes 64 per-bin maxima
-(`bin_max_alpha`) and one table look-up per mask byte.
+(`mi_amr.device.grid.DeviceMacrocellGrid.update_majorants`) and one table
+look-up per mask byte.
 """
 
 from __future__ import annotations
