@@ -71,7 +71,7 @@ class ScenePlan:
 
 def open_data(data, field=None):
     """``(volume or cells, physical extent (3,), description)`` of ``data``:
-    an `AMRCells`, a `BlockVolume`, a ``.cells``/``.npz`` file, a loaded yt
+    an `AMRCells`, a `BlockVolume`, a ``.cells``/``.npz``/``.amrb`` file, a loaded yt
     dataset, or any path yt can load (then ``field`` names the field)."""
     from .data.io import load_volume
     from .data.metadata import physical_box
@@ -82,7 +82,7 @@ def open_data(data, field=None):
     if hasattr(data, "index") and hasattr(data, "domain_left_edge"):
         return _from_yt(data, field)
     path = Path(str(data))
-    if path.suffix in (".cells", ".npz"):
+    if path.suffix in (".cells", ".npz", ".amrb"):
         scalars = field_scalars(path, field)
         vol = load_volume(path, None if scalars is None else str(scalars))
         lo, hi = vol.bounds

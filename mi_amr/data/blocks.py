@@ -49,7 +49,11 @@ class BlockVolume(mi.Object):
     source : str                 name used in error messages
     """
 
-    def __init__(self, block, level, coord, values, origin, lo, hi, n_cells, source, meta=None):
+    def __init__(self, block, level, coord, values, origin, lo, hi, n_cells, source, meta=None,
+                 value_range=None, cell_counts=None):
+        """``value_range`` and ``cell_counts`` (``(covers_bounds,
+        partial_block_cells)``): known already (a native file stores them);
+        else computed here (value range) or on first use (cell counts)."""
         super().__init__()
         self.block = int(block)
         self.log2_block = int(self.block).bit_length() - 1
@@ -60,8 +64,11 @@ class BlockVolume(mi.Object):
         self.n_cells = int(n_cells)
         self.source = source
         self.meta = dict(meta or {})         # physical metadata (`mi_amr.data.metadata`)
-        self._covers = None
-        self._update_range()
+        self._covers = None if cell_counts is None else tuple(cell_counts)
+        if value_range is None:
+            self._update_range()
+        else:
+            self._range = (float(value_range[0]), float(value_range[1]))
 
 
     def __reduce__(self):

@@ -23,6 +23,9 @@ from .blocks import BlockVolume, sample_runs
 from .cells import AMRCells
 from ..memory import load_bytes, require, structure_bytes
 
+#: The AMR file types read and written by extension.
+FILE_TYPES = ".cells, .npz or .amrb"
+
 CELL_DTYPE = np.dtype([("x", "<i4"), ("y", "<i4"), ("z", "<i4"), ("level", "<i4")])
 
 
@@ -253,7 +256,10 @@ def load_cells(path, scalars=None, *, overlap: str = "error") -> AMRCells:
         return read_npz(path, overlap=overlap)
     if path.suffix == ".cells":
         return read_exabricks(path, scalars, overlap=overlap)
-    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected .cells or .npz)")
+    if path.suffix == ".amrb":
+        from .amrb import read_amrb
+        return read_amrb(path).to_cells()
+    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected {FILE_TYPES})")
 
 
 def load_volume(path, scalars=None, *, overlap: str = "error", method: str = "tent") -> BlockVolume:
@@ -264,15 +270,23 @@ def load_volume(path, scalars=None, *, overlap: str = "error", method: str = "te
         return read_exabricks_blocks(path, scalars, overlap=overlap, method=method)
     if path.suffix == ".npz":
         return read_npz_blocks(path, overlap=overlap, method=method)
-    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected .cells or .npz)")
+    if path.suffix == ".amrb":                # the resident form itself (`mi_amr.data.amrb`)
+        from .amrb import read_amrb
+        return read_amrb(path)
+    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected {FILE_TYPES})")
 
 
 def save_cells(cells: AMRCells | BlockVolume, path) -> Path:
+    """Write AMR data to ``.cells`` (+ ``.scalars``), ``.npz`` or ``.amrb``
+    (the resident blocks, `mi_amr.data.amrb`) by extension."""
     path = Path(path)
+    if path.suffix == ".amrb":
+        from .amrb import write_amrb
+        return write_amrb(cells if isinstance(cells, BlockVolume) else BlockVolume.from_cells(cells), path)
     if isinstance(cells, BlockVolume):
         cells = cells.to_cells()
     if path.suffix == ".npz":
         return write_npz(cells, path)
     if path.suffix == ".cells":
         return write_exabricks(cells, path)[0]
-    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected .cells or .npz)")
+    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected {FILE_TYPES})")

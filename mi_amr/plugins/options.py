@@ -123,7 +123,7 @@ def _load_data(props, method: str) -> AMRCells | BlockVolume:
     overlap = get_string(props, "amr", "overlap", "error", OVERLAPS)
     has_file, has_data = "filename" in props.keys(), "data" in props.keys()
     if has_file == has_data:
-        raise ValueError("amr: give exactly one of 'filename' (a .cells or .npz file) "
+        raise ValueError("amr: give exactly one of 'filename' (a .cells, .npz or .amrb file) "
                          "or 'data' (an AMRCells object)")
     if has_data:
         data = props["data"]

@@ -43,7 +43,7 @@ def _scene_from_data(args):
     plan = plan_scene(args.scene, args.field, tf=args.tf or DEFAULT_TF, log=log,
                       value_range=tuple(args.range) if args.range else None)
     data = Path(args.scene)
-    if data.suffix in (".cells", ".npz") and data.is_file():
+    if data.suffix in (".cells", ".npz", ".amrb") and data.is_file():
         data_file = data.resolve()
         if field_scalars(data, args.field) is not None:     # the XML names .cells + scalars: convert to one file
             data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
@@ -234,9 +234,11 @@ def cmd_convert(args):
     import numpy as np
 
     from ..data.convert import dense_to_amr
-    from ..data.io import load_cells, save_cells
+    from ..data.io import load_cells, load_volume, save_cells
     src = Path(args.input)
-    if src.suffix in (".cells", ".npz"):
+    if src.suffix in (".cells", ".npz", ".amrb") and Path(args.output).suffix == ".amrb":
+        cells = load_volume(src, overlap=args.overlap)      # streamed into blocks, never per-cell records
+    elif src.suffix in (".cells", ".npz", ".amrb"):
         cells = load_cells(src, overlap=args.overlap)
     elif src.suffix in (".npy", ".raw"):
         if src.suffix == ".npy":
@@ -263,7 +265,7 @@ def cmd_convert(args):
         cells = from_yt_blocks(ds, field, overlap=args.overlap)        # grids straight into blocks
     else:
         raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' (expected .cells, "
-                         ".npz, .npy or .raw, or a yt-loadable dataset with --field)")
+                         ".npz, .amrb, .npy or .raw, or a yt-loadable dataset with --field)")
     if args.log:
         from ..data.transform import apply_value_transform
         cells, floor = apply_value_transform(cells, "log10")
@@ -345,7 +347,7 @@ def build_parser():
                  "(camera, light, TF over the values, written beside the image as OUT.xml), "
                  "to EXR (+ PNG preview)",
                  "mi-amr render scenes/cloud.xml -o out/cloud.exr --spp 256 -D tf=spiky --workers 2")
-    r.add_argument("scene", help="an XML scene, or data: a .cells/.npz file or anything yt can load")
+    r.add_argument("scene", help="an XML scene, or data: a .cells/.npz/.amrb file or anything yt can load")
     r.add_argument("--field", help="data: the field to render (e.g. density, or gas,density)")
     scale = r.add_mutually_exclusive_group()
     scale.add_argument("--log", dest="scale", action="store_const", const="log",
@@ -392,8 +394,8 @@ def build_parser():
     i.add_argument("--json", action="store_true")
     i.set_defaults(func=cmd_info)
 
-    c = _command(sub, "convert", "convert between .npz and .cells, a dense .npy/.raw volume "
-                                 "or a yt-loadable dataset (--field) to AMR",
+    c = _command(sub, "convert", "convert between .npz, .cells and .amrb (the native file that opens at "
+                                 "disk speed), a dense .npy/.raw volume or a yt-loadable dataset (--field) to AMR",
                  "mi-amr convert volume.raw volume.cells --shape 256 256 256 --threshold 0.01")
     c.add_argument("input")
     c.add_argument("output")

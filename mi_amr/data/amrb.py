@@ -1,0 +1,214 @@
+"""The native ``.amrb`` file: a `BlockVolume` as it lies in memory, checksummed.
+
+Loading ``.cells`` data builds the blocks (sorting, hashing, overlap checks);
+an ``.amrb`` file keeps the result, so opening it is reading three arrays and
+verifying their checksums, at disk speed (docs/design.md section 9b has the
+layout, for other tools). Little-endian throughout:
+
+* bytes 0-31, the preamble: magic ``b"MIAMRB\\r\\n"`` (the CR LF catches a
+  text-mode copy), ``uint32`` format version (`VERSION`), ``uint32`` header
+  length, ``uint32`` CRC-32 of the header, 12 zero bytes;
+* the header, UTF-8 JSON: block size, counts, bounds, value range, the
+  cell counts the builds need (`BlockVolume.covers_bounds`,
+  `BlockVolume.partial_block_cells`), source name, physical metadata, and
+  one record per section (name, dtype, shape, offset, bytes, the CRC-32 of
+  each `CHUNK_BYTES` chunk);
+* the sections, each at a 64-byte aligned offset: ``level`` (uint8, one per
+  block), ``coord`` (int32, 3 per block), ``values`` (float32, B^3 per
+  block, NaN where a level has no cell); the file ends where the last one
+  does.
+
+Writing goes to a temporary name beside the target, renamed over it only
+once complete and flushed: an interrupted write leaves nothing under the
+target name. Reading checks everything it reads and names the file and the
+problem in one line (`AmrbError`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from ..progress import progress
+from .blocks import BlockVolume
+
+MAGIC = b"MIAMRB\r\n"
+#: Format version; a reader refuses any other.
+VERSION = 1
+PREAMBLE = struct.Struct("<8sIII12x")
+ALIGN = 64
+#: Bytes per checksummed chunk (chunks are read and verified in parallel).
+CHUNK_BYTES = 1 << 24
+SECTIONS = (("level", "<u1"), ("coord", "<i4"), ("values", "<f4"))
+
+
+class AmrbError(ValueError):
+    """An ``.amrb`` file that cannot be read as written: the message names
+    the file and what is wrong."""
+
+
+def _aligned(n: int) -> int:
+    return -(-n // ALIGN) * ALIGN
+
+
+def _bytes(a: np.ndarray) -> memoryview:
+    """The bytes of a C-contiguous array, writable where it is (empty ones too)."""
+    return memoryview(a.reshape(-1).view(np.uint8))
+
+
+def _chunks(nbytes: int, chunk: int):
+    """``(start, length)`` of the checksummed chunks of ``nbytes`` bytes."""
+    return [(s, min(chunk, nbytes - s)) for s in range(0, nbytes, chunk)]
+
+
+def write_amrb(volume: BlockVolume, path) -> Path:
+    """Write ``volume`` to ``path`` (``.amrb``) atomically: streamed chunk by
+    chunk into ``path.tmp-PID``, flushed, then renamed over ``path``."""
+    path = Path(path)
+    arrays = {"level": np.ascontiguousarray(volume.level, dtype="<u1"),
+              "coord": np.ascontiguousarray(volume.coord, dtype="<i4"),
+              "values": np.ascontiguousarray(volume.values, dtype="<f4")}
+    covers, partial = volume._cell_counts()
+    sections, offset = [], 0
+    for name, dtype in SECTIONS:
+        a = arrays[name]
+        sections.append({"name": name, "dtype": dtype, "shape": list(a.shape), "nbytes": int(a.nbytes)})
+    header = {"block": volume.block, "n_blocks": int(len(volume.level)), "n_cells": volume.n_cells,
+              "origin": [int(x) for x in volume.origin], "lo": [int(x) for x in volume.lo],
+              "hi": [int(x) for x in volume.hi], "value_range": list(map(float, volume.value_range)),
+              "covers_bounds": bool(covers), "partial_block_cells": int(partial),
+              "source": str(volume.source), "meta": volume.meta, "chunk_bytes": CHUNK_BYTES}
+    # the checksums go into the header, so they are computed first (one pass
+    # over memory, in parallel: zlib releases the GIL), then the bytes written
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        for s in sections:
+            raw = _bytes(arrays[s["name"]])
+            s["crc32"] = list(pool.map(lambda c: zlib.crc32(raw[c[0]:c[0] + c[1]]),
+                                       _chunks(s["nbytes"], CHUNK_BYTES)))
+    # offsets depend on the header's length, which depends on the offsets' digits: settle it
+    data_start = 0
+    for _ in range(4):
+        offset = data_start
+        for s in sections:
+            s["offset"] = offset
+            offset = _aligned(offset + s["nbytes"])
+        text = json.dumps(dict(header, sections=sections), separators=(",", ":")).encode()
+        start = _aligned(PREAMBLE.size + len(text))
+        if start == data_start:
+            break
+        data_start = start
+    end = sections[-1]["offset"] + sections[-1]["nbytes"]
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f, progress(end, f"writing {path.name}", unit="B") as bar:
+            f.write(PREAMBLE.pack(MAGIC, VERSION, len(text), zlib.crc32(text)))
+            f.write(text)
+            for s in sections:
+                f.write(b"\0" * (s["offset"] - f.tell()))
+                raw = _bytes(arrays[s["name"]])
+                for a, n in _chunks(s["nbytes"], CHUNK_BYTES):
+                    f.write(raw[a:a + n])
+                    bar.update(n)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _fail(path, what):
+    raise AmrbError(f"{path}: {what}")
+
+
+def read_header(path) -> dict:
+    """The validated header of an ``.amrb`` file (no section is read)."""
+    path = Path(path)
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        pre = f.read(PREAMBLE.size)
+        if len(pre) < PREAMBLE.size or not pre.startswith(MAGIC[:6]):
+            _fail(path, "not an mi-amr .amrb file (no MIAMRB signature)")
+        magic, version, n, crc = PREAMBLE.unpack(pre)
+        if magic != MAGIC:
+            _fail(path, "damaged signature (copied as text?)")
+        if version != VERSION:
+            _fail(path, f"format version {version}, this mi-amr reads version {VERSION}")
+        text = f.read(n)
+    if len(text) < n:
+        _fail(path, f"truncated in the header ({size} bytes)")
+    if zlib.crc32(text) != crc:
+        _fail(path, "the header is corrupted (checksum mismatch)")
+    try:
+        header = json.loads(text)
+        sections = {s["name"]: s for s in header["sections"]}
+        for name, dtype in SECTIONS:
+            s = sections[name]
+            if s["dtype"] != dtype or int(np.prod(s["shape"])) * np.dtype(dtype).itemsize != s["nbytes"]:
+                _fail(path, f"section {name!r} is inconsistent ({s['dtype']}, shape {s['shape']}, "
+                            f"{s['nbytes']} bytes)")
+            chunk = int(header["chunk_bytes"])
+            if chunk <= 0 or len(s["crc32"]) != len(_chunks(s["nbytes"], chunk)):
+                _fail(path, f"section {name!r} has {len(s['crc32'])} checksums for {s['nbytes']} bytes")
+    except (KeyError, TypeError, ValueError) as e:
+        if isinstance(e, AmrbError):
+            raise
+        _fail(path, f"the header is malformed ({type(e).__name__}: {e})")
+    b3, k = int(header["block"]) ** 3, int(header["n_blocks"])
+    if (sections["level"]["shape"] != [k] or sections["coord"]["shape"] != [k, 3]
+            or sections["values"]["shape"] != [k * b3]):
+        _fail(path, f"section shapes do not match {k} blocks of {header['block']}^3 cells")
+    end = max(s["offset"] + s["nbytes"] for s in sections.values())
+    if size < end:
+        _fail(path, f"truncated: {size} bytes, the sections end at {end}")
+    if size > end:
+        _fail(path, f"{size - end} bytes of trailing data after the last section")
+    header["sections"] = sections
+    return header
+
+
+def read_amrb(path) -> BlockVolume:
+    """The `BlockVolume` stored in ``path``, every byte checked against its
+    checksum (chunks read and verified in parallel threads)."""
+    path = Path(path)
+    header = read_header(path)
+    arrays = {}
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        jobs = []
+        for name, dtype in SECTIONS:
+            s = header["sections"][name]
+            a = np.empty(s["shape"], dtype=dtype)
+            arrays[name] = a
+            raw = _bytes(a)
+            for (start, n), crc in zip(_chunks(s["nbytes"], int(header["chunk_bytes"])), s["crc32"]):
+                jobs.append((name, s["offset"] + start, raw[start:start + n], crc))
+
+        def load(job):
+            name, at, buf, crc = job
+            got = os.preadv(fd, [buf], at) if len(buf) else 0
+            if got != len(buf):
+                _fail(path, f"truncated in section {name!r}")
+            if zlib.crc32(buf) != crc:
+                _fail(path, f"section {name!r} is corrupted at byte {at} (checksum mismatch)")
+            return len(buf)
+
+        total = sum(len(j[2]) for j in jobs)
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool, \
+                progress(total, f"reading {path.name}", unit="B") as bar:
+            for n in pool.map(load, jobs):
+                bar.update(n)
+    finally:
+        os.close(fd)
+    return BlockVolume(header["block"], arrays["level"], arrays["coord"], arrays["values"],
+                       np.array(header["origin"], np.int64), np.array(header["lo"], np.int64),
+                       np.array(header["hi"], np.int64), header["n_cells"], header.get("source") or str(path),
+                       header.get("meta") or {}, value_range=tuple(header["value_range"]),
+                       cell_counts=(bool(header["covers_bounds"]), int(header["partial_block_cells"])))

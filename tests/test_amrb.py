@@ -1,0 +1,172 @@
+"""The native ``.amrb`` file (`mi_amr.data.amrb`): what is written reads back
+exactly, the medium and the command line open it, and every kind of damage
+is refused with one line naming the file and the problem."""
+
+import os
+import struct
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import mi_amr
+import mi_amr.data.amrb
+from mi_amr.data.amrb import AmrbError, read_amrb, read_header, write_amrb
+from mi_amr.data.blocks import BlockVolume
+from mi_amr.data.datasets import make_dataset
+from mi_amr.data.io import load_volume, save_cells
+
+from conftest import random_amr
+
+
+@pytest.fixture(scope="module")
+def volume():
+    v = BlockVolume.from_cells(make_dataset("blocks", cells=6000, seed=2))
+    v.meta = {"field": "density", "units": "g/cm**3"}
+    return v
+
+
+@pytest.fixture
+def written(volume, tmp_path):
+    return write_amrb(volume, tmp_path / "v.amrb")
+
+
+def assert_same(a: BlockVolume, b: BlockVolume):
+    assert a.block == b.block and a.n_cells == b.n_cells and a.source == b.source and a.meta == b.meta
+    for name in ("level", "coord", "origin", "lo", "hi"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    np.testing.assert_array_equal(a.values.view(np.uint32), b.values.view(np.uint32))   # NaNs too
+    assert a.value_range == b.value_range
+    assert (a.covers_bounds, a.partial_block_cells) == (b.covers_bounds, b.partial_block_cells)
+
+
+def test01_round_trip_is_exact(volume, written, monkeypatch):
+    back = read_amrb(written)
+    assert_same(volume, back)
+    assert back.values.dtype == np.float32 and back.coord.dtype == np.int32 and back.level.dtype == np.uint8
+    assert_same(volume, load_volume(written))
+    header = read_header(written)
+    assert all(s["offset"] % 64 == 0 for s in header["sections"].values())
+    # an empty volume and one whose values span several checksummed chunks
+    empty = BlockVolume.from_dense(np.full((4, 4, 4), np.nan, np.float32), block=4)
+    assert len(read_amrb(write_amrb(empty, written.with_name("e.amrb"))).level) == 0
+    monkeypatch.setattr(mi_amr.data.amrb, "CHUNK_BYTES", 1 << 12)          # many chunks, read in parallel
+    big = BlockVolume.from_dense(np.random.default_rng(0).random((40, 40, 48), np.float32), block=8)
+    path = write_amrb(big, written.with_name("b.amrb"))
+    assert len(read_header(path)["sections"]["values"]["crc32"]) > 16
+    monkeypatch.setattr(mi_amr.data.amrb, "CHUNK_BYTES", 1 << 20)          # the file's own chunk size is used
+    assert_same(big, read_amrb(path))
+
+
+def test02_the_medium_and_the_cli_open_it(llvm, volume, tmp_path):
+    """``filename="X.amrb"`` gives the medium the same data as the blocks
+    themselves; ``mi-amr convert`` writes it from a .cells file and
+    ``mi-amr render X.amrb`` renders it."""
+    import mitsuba as mi
+    cells = random_amr(4, 16, 3)
+    save_cells(cells, tmp_path / "c.cells")
+    r = subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "convert", str(tmp_path / "c.cells"),
+                        str(tmp_path / "c.amrb")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert_same(load_volume(tmp_path / "c.cells"), read_amrb(tmp_path / "c.amrb"))
+    a = mi.load_dict({"type": "amr", "filename": str(tmp_path / "c.amrb"), "transfer_function": "spiky"})
+    b = mi.load_dict({"type": "amr", "filename": str(tmp_path / "c.cells"), "transfer_function": "spiky"})
+    np.testing.assert_array_equal(a.majorant_grid, b.majorant_grid)
+    from conftest import render_cli
+    r = render_cli([tmp_path / "c.amrb", "-o", tmp_path / "o.exr", "--spp", "1", "--res", "16"])
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "o.exr").is_file() and (tmp_path / "o.xml").is_file()
+    assert not list(tmp_path.glob("*.tmp-*"))
+
+
+def _refused(path, match):
+    with pytest.raises(AmrbError, match=match) as e:
+        read_amrb(path)
+    message = str(e.value)
+    assert str(path) in message and "\n" not in message
+    return message
+
+
+def test03_damage_is_refused_with_one_line(written):
+    data = written.read_bytes()
+    header = read_header(written)
+    values = header["sections"]["values"]
+    bad = written.with_name("bad.amrb")
+
+    bad.write_bytes(data[:values["offset"] + values["nbytes"] // 2])          # truncated
+    _refused(bad, "truncated")
+    bad.write_bytes(data[:20])
+    _refused(bad, "not an mi-amr|truncated")
+    bad.write_bytes(data + b"x")
+    _refused(bad, "trailing data")
+    for name in ("level", "coord", "values"):                                  # one flipped bit per section
+        s = header["sections"][name]
+        at = s["offset"] + s["nbytes"] // 2
+        bad.write_bytes(data[:at] + bytes([data[at] ^ 0x10]) + data[at + 1:])
+        _refused(bad, f"section '{name}' is corrupted")
+    at = 32 + 10                                                               # in the header's JSON
+    bad.write_bytes(data[:at] + bytes([data[at] ^ 0x01]) + data[at + 1:])
+    _refused(bad, "header is corrupted")
+    bad.write_bytes(data[:8] + struct.pack("<I", 2) + data[12:])               # another version
+    _refused(bad, "format version 2, this mi-amr reads version 1")
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n" + data[8:])                           # not ours
+    _refused(bad, "not an mi-amr .amrb file")
+    bad.write_bytes(data.replace(b"MIAMRB\r\n", b"MIAMRB\n\n", 1))             # a text-mode copy
+    _refused(bad, "damaged signature")
+
+
+def test04_the_cli_names_the_damage_in_one_line(written, tmp_path):
+    data = bytearray(written.read_bytes())
+    data[-3] ^= 0xFF
+    bad = tmp_path / "bad.amrb"
+    bad.write_bytes(bytes(data))
+    r = subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "render", str(bad), "-o", str(tmp_path / "o.exr"),
+                        "-q"], capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and not (tmp_path / "o.exr").exists()
+    lines = [l for l in r.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1 and str(bad) in lines[0] and "corrupted" in lines[0], r.stderr
+
+
+def test05_an_interrupted_write_leaves_nothing_under_the_target(volume, tmp_path, monkeypatch):
+    """A write that fails half-way (here: the disk fills after 1000 bytes)
+    leaves neither the target nor its temporary file; an earlier file under
+    the target name is left as it was."""
+    target = tmp_path / "v.amrb"
+    import builtins
+    real_open = builtins.open
+
+    class Full:
+        def __init__(self, f):
+            self.f, self.n = f, 0
+
+        def write(self, b):
+            self.n += len(b)
+            if self.n > 1000:
+                raise OSError(28, "No space left on device")
+            return self.f.write(b)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return self.f.__exit__(*exc)
+
+    def full_open(path, mode="r", *a, **k):
+        f = real_open(path, mode, *a, **k)
+        return Full(f) if "w" in mode and str(path).endswith(f".tmp-{os.getpid()}") else f
+
+    monkeypatch.setattr(builtins, "open", full_open)
+    with pytest.raises(OSError, match="No space"):
+        write_amrb(volume, target)
+    assert not target.exists() and not list(tmp_path.iterdir())
+    monkeypatch.setattr(builtins, "open", real_open)
+    write_amrb(volume, target)
+    before = target.read_bytes()
+    monkeypatch.setattr(builtins, "open", full_open)
+    with pytest.raises(OSError):
+        write_amrb(BlockVolume.from_cells(random_amr(5, 8, 2)), target)
+    assert target.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["v.amrb"]
