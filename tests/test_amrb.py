@@ -170,3 +170,9 @@ def test05_an_interrupted_write_leaves_nothing_under_the_target(volume, tmp_path
     with pytest.raises(OSError):
         write_amrb(BlockVolume.from_cells(random_amr(5, 8, 2)), target)
     assert target.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["v.amrb"]
+    # Ctrl-C half-way through the sections: the same
+    monkeypatch.setattr(Full, "write", lambda self, b: (_ for _ in ()).throw(KeyboardInterrupt())
+                        if self.f.tell() > 500 else self.f.write(b))
+    with pytest.raises(KeyboardInterrupt):
+        write_amrb(BlockVolume.from_cells(random_amr(6, 8, 2)), target)
+    assert target.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["v.amrb"]

@@ -451,6 +451,9 @@ def main(argv=None):
             raise
         print(f"mi-amr {args.command}: error: {_plugin_error(str(e))}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:                 # Ctrl-C: writers have removed what they had begun
+        print(f"mi-amr {args.command}: interrupted", file=sys.stderr)
+        return 130
     return 0
 
 
