@@ -37,10 +37,16 @@ def load_bytes(n_cells: int, chunk: int = CHUNK) -> float:
     return 8.0 * n_cells + 170.0 * min(n_cells, chunk)
 
 
+#: Peak bytes per macrocell of a macrocell grid build: its arrays, and the
+#: dense coarse levels' minimum and maximum reduced at once (two threads):
+#: fitted to tracemalloc peaks on cloud and blocks data (44-103 measured).
+BYTES_PER_GRID_MACROCELL = 64
+
+
 def grid_bytes(n_macrocells: int, n_cells: int) -> float:
-    """Peak host bytes of a macrocell grid build: its arrays and one chunk
-    of block reductions."""
-    return BYTES_PER_MACROCELL * float(n_macrocells) + 12.0 * min(n_cells, CHUNK)
+    """Peak host bytes of a macrocell grid build: its arrays, the dense
+    levels' reductions and the chunks of block reductions in flight."""
+    return BYTES_PER_GRID_MACROCELL * float(n_macrocells) + 12.0 * min(n_cells, CHUNK)
 
 
 def hash_bytes(n_blocks: int, method) -> float:

@@ -148,10 +148,12 @@ def fold_each_cell(cells, res, support):
 
 @pytest.mark.parametrize("name", ["random", "stadium", "blocks"])
 @pytest.mark.parametrize("support", ["tent", "nearest"])
-def test07_macrocell_ranges_from_blocks_are_exact(name, support):
+def test07_macrocell_ranges_from_blocks_are_exact(name, support, monkeypatch):
     """Ranges and level masks built from blocks (windowed per block, dense
     per coarse level) or from cells equal folding every cell into every
-    macrocell its support touches; a pooled grid equals a direct build."""
+    macrocell its support touches, also when the blocks are reduced in
+    small chunks by two threads at once; a pooled grid equals a direct build."""
+    from mi_amr.structures import macrocell_grid
     cells = DATA[name]()
     vol = BlockVolume.from_cells(cells)
     for res in (5, 16, 37):
@@ -160,6 +162,12 @@ def test07_macrocell_ranges_from_blocks_are_exact(name, support):
             g = MacrocellGrid(src, res, support=support)
             for a, b in zip((g.vmin, g.vmax, g.level_bits), ref):
                 np.testing.assert_array_equal(a, b)
+        with monkeypatch.context() as m:
+            m.setattr(macrocell_grid, "BLOCK_CHUNK", 8 * vol.block ** 3)       # eight blocks a chunk
+            m.setattr(macrocell_grid, "build_threads", lambda: 2)
+            g = MacrocellGrid(vol, res, support=support)
+        for a, b in zip((g.vmin, g.vmax, g.level_bits), ref):
+            np.testing.assert_array_equal(a, b)
     fine = MacrocellGrid(vol, 32, support=support)
     pooled, direct = fine.pooled(8), MacrocellGrid(vol, 8, support=support)
     if pooled is not None:

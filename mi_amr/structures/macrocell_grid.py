@@ -16,6 +16,10 @@ Majorants are derived from the ranges through the transfer function (see
 
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from ..data.blocks import BlockVolume
@@ -25,6 +29,14 @@ from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
 from .boxes import expand_boxes
 from .value_masks import ValueBins, value_masks
+
+#: Cells per chunk of blocks that one thread reduces onto the macrocells.
+BLOCK_CHUNK = 1 << 20
+
+
+def build_threads() -> int:
+    """Threads for host builds: the cores this process may run on."""
+    return max(1, len(os.sched_getaffinity(0)))
 
 
 def axis_resolution(longest: int, extent) -> np.ndarray:
@@ -100,9 +112,14 @@ class MacrocellGrid:
         splat = _RangeSplat(cells.origin, lo, hi, res, support, chunk, vmin, vmax, bits)
         with progress(len(cells), f"macrocell ranges {'x'.join(str(int(r)) for r in res)}") as bar:
             if isinstance(cells, BlockVolume):
-                for level, coord, values in cells.block_chunks():
+                def add(chunk):
+                    level, coord, values = chunk
                     splat.add_blocks(level, coord, values, cells.log2_block)
-                    bar.update(int(np.count_nonzero(~np.isnan(values))))
+                    return int(np.count_nonzero(~np.isnan(values)))
+                # chunks of about BLOCK_CHUNK cells, reduced on every core
+                with ThreadPoolExecutor(max_workers=build_threads()) as pool:
+                    for n in pool.map(add, cells.block_chunks(BLOCK_CHUNK)):
+                        bar.update(n)
             else:
                 for pos, level, value in cells.cell_chunks():
                     splat.add(pos, level, value)
@@ -167,6 +184,11 @@ class _RangeSplat:
         self.vmin, self.vmax, self.bits = vmin, vmax, bits
         self.hi = np.asarray(hi, np.int64)
         self.dense = {}               # level -> (qmin (3,), values (nz, ny, nx) float32, NaN = no cell)
+        # add_blocks runs in several threads (numpy releases the GIL in the
+        # reductions): the lazily made level grids and the folds into the
+        # shared arrays are taken one thread at a time
+        self._grid_lock = threading.Lock()
+        self._fold_lock = threading.Lock()
 
     def _dense_shape(self, L):
         qmin = (self.lo - self.origin) >> L
@@ -179,10 +201,11 @@ class _RangeSplat:
 
     def _dense_grid(self, L):
         """``(qmin, grid)`` of level ``L``: its level grid, NaN where no cell yet."""
-        if L not in self.dense:
-            qmin, n = self._dense_shape(L)
-            self.dense[L] = (qmin, np.full((int(n[2]), int(n[1]), int(n[0])), np.nan, np.float32))
-        return self.dense[L]
+        with self._grid_lock:
+            if L not in self.dense:
+                qmin, n = self._dense_shape(L)
+                self.dense[L] = (qmin, np.full((int(n[2]), int(n[1]), int(n[0])), np.nan, np.float32))
+            return self.dense[L]
 
     def _macrocells(self, qw, w, axis=slice(None)):
         """First and last macrocell (``i0``, ``i1``, clipped) that the support
@@ -240,9 +263,10 @@ class _RangeSplat:
                 [(vmin, np.minimum, np.inf), (vmax, np.maximum, -np.inf)])
             ok &= vmax > -np.inf
             idx = idx[ok]
-            np.minimum.at(self.vmin, idx, vmin[ok])
-            np.maximum.at(self.vmax, idx, vmax[ok])
-            np.bitwise_or.at(self.bits, idx, np.uint32(1 << L))
+            with self._fold_lock:
+                np.minimum.at(self.vmin, idx, vmin[ok])
+                np.maximum.at(self.vmax, idx, vmax[ok])
+                np.bitwise_or.at(self.bits, idx, np.uint32(1 << L))
 
     def _fold_cells(self, pos, L, value):
         res = self.res
@@ -284,26 +308,32 @@ class _RangeSplat:
                 start = stop
 
     def finish(self):
-        """Reduce the dense levels into the macrocells."""
+        """Reduce the dense levels into the macrocells: the minima and the
+        maxima of each level are independent reductions, run on every core."""
         res = self.res
-        shape = (int(res[2]), int(res[1]), int(res[0]))
-        for L, (qmin, grid) in self.dense.items():
+        size = int(np.prod(res))
+
+        def reduce(L, qmin, grid, op, fill):
             # the whole level grid as one block, axis 0 of size 1
-            lo_min = np.where(np.isnan(grid), np.inf, grid)[None]
-            lo_max = np.where(np.isnan(grid), -np.inf, grid)[None]
-            del grid
+            a = np.where(np.isnan(grid), fill, grid)[None]
             for axis in range(3):                  # x, y, z: array axes 3, 2, 1
-                i0, i1 = self._level_macrocells(qmin[axis] + np.arange(lo_min.shape[3 - axis]), L, axis)
+                i0, i1 = self._level_macrocells(qmin[axis] + np.arange(a.shape[3 - axis]), L, axis)
                 j = np.arange(res[axis])
                 qa = np.searchsorted(i1, j, side="left")[None]   # first cell reaching macrocell j
                 qb = np.searchsorted(i0, j, side="right")[None] - 1   # last cell starting at or before j
-                lo_min = _block_window_reduce(lo_min, 3 - axis, qa, qb, np.minimum, np.inf)
-                lo_max = _block_window_reduce(lo_max, 3 - axis, qa, qb, np.maximum, -np.inf)
-            lo_min, lo_max = lo_min.reshape(-1), lo_max.reshape(-1)
-            assert lo_min.size == int(np.prod(shape))
-            np.minimum(self.vmin, lo_min, out=self.vmin)
-            np.maximum(self.vmax, lo_max, out=self.vmax)
-            self.bits |= np.where(lo_max > -np.inf, np.uint32(1 << L), np.uint32(0))
+                a = _block_window_reduce(a, 3 - axis, qa, qb, op, fill)
+            assert a.size == size
+            return L, op, a.reshape(-1)
+
+        tasks = [(L, qmin, grid, op, fill) for L, (qmin, grid) in self.dense.items()
+                 for op, fill in ((np.minimum, np.inf), (np.maximum, -np.inf))]
+        with ThreadPoolExecutor(max_workers=build_threads()) as pool:
+            for L, op, a in pool.map(lambda t: reduce(*t), tasks):
+                if op is np.minimum:
+                    np.minimum(self.vmin, a, out=self.vmin)
+                else:
+                    np.maximum(self.vmax, a, out=self.vmax)
+                    self.bits |= np.where(a > -np.inf, np.uint32(1 << L), np.uint32(0))
         self.dense.clear()
 
 
