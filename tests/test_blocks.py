@@ -164,7 +164,7 @@ def test07_macrocell_ranges_from_blocks_are_exact(name, support, monkeypatch):
                 np.testing.assert_array_equal(a, b)
         with monkeypatch.context() as m:
             m.setattr(macrocell_grid, "BLOCK_CHUNK", 8 * vol.block ** 3)       # eight blocks a chunk
-            m.setattr(macrocell_grid, "build_threads", lambda: 2)
+            m.setattr(macrocell_grid, "build_threads", lambda: 2)          # as on a 2-core box
             g = MacrocellGrid(vol, res, support=support)
         for a, b in zip((g.vmin, g.vmax, g.level_bits), ref):
             np.testing.assert_array_equal(a, b)

@@ -20,6 +20,7 @@ import numpy as np
 import mitsuba as mi
 
 from ..memory import CHUNK
+from ..parallel import ordered_map
 from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
 from .cells import AMRCells, check_cells
@@ -131,18 +132,27 @@ class BlockVolume(mi.Object):
         first chunk)."""
         lo = np.full(3, np.iinfo(np.int64).max)
         hi = np.full(3, np.iinfo(np.int64).min)
-        lmax, n, start = 0, 0, 0
+        lmax, n = 0, 0
         bar = progress(3 * total if total else None, f"loading {source}")
-        for pos, level, value in chunks():
-            bar.update(len(value))
+
+        def numbered():                          # each chunk with the index of its first cell
+            start = 0
+            for pos, level, value in chunks():
+                yield start, pos, level, value
+                start += len(value)
+
+        def check(chunk):                        # validated and measured in threads, in order
+            start, pos, level, value = chunk
             check_cells(pos, level, value, source, start)
-            start += len(value)
-            if len(value):
-                w = np.int64(1) << level.astype(np.int64)
-                lo = np.minimum(lo, pos.min(axis=0))
-                hi = np.maximum(hi, (pos + w[:, None]).max(axis=0))
-                lmax = max(lmax, int(level.max()))
-                n += len(value)
+            if not len(value):
+                return 0, None, None, 0
+            w = np.int64(1) << level.astype(np.int64)
+            return len(value), pos.min(axis=0), (pos + w[:, None]).max(axis=0), int(level.max())
+
+        for m, clo, chi, cmax in ordered_map(check, numbered()):
+            bar.update(m)
+            if m:
+                lo, hi, lmax, n = np.minimum(lo, clo), np.maximum(hi, chi), max(lmax, cmax), n + m
         if n == 0:
             bar.close()
             raise ValueError(f"{source}: contains no cells")
@@ -402,12 +412,12 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
         b = choose_block_size(counts, ghosts if with_ghosts else None)
     else:
         b = sizes[0]
-    # ---- Pass 1: the blocks ----
+    # ---- Pass 1: the blocks (each chunk's in a thread) ----
     parts = []
-    for p, lv, _ in chunks():
-        parts.append(_distinct(block_keys(p, lv, b)))
+    for part, m in ordered_map(lambda c: (_distinct(block_keys(c[0], c[1], b)), len(c[1])), chunks()):
+        parts.append(part)
         if bar is not None:
-            bar.update(len(lv))
+            bar.update(m)
     keys = _distinct(np.concatenate(parts))
     del parts
     coord, blevel = _unpack_keys(keys, packed)
@@ -418,10 +428,14 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     values = np.full(len(keys) * b3, np.nan, dtype=np.float32)
     # ---- Pass 2: place each cell's value; a second value in a slot is a duplicate ----
     n, start = 0, 0
-    for pos, level, value in chunks():
+
+    def slots(chunk):                             # in threads; the values are placed in order below
+        pos, level, value = chunk
         L = level.astype(np.int64)
         q = (pos.astype(np.int64) - origin) >> L[:, None]
-        slot = _slot(np.searchsorted(keys, _block_keys(q // b, L, packed)), q, b)
+        return _slot(np.searchsorted(keys, _block_keys(q // b, L, packed)), q, b), pos, level, value
+
+    for slot, pos, level, value in ordered_map(slots, chunks()):
         m = len(slot)
         taken = ~np.isnan(values[slot])           # placed by an earlier chunk
         free = np.nonzero(~taken)[0]

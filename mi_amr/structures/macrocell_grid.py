@@ -16,7 +16,6 @@ Majorants are derived from the ranges through the transfer function (see
 
 from __future__ import annotations
 
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -25,6 +24,7 @@ import numpy as np
 from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..memory import grid_bytes, require
+from ..parallel import build_threads
 from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
 from .boxes import expand_boxes
@@ -33,10 +33,6 @@ from .value_masks import ValueBins, value_masks
 #: Cells per chunk of blocks that one thread reduces onto the macrocells.
 BLOCK_CHUNK = 1 << 20
 
-
-def build_threads() -> int:
-    """Threads for host builds: the cores this process may run on."""
-    return max(1, len(os.sched_getaffinity(0)))
 
 
 def axis_resolution(longest: int, extent) -> np.ndarray:
