@@ -10,7 +10,7 @@ from mi_amr.tools.bench import all_configs, main
 
 def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
     out = tmp_path / "bench"
-    code = main(["--out", str(out), "--cells", "800", "--res", "16", "--spp", "2", "--ref-spp", "16",
+    code = main(["--out", str(out), "--cells", "800", "--res", "8", "--spp", "2", "--ref-spp", "16",
                  "--repeats", "2", "--datasets", "cloud", "--tfs", "spiky",
                  "--configs", "reference", "volpath/ray", "amrvolpath/grid/hash", "amrvolpath/abr/brick",
                  "amrvolpath/default", "amrvolpath/default-plain",
