@@ -107,6 +107,17 @@ def test03_damage_is_refused_with_one_line(written):
     _refused(bad, "header is corrupted")
     bad.write_bytes(data[:8] + struct.pack("<I", 2) + data[12:])               # another version
     _refused(bad, "format version 2, this mi-amr reads version 1")
+    import json
+    import zlib
+    n = struct.unpack_from("<I", data, 12)[0]
+    head = json.loads(data[32:32 + n])
+    head["sections"][2]["offset"] = 8                                          # a crafted header, checksum right
+    text = json.dumps(head).encode()
+    bad.write_bytes(data[:12] + struct.pack("<II", len(text), zlib.crc32(text)) + data[20:32] + text
+                    + data[32 + n:])
+    _refused(bad, "bad offset")
+    bad.write_bytes(data[:12] + struct.pack("<I", 0xFFFFFFF0) + data[16:])    # a damaged header length
+    _refused(bad, "damaged header length")
     bad.write_bytes(b"\x89PNG\r\n\x1a\n" + data[8:])                           # not ours
     _refused(bad, "not an mi-amr .amrb file")
     bad.write_bytes(data.replace(b"MIAMRB\r\n", b"MIAMRB\n\n", 1))             # a text-mode copy

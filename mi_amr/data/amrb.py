@@ -43,6 +43,8 @@ MAGIC = b"MIAMRB\r\n"
 VERSION = 1
 PREAMBLE = struct.Struct("<8sIII12x")
 ALIGN = 64
+#: Largest header a reader accepts (a 26 GB file's is a few kB).
+MAX_HEADER_BYTES = 1 << 26
 #: Bytes per checksummed chunk (chunks are read and verified in parallel).
 CHUNK_BYTES = 1 << 24
 SECTIONS = (("level", "<u1"), ("coord", "<i4"), ("values", "<f4"))
@@ -141,6 +143,8 @@ def read_header(path) -> dict:
             _fail(path, "damaged signature (copied as text?)")
         if version != VERSION:
             _fail(path, f"format version {version}, this mi-amr reads version {VERSION}")
+        if n > min(size - PREAMBLE.size, MAX_HEADER_BYTES):
+            _fail(path, f"truncated in the header ({size} bytes) or a damaged header length ({n})")
         text = f.read(n)
     if len(text) < n:
         _fail(path, f"truncated in the header ({size} bytes)")
@@ -165,6 +169,12 @@ def read_header(path) -> dict:
     if (sections["level"]["shape"] != [k] or sections["coord"]["shape"] != [k, 3]
             or sections["values"]["shape"] != [k * b3]):
         _fail(path, f"section shapes do not match {k} blocks of {header['block']}^3 cells")
+    at = PREAMBLE.size + n                     # sections: aligned, in order, after the header, apart
+    for name, _ in SECTIONS:
+        off = sections[name]["offset"]
+        if not isinstance(off, int) or off < at or off % ALIGN:
+            _fail(path, f"section {name!r} has a bad offset {off!r}")
+        at = off + sections[name]["nbytes"]
     end = max(s["offset"] + s["nbytes"] for s in sections.values())
     if size < end:
         _fail(path, f"truncated: {size} bytes, the sections end at {end}")
