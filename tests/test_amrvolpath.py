@@ -19,9 +19,20 @@ PASSES = 32
 Z_MAX = 4.5
 
 
-def agree(scene_a, scene_b, spp=8, block=4):
+#: Reference images (stock volpath, the same seeds) by case: the tests of one
+#: data set, TF and medium options compare against the very same image, so it
+#: is rendered once per test process.
+REFERENCES = {}
+
+
+def agree(scene_a, scene_b, spp=8, block=4, reference_key=None):
     a = render_passes(mi.load_dict(scene_a), PASSES, spp, seed0=0)
-    b = render_passes(mi.load_dict(scene_b), PASSES, spp, seed0=50_000)
+    key = None if reference_key is None else (reference_key, spp)
+    b = REFERENCES.get(key) if key is not None else None
+    if b is None:
+        b = render_passes(mi.load_dict(scene_b), PASSES, spp, seed0=50_000)
+        if key is not None:
+            REFERENCES[key] = b
     assert np.isfinite(a).all() and np.isfinite(b).all()
     z = np.abs(block_z_scores(a, b, block)).max()
     assert z < Z_MAX, f"max |z| = {z:.2f}"
@@ -88,7 +99,8 @@ def _combo(data_name, tf, traversal, sampling, **medium):
         i = int(np.argmax(cells.value))
         view = dict(target=(cells.pos[i] + 0.5 * cells.width[i] - lo) / (hi - lo), fov=6)
     a = agree(volume_scene(dict(kw, traversal=traversal, sampling=sampling), res=24, integrator="amrvolpath", **view),
-              volume_scene(dict(kw), res=24, integrator="volpath", **view))
+              volume_scene(dict(kw), res=24, integrator="volpath", **view),
+              reference_key=(data_name, tf, tuple(sorted(medium.items()))))
     assert a.mean(axis=0)[..., 0].std() > 0.005          # the volume is visible
 
 
