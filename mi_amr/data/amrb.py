@@ -30,11 +30,11 @@ import json
 import os
 import struct
 import zlib
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
+from ..parallel import ordered_map
 from ..progress import progress
 from .blocks import BlockVolume
 
@@ -88,11 +88,10 @@ def write_amrb(volume: BlockVolume, path) -> Path:
               "source": str(volume.source), "meta": volume.meta, "chunk_bytes": CHUNK_BYTES}
     # the checksums go into the header, so they are computed first (one pass
     # over memory, in parallel: zlib releases the GIL), then the bytes written
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        for s in sections:
-            raw = _bytes(arrays[s["name"]])
-            s["crc32"] = list(pool.map(lambda c: zlib.crc32(raw[c[0]:c[0] + c[1]]),
-                                       _chunks(s["nbytes"], CHUNK_BYTES)))
+    for s in sections:
+        raw = _bytes(arrays[s["name"]])
+        s["crc32"] = list(ordered_map(lambda c: zlib.crc32(raw[c[0]:c[0] + c[1]]),
+                                      _chunks(s["nbytes"], CHUNK_BYTES)))
     # offsets depend on the header's length, which depends on the offsets' digits: settle it
     data_start = 0
     for _ in range(4):
@@ -211,9 +210,8 @@ def read_amrb(path) -> BlockVolume:
             return len(buf)
 
         total = sum(len(j[2]) for j in jobs)
-        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool, \
-                progress(total, f"reading {path.name}", unit="B") as bar:
-            for n in pool.map(load, jobs):
+        with progress(total, f"reading {path.name}", unit="B") as bar:
+            for n in ordered_map(load, jobs):
                 bar.update(n)
     finally:
         os.close(fd)

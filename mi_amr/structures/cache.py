@@ -45,14 +45,6 @@ class StructureCache:
         """Identities (``id``) of the data objects that have entries."""
         return set(self._entries)
 
-    def drop(self, data=None):
-        """Forget the structures of ``data`` (of every data object with none)."""
-        with self._lock:
-            if data is None:
-                self._entries.clear()
-            else:
-                self._entries.pop(id(data), None)
-
     def _slot(self, data) -> dict:
         with self._lock:
             slot = self._entries.get(id(data))

@@ -17,14 +17,13 @@ Majorants are derived from the ranges through the transfer function (see
 from __future__ import annotations
 
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..memory import grid_bytes, require
-from ..parallel import build_threads
+from ..parallel import build_threads, ordered_map
 from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
 from .boxes import expand_boxes
@@ -113,9 +112,8 @@ class MacrocellGrid:
                     splat.add_blocks(level, coord, values, cells.log2_block)
                     return int(np.count_nonzero(~np.isnan(values)))
                 # chunks of about BLOCK_CHUNK cells, reduced on every core
-                with ThreadPoolExecutor(max_workers=build_threads()) as pool:
-                    for n in pool.map(add, cells.block_chunks(BLOCK_CHUNK)):
-                        bar.update(n)
+                for n in ordered_map(add, cells.block_chunks(BLOCK_CHUNK), build_threads()):
+                    bar.update(n)
             else:
                 for pos, level, value in cells.cell_chunks():
                     splat.add(pos, level, value)
@@ -323,13 +321,12 @@ class _RangeSplat:
 
         tasks = [(L, qmin, grid, op, fill) for L, (qmin, grid) in self.dense.items()
                  for op, fill in ((np.minimum, np.inf), (np.maximum, -np.inf))]
-        with ThreadPoolExecutor(max_workers=build_threads()) as pool:
-            for L, op, a in pool.map(lambda t: reduce(*t), tasks):
-                if op is np.minimum:
-                    np.minimum(self.vmin, a, out=self.vmin)
-                else:
-                    np.maximum(self.vmax, a, out=self.vmax)
-                    self.bits |= np.where(a > -np.inf, np.uint32(1 << L), np.uint32(0))
+        for L, op, a in ordered_map(lambda t: reduce(*t), tasks, build_threads()):
+            if op is np.minimum:
+                np.minimum(self.vmin, a, out=self.vmin)
+            else:
+                np.maximum(self.vmax, a, out=self.vmax)
+                self.bits |= np.where(a > -np.inf, np.uint32(1 << L), np.uint32(0))
         self.dense.clear()
 
 
