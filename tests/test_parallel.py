@@ -49,3 +49,40 @@ def test02_an_error_is_raised_in_order_and_stops_the_stream():
         for x in ordered_map(work, items(), threads=2, ahead=3):
             got.append(x)
     assert got == [0, 1, 2, 3, 4] and len(pulled) < 20
+
+
+def test03_progress_bars_end_at_their_totals(llvm, tmp_path, monkeypatch):
+    """Every bar of a load, the default builds and a conversion to .amrb
+    has a total (so it shows an ETA) and ends exactly there: the ETA counts
+    every step the bar stands for."""
+    import io
+
+    import mitsuba as mi
+    from tqdm import tqdm
+
+    import mi_amr.progress
+    from mi_amr.data.amrb import read_amrb, write_amrb
+    from mi_amr.data.datasets import write_block_dataset
+    bars = []
+
+    class Recorded(tqdm):
+        def __init__(self, *args, **kwargs):
+            kwargs.update(disable=False, file=io.StringIO())      # counted as on a terminal
+            super().__init__(*args, **kwargs)
+            self.what = kwargs.get("desc", "")
+
+        def close(self):
+            if not getattr(self, "_recorded", False):
+                self._recorded = True
+                bars.append((self.what, self.total, self.n))
+            super().close()
+    monkeypatch.setattr(mi_amr.progress, "tqdm", Recorded)
+    path = write_block_dataset(tmp_path / "p.cells", 60_000, 3, nxb=(8, 16))
+    med = mi.load_dict({"type": "amr", "filename": str(path), "reconstruction": "nearest"})
+    write_amrb(med.volume, tmp_path / "p.amrb")
+    read_amrb(tmp_path / "p.amrb")
+    names = [d.split(" ")[0] for d, _, _ in bars]
+    for step in ("loading", "macrocell", "value", "writing", "reading"):
+        assert step in names, (step, bars)
+    for desc, total, n in bars:
+        assert total is not None and total > 0 and n == total, (desc, total, n)

@@ -110,8 +110,11 @@ def write_amrb(volume: BlockVolume, path) -> Path:
         with open(tmp, "wb") as f, progress(end, f"writing {path.name}", unit="B") as bar:
             f.write(PREAMBLE.pack(MAGIC, VERSION, len(text), zlib.crc32(text)))
             f.write(text)
+            bar.update(f.tell())                   # the header and the padding count too
             for s in sections:
-                f.write(b"\0" * (s["offset"] - f.tell()))
+                pad = s["offset"] - f.tell()
+                f.write(b"\0" * pad)
+                bar.update(pad)
                 raw = _bytes(arrays[s["name"]])
                 for a, n in _chunks(s["nbytes"], CHUNK_BYTES):
                     f.write(raw[a:a + n])
