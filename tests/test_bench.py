@@ -203,3 +203,23 @@ def test08_frozen_frames_replay_the_plain_image(llvm, config):
     out = bench.alternate_passes(mi, {config: scene_dict}, args, plain)
     times, mses = out[config]
     assert len(times) == 2 and all(t > 0 for t in times) and all(np.isfinite(mses))
+
+
+@pytest.mark.slow
+def test09_scale_bench_reports_the_first_picture(tmp_path):
+    """The scale benchmark: one row per kind and source, time to the first
+    picture made of open + build and a first frame, finite images, both
+    files opened (marker ``slow``: a fresh process per row)."""
+    out = tmp_path / "scale"
+    code = main(["--scale", "3e4", "--scale-kinds", "blocks", "mixed", "--out", str(out),
+                 "--data-dir", str(tmp_path / "data"), "--res", "16", "--spp", "1"])
+    assert code == 0
+    records = json.loads((out / "scale.json").read_text())
+    assert [(r["kind"], r["source"]) for r in records] == [("blocks", "cells"), ("blocks", "amrb"),
+                                                           ("mixed", "cells"), ("mixed", "amrb")]
+    for r in records:
+        assert "error" not in r, r
+        assert r["image_finite"] and r["first_picture_s"] > r["load_build_s"] > 0
+        assert r["file"].endswith("." + r["source"])
+    assert records[0]["cells"] == records[1]["cells"] and records[2]["cells"] == records[3]["cells"]
+    assert "**first picture s**" in (out / "scale.md").read_text()

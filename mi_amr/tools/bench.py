@@ -345,11 +345,15 @@ def main(argv=None):
                    help="grid resolutions of the sweep (amrvolpath/grid/hash); empty: no sweep")
     p.add_argument("--scale", type=float, nargs="+", default=None, metavar="CELLS",
                    help="run the scale benchmark instead, at these cell counts (e.g. 1e5 1e6 1e7 1e8)")
-    p.add_argument("--scale-kinds", nargs="+", default=["blocks", "cloud"],
-                   help="data kinds of the scale benchmark (octree-like ones up to 1e7 cells)")
+    p.add_argument("--scale-kinds", nargs="+", default=None,
+                   help="data kinds of the scale benchmark: blocks (16^3), mixed (8^3-32^3), cloud "
+                        "(octree-like, up to 1e7 cells); default all three")
+    p.add_argument("--scale-sources", nargs="+", default=None, choices=["cells", "amrb"],
+                   help="files the scale benchmark opens: the .cells file, its .amrb conversion (default both)")
     p.add_argument("--scale-configs", nargs="+", default=None,
-                   help="configurations of the scale benchmark (default: amrvolpath/grid/hash "
-                        "amrvolpath/kdtree/hash)")
+                   help="configurations of the scale benchmark (default: amrvolpath/grid/hash)")
+    p.add_argument("--cold-kernels", action="store_true",
+                   help="scale benchmark: each process starts with an empty Dr.Jit kernel cache")
     p.add_argument("--data-dir", default="out/data", help="where the scale benchmark keeps its .cells files")
     p.add_argument("--distributed", action="store_true",
                    help="speed-up of a Dask LocalCluster over one process (256x256, 256 spp unless "
@@ -369,11 +373,12 @@ def main(argv=None):
         print(f"wrote {args.out}/distributed.json and distributed.md")
         return 0
     if args.scale:
-        from .scale_bench import DEFAULT_CONFIGS, run_scale
-        res = 64 if args.res == 128 else args.res
-        spp = 4 if args.spp == 16 else args.spp
-        run_scale([int(n) for n in args.scale], args.scale_kinds, args.scale_configs or DEFAULT_CONFIGS,
-                  Path(args.out), Path(args.data_dir), res, spp, args.variant)
+        from .scale_bench import DEFAULT_CONFIGS, DEFAULT_KINDS, DEFAULT_SOURCES, run_scale
+        res = 256 if args.res == 128 else args.res          # the first picture: 256x256 at 1 spp
+        spp = 1 if args.spp == 16 else args.spp
+        run_scale([int(n) for n in args.scale], args.scale_kinds or DEFAULT_KINDS,
+                  args.scale_configs or DEFAULT_CONFIGS, Path(args.out), Path(args.data_dir), res, spp,
+                  args.variant, args.scale_sources or DEFAULT_SOURCES, args.cold_kernels)
         print(f"wrote {args.out}/scale.json, scale.md and scale.png")
         return 0
     if args.quick:

@@ -1,39 +1,64 @@
-"""Scale benchmark: load, build, memory and frame time against the cell count.
+"""Scale benchmark: time to the first picture, memory and frame time against the cell count.
 
-    python -m mi_amr.bench --scale 1e5 1e6 1e7 1e8 --out DIR
+    python -m mi_amr.bench --scale 1e7 1e8 --out DIR
 
-For each size, data kind (``blocks``: block-structured, FLASH-like 16^3
-blocks; ``cloud``: octree-like) and configuration, one fresh process loads
-the data from a ``.cells`` file (generated once into ``--data-dir``), builds
-the structures of an ``amr`` medium and renders a fixed frame. Recorded:
-load seconds, build seconds per structure, cells per second, resident bytes
+For each size, data kind and source, and configuration, one fresh process
+opens the data file, builds the structures of an ``amr`` medium, compiles
+and renders a first frame, then renders the same frame again. Kinds:
+``blocks`` (block-structured, FLASH-like 16^3 blocks over 5 levels),
+``mixed`` (blocks of 8^3, 16^3 and 32^3 over 3 levels) and ``cloud``
+(octree-like, up to `OCTREE_MAX` cells); sources: the ``.cells`` file
+(generated once into ``--data-dir``) and the native ``.amrb`` converted
+from it. Recorded: **time to the first picture** (open + build + compile
++ first frame), its parts, cells per second of open + build, resident bytes
 per cell (the medium's own accounting, and the process RSS growth), peak
 bytes per cell (the highest RSS, polled every 5 ms during load and build,
-above the RSS before loading), and
-the first (compiling) and steady frame seconds. Writes ``scale.json``,
+above the RSS before loading) and the steady frame. Writes ``scale.json``,
 ``scale.md`` and ``scale.png`` (log-log time and memory against cells).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 #: Octree-like data are generated cell by cell in memory: not above this size by default.
 OCTREE_MAX = 10**7
-DEFAULT_CONFIGS = ("amrvolpath/grid/hash", "amrvolpath/kdtree/hash")
+DEFAULT_CONFIGS = ("amrvolpath/grid/hash",)
+DEFAULT_KINDS = ("blocks", "mixed", "cloud")
+DEFAULT_SOURCES = ("cells", "amrb")
+#: Block sizes and levels of the block-structured kinds.
+BLOCK_KINDS = {"blocks": (16, 5), "mixed": ((8, 16, 32), 3)}
 
 
-def data_file(kind: str, n: int, data_dir: Path) -> Path:
-    """The ``.cells`` file of ``kind`` with about ``n`` cells, written on first use."""
-    from ..data.datasets import ensure_dataset
-    path = Path(data_dir) / f"{kind}-{n:.0e}.cells".replace("+", "")
-    levels = 5 if kind == "blocks" else 4
-    return ensure_dataset(path, kind, cells=n, levels=levels)
+def data_file(kind: str, n: int, data_dir: Path, source: str = "cells") -> Path:
+    """The ``.cells`` file of ``kind`` with about ``n`` cells (written on
+    first use, streaming for the block kinds), or its ``.amrb`` conversion."""
+    from ..data.datasets import ensure_dataset, write_block_dataset
+    data_dir = Path(data_dir)
+    path = data_dir / f"{kind}-{n:.0e}.cells".replace("+", "")
+    if not path.exists():
+        if kind in BLOCK_KINDS:
+            nxb, levels = BLOCK_KINDS[kind]
+            write_block_dataset(path, n, levels, nxb=nxb)
+        else:
+            ensure_dataset(path, kind, cells=n, levels=4)
+    if source == "cells":
+        return path
+    if source != "amrb":
+        raise ValueError(f"unknown source {source!r} (choose from cells, amrb)")
+    native = path.with_suffix(".amrb")
+    if not native.exists():
+        from ..data.amrb import write_amrb
+        from ..data.io import load_volume
+        write_amrb(load_volume(path), native)
+    return native
 
 
 def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dict:
@@ -88,7 +113,7 @@ def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dic
     monitor.join()
     high_built = max(monitor.high, rss_built)
     t0 = time.perf_counter()
-    np.array(mi.render(scene, spp=spp, seed=0))
+    first_img = np.array(mi.render(scene, spp=spp, seed=0))
     first = time.perf_counter() - t0
     steady = []
     for seed in (1, 2, 3):
@@ -97,69 +122,87 @@ def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dic
         steady.append(time.perf_counter() - t0)
     return {"file": path, "config": config, "cells": n, "block": med.volume.block,
             "load_build_s": load_build, "load_s": load_build - sum(build.values()), "build_s": build,
-            "cells_per_s": n / load_build,
+            "cells_per_s": n / load_build, "first_picture_s": load_build + first,
             "resident_B_per_cell": med.resident_bytes / n,
             "rss_growth_B_per_cell": (rss_built - base_rss) / n,
             "peak_build_B_per_cell": (high_built - base_rss) / n,
             "peak_build_maxrss_B_per_cell": max(peak_built - base_peak, 0) / n,
             "peak_render_B_per_cell": max(peak() - base_peak, 0) / n,
+            "peak_process_GiB": peak() / 2**30,
             "first_frame_s": first, "steady_frame_s": statistics.median(steady),
+            "image_finite": bool(np.isfinite(first_img).all() and np.isfinite(img).all()),
             "image_mean": float(img.mean()), "res": res, "spp": spp}
 
 
-def run_scale(sizes, kinds, configs, out: Path, data_dir: Path, res: int, spp: int, variant: str) -> list:
+def run_scale(sizes, kinds, configs, out: Path, data_dir: Path, res: int, spp: int, variant: str,
+              sources=DEFAULT_SOURCES, cold_kernels: bool = False) -> list:
+    """Every size x kind x source x configuration, one fresh process each;
+    ``cold_kernels``: each process starts with an empty Dr.Jit kernel cache
+    (a new user's first run), else the cache of this machine's user."""
     out.mkdir(parents=True, exist_ok=True)
     records = []
     for n in sizes:
         for kind in kinds:
-            if kind != "blocks" and n > OCTREE_MAX:
+            if kind not in BLOCK_KINDS and n > OCTREE_MAX:
                 print(f"{kind} {n:.0e}: skipped (octree-like data above {OCTREE_MAX:.0e} cells "
                       "are generated in memory)", flush=True)
                 continue
-            t0 = time.perf_counter()
-            path = data_file(kind, int(n), data_dir)
-            print(f"{kind} {n:.0e}: {path} ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-            for config in configs:
-                cmd = [sys.executable, "-m", "mi_amr.tools.scale_bench", "--one", str(path), config,
-                       str(res), str(spp), variant]
-                r = subprocess.run(cmd, capture_output=True, text=True)
-                if r.returncode != 0:
-                    tail = (r.stderr or r.stdout).strip().splitlines()[-1:] or ["no output"]
-                    print(f"  {config}: failed: {tail[0]}", flush=True)
-                    records.append({"kind": kind, "target_cells": n, "config": config, "error": tail[0]})
-                    continue
-                rec = json.loads(r.stdout.strip().splitlines()[-1])
-                rec.update(kind=kind, target_cells=n)
-                records.append(rec)
-                print(f"  {config:24s} {rec['cells']:>10d} cells: load+build {rec['load_build_s']:7.2f} s "
-                      f"({rec['cells_per_s'] / 1e6:5.2f} M cells/s), resident {rec['resident_B_per_cell']:5.2f} "
-                      f"B/cell, peak {rec['peak_build_B_per_cell']:6.1f} B/cell, frame "
-                      f"{rec['first_frame_s']:6.2f} s first / {rec['steady_frame_s']:6.2f} s steady", flush=True)
-                (out / "scale.json").write_text(json.dumps(records, indent=1))
+            for source in sources:
+                t0 = time.perf_counter()
+                path = data_file(kind, int(n), data_dir, source)
+                print(f"{kind} {n:.0e}: {path} ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+                for config in configs:
+                    rec = _run_one(path, config, res, spp, variant, cold_kernels)
+                    rec.update(kind=kind, target_cells=n, source=source, cold_kernels=cold_kernels)
+                    records.append(rec)
+                    if "error" in rec:
+                        print(f"  {config}: failed: {rec['error']}", flush=True)
+                    else:
+                        print(f"  {source:5s} {config:22s} {rec['cells']:>13,d} cells: first picture "
+                              f"{rec['first_picture_s']:7.2f} s (open+build {rec['load_build_s']:7.2f} s, "
+                              f"{rec['cells_per_s'] / 1e6:6.2f} M cells/s; first frame {rec['first_frame_s']:5.2f} s)"
+                              f", steady frame {rec['steady_frame_s']:5.3f} s, resident "
+                              f"{rec['resident_B_per_cell']:5.2f} B/cell, peak {rec['peak_build_B_per_cell']:6.1f}"
+                              " B/cell", flush=True)
+                    (out / "scale.json").write_text(json.dumps(records, indent=1))
     write_scale_table(records, out)
     plot_scale(records, out)
     return records
 
 
+def _run_one(path, config, res, spp, variant, cold_kernels) -> dict:
+    cmd = [sys.executable, "-m", "mi_amr.tools.scale_bench", "--one", str(path), config, str(res), str(spp), variant]
+    with tempfile.TemporaryDirectory(prefix="mi-amr-kernels-") as home:
+        env = dict(os.environ, HOME=home) if cold_kernels else None
+        r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if r.returncode != 0:
+        tail = (r.stderr or r.stdout).strip().splitlines()[-1:] or ["no output"]
+        return {"file": str(path), "config": config, "error": tail[0]}
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
 def write_scale_table(records, out: Path):
     lines = ["# mi-amr scale benchmark", "",
-             "| data | cells | configuration | load s | build s | M cells/s | resident B/cell | "
-             "peak B/cell | first frame s | steady frame s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| data | source | cells | configuration | **first picture s** | open + build s | M cells/s | "
+             "build s | first frame s | steady frame s | resident B/cell | peak B/cell |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in records:
         if "error" in r:
-            lines.append(f"| {r['kind']} | {r['target_cells']:.0e} | {r['config']} | failed: {r['error']} "
-                         "| | | | | | |")
+            lines.append(f"| {r['kind']} | {r.get('source', 'cells')} | {r['target_cells']:.0e} | {r['config']} | "
+                         f"failed: {r['error']} | | | | | | | |")
             continue
         build = ", ".join(f"{k} {v:.2f}" for k, v in r["build_s"].items())
-        lines.append(f"| {r['kind']} (B={r['block']}) | {r['cells']:,} | {r['config']} | {r['load_s']:.2f} | "
-                     f"{build} | {r['cells_per_s'] / 1e6:.2f} | {r['resident_B_per_cell']:.2f} | "
-                     f"{r['peak_build_B_per_cell']:.1f} | {r['first_frame_s']:.2f} | {r['steady_frame_s']:.2f} |")
-    if records:
-        r0 = next((r for r in records if "error" not in r), None)
-        if r0:
-            lines += ["", f"Frames: {r0['res']}x{r0['res']}, {r0['spp']} spp, amr medium with the spiky TF, "
-                      "nearest reconstruction; each row a fresh process."]
+        lines.append(f"| {r['kind']} (B={r['block']}) | {r.get('source', 'cells')} | {r['cells']:,} | {r['config']} | "
+                     f"**{r['first_picture_s']:.2f}** | {r['load_build_s']:.2f} | {r['cells_per_s'] / 1e6:.2f} | "
+                     f"{build} | {r['first_frame_s']:.2f} | {r['steady_frame_s']:.3f} | "
+                     f"{r['resident_B_per_cell']:.2f} | {r['peak_build_B_per_cell']:.1f} |")
+    r0 = next((r for r in records if "error" not in r), None)
+    if r0:
+        kernels = "an empty Dr.Jit kernel cache per process" if r0.get("cold_kernels") else \
+            "the machine's Dr.Jit kernel cache (warm after the first row)"
+        lines += ["", f"Frames: {r0['res']}x{r0['res']}, {r0['spp']} spp, amr medium with the spiky TF, "
+                  f"nearest reconstruction; each row a fresh process, with {kernels}. First picture: "
+                  "open + build + compile + first frame."]
     (out / "scale.md").write_text("\n".join(lines) + "\n")
 
 
@@ -171,12 +214,14 @@ def plot_scale(records, out: Path):
     if not ok:
         return
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
-    styles = {"blocks": "-", "cloud": "--"}
-    for (kind, config) in sorted({(r["kind"], r["config"]) for r in ok}):
-        rs = sorted((r for r in ok if r["kind"] == kind and r["config"] == config), key=lambda r: r["cells"])
+    styles = {"blocks": "-", "mixed": "-.", "cloud": "--"}
+    for (kind, source, config) in sorted({(r["kind"], r.get("source", "cells"), r["config"]) for r in ok}):
+        rs = sorted((r for r in ok if r["kind"] == kind and r.get("source", "cells") == source
+                     and r["config"] == config), key=lambda r: r["cells"])
         x = [r["cells"] for r in rs]
-        label = f"{kind} {config.split('/', 1)[1]}"
-        a.loglog(x, [r["load_build_s"] for r in rs], styles.get(kind, ":"), marker="o", label=f"{label} load+build")
+        label = f"{kind} .{source} {config.split('/', 1)[1]}"
+        a.loglog(x, [r["first_picture_s"] for r in rs], styles.get(kind, ":"), marker="o",
+                 label=f"{label} first picture")
         a.loglog(x, [r["steady_frame_s"] for r in rs], styles.get(kind, ":"), marker="s", label=f"{label} frame")
         b.loglog(x, [r["resident_B_per_cell"] * r["cells"] for r in rs], styles.get(kind, ":"), marker="o",
                  label=f"{label} resident")
