@@ -39,14 +39,15 @@ def load_bytes(n_cells: int, chunk: int = CHUNK) -> float:
 
 #: Peak bytes per macrocell of a macrocell grid build: its arrays, and the
 #: dense coarse levels' minimum and maximum reduced at once (two threads):
-#: fitted to tracemalloc peaks on cloud and blocks data (44-103 measured).
-BYTES_PER_GRID_MACROCELL = 64
+#: fitted to tracemalloc peaks on cloud and blocks data (30-72 measured).
+BYTES_PER_GRID_MACROCELL = 48
 
 
-def grid_bytes(n_macrocells: int, n_cells: int) -> float:
+def grid_bytes(n_macrocells: int, n_values: int) -> float:
     """Peak host bytes of a macrocell grid build: its arrays, the dense
-    levels' reductions and the chunks of block reductions in flight."""
-    return BYTES_PER_GRID_MACROCELL * float(n_macrocells) + 12.0 * min(n_cells, CHUNK)
+    levels' reductions and the chunks of block reductions in flight
+    (``n_values``: the value slots of the blocks, or the cells)."""
+    return BYTES_PER_GRID_MACROCELL * float(n_macrocells) + 12.0 * min(n_values, CHUNK)
 
 
 def hash_bytes(n_blocks: int, method) -> float:

@@ -82,10 +82,11 @@ def test03_streaming_load_equals_in_memory(tmp_path, chunk):
     np.testing.assert_array_equal(from_npz.coord, streamed.coord)
 
 
-def test04_streaming_load_finds_overlaps_across_chunks(tmp_path):
-    """A coarse cell over finer ones, and a duplicate, in different chunks:
-    a clear error naming the file (or, with overlap='finest', the cells
-    AMRCells keeps)."""
+@pytest.mark.parametrize("chunk", [100, 1 << 22])
+def test04_streaming_load_finds_overlaps_across_chunks(tmp_path, chunk):
+    """A coarse cell over finer ones, and a duplicate, in different chunks
+    or in one: a clear error naming the file (or, with overlap='finest',
+    the cells AMRCells keeps)."""
     cells = random_amr(1)
     bad = [(np.concatenate([cells.pos, [[0, 0, 0]]]), np.r_[cells.level, 3], np.r_[cells.value, 1.0]),
            (np.concatenate([cells.pos, cells.pos[:1]]), np.r_[cells.level, cells.level[:1]],
@@ -94,8 +95,8 @@ def test04_streaming_load_finds_overlaps_across_chunks(tmp_path):
         path = tmp_path / f"bad{i}.cells"
         write_exabricks(mi_amr.AMRCells(pos, level, value, validate=False), path)
         with pytest.raises(ValueError, match=rf"bad{i}.cells.*overlap finer or duplicate"):
-            read_exabricks_blocks(path, chunk=100)
-        kept = read_exabricks_blocks(path, chunk=100, overlap="finest").to_cells()
+            read_exabricks_blocks(path, chunk=chunk)
+        kept = read_exabricks_blocks(path, chunk=chunk, overlap="finest").to_cells()
         ref = read_exabricks(path, overlap="finest")
         for a, b in zip(sorted_cells(ref), sorted_cells(kept)):
             np.testing.assert_array_equal(a, b)
@@ -156,7 +157,7 @@ def test07_macrocell_ranges_from_blocks_are_exact(name, support, monkeypatch):
     from mi_amr.structures import macrocell_grid
     cells = DATA[name]()
     vol = BlockVolume.from_cells(cells)
-    for res in (5, 16, 37):
+    for res in (5, 8, 16, 37):                   # 8 and 16 align with the blocks
         ref = fold_each_cell(cells, res, support)
         for src in (cells, vol):
             g = MacrocellGrid(src, res, support=support)
@@ -165,6 +166,7 @@ def test07_macrocell_ranges_from_blocks_are_exact(name, support, monkeypatch):
         with monkeypatch.context() as m:
             m.setattr(macrocell_grid, "BLOCK_CHUNK", 8 * vol.block ** 3)       # eight blocks a chunk
             m.setattr(macrocell_grid, "build_threads", lambda: 2)          # as on a 2-core box
+            m.setattr(macrocell_grid, "WINDOW_PATTERNS", 0)          # every window gathered, not sliced
             g = MacrocellGrid(vol, res, support=support)
         for a, b in zip((g.vmin, g.vmax, g.level_bits), ref):
             np.testing.assert_array_equal(a, b)
@@ -225,7 +227,7 @@ def test09_memory_estimates_within_2x_of_the_measured_peak(llvm, tmp_path, name)
     assert 0.5 < load_bytes(len(vol)) / peak < 2.0, ("load", load_bytes(len(vol)) / peak)
     for res in (32, 128):
         g, peak = peak_of(lambda: MacrocellGrid(vol, res))
-        est = grid_bytes(int(np.prod(g.res)), len(vol))
+        est = grid_bytes(int(np.prod(g.res)), vol.values.size)
         assert 0.5 < est / peak < 2.0, ("grid", res, est / peak)
     for method in ("nearest", "tent"):
         _, peak = peak_of(lambda: DeviceReconstruction(vol, method))
@@ -272,3 +274,29 @@ def test11_from_dense_is_one_level_of_the_same_field(llvm):
     ref = dense[i[:, 2], i[:, 1], i[:, 0]]
     np.testing.assert_array_equal(found, ~np.isnan(ref))
     np.testing.assert_array_equal(val[found], ref[found])
+
+
+def test12_mixed_block_sizes_tile_the_domain(tmp_path):
+    """``blocks`` with several sizes (``--nxb 8,16,32``): same-level blocks
+    of each size that tile the domain exactly; the streamed file loads
+    without overlaps, holds every block's cells and the field at their
+    centres."""
+    from mi_amr.data.datasets import _field, block_leaves
+    from mi_amr.tools.cli import build_parser
+    lo, level, size, n_fine, seed = block_leaves(300_000, 3, nxb=(8, 16, 32))
+    assert set(np.unique(size).tolist()) == {8, 16, 32}
+    w = np.int64(1) << level.astype(np.int64)
+    assert np.all(lo % (size * w)[:, None] == 0)                    # aligned to their own size
+    assert int(((size * w) ** 3).sum()) == n_fine ** 3              # volumes add up to the domain
+    args = build_parser().parse_args(["dataset", "blocks", str(tmp_path / "m.cells"), "--cells", "3e5",
+                                      "--levels", "3", "--nxb", "8,16,32"])
+    assert args.cells == 300_000 and args.nxb == (8, 16, 32)
+    path = write_block_dataset(tmp_path / "m.cells", 300_000, 3, nxb=(8, 16, 32))
+    vol = read_exabricks_blocks(path, chunk=50_000)                 # overlaps are errors by default
+    assert len(vol) == int((size ** 3).sum()) and vol.covers_bounds
+    cells = vol.to_cells()
+    pick = np.random.default_rng(0).choice(len(cells), 2000, replace=False)
+    f, _ = _field("cloud", seed)
+    wc = (np.int64(1) << cells.level[pick].astype(np.int64))[:, None]
+    expected = f((cells.pos[pick] + 0.5 * wc) / n_fine).astype(np.float32)
+    np.testing.assert_array_equal(cells.value[pick], expected)

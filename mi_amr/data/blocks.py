@@ -23,7 +23,7 @@ from ..memory import CHUNK
 from ..parallel import ordered_map
 from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
-from .cells import AMRCells, check_cells
+from .cells import MAX_LEVEL, AMRCells, check_cells
 
 #: Block sizes tried by `choose_block_size` (cells per side).
 BLOCK_SIZES = (2, 4, 8, 16)
@@ -71,17 +71,12 @@ class BlockVolume(mi.Object):
         else:
             self._range = (float(value_range[0]), float(value_range[1]))
 
-
     def __reduce__(self):
         return (BlockVolume, (self.block, self.level, self.coord, self.values, self.origin, self.lo,
                               self.hi, self.n_cells, self.source, self.meta))
+
     def _update_range(self):
-        lo_v, hi_v = np.inf, -np.inf
-        for s in range(0, len(self.values), CHUNK):
-            v = self.values[s:s + CHUNK]
-            if not np.isnan(v).all():
-                lo_v, hi_v = min(lo_v, float(np.nanmin(v))), max(hi_v, float(np.nanmax(v)))
-        self._range = (lo_v, hi_v)
+        self._range = scan_values(self.values, self.level, self.block)[1]
 
     # ---- Construction --------------------------------------------------
     @classmethod
@@ -122,14 +117,16 @@ class BlockVolume(mi.Object):
 
     @classmethod
     def from_chunks(cls, chunks, source: str, overlap: str = "error", block: int | None = None,
-                    sample=None, method: str | Reconstruction = "tent", total: int | None = None):
+                    sample=None, method: str | Reconstruction = "tent", total: int | None = None,
+                    positions=None):
         """Blocks from a re-iterable source of raw cells: ``chunks()`` yields
         ``(pos (m, 3) ints, level (m,), value (m,))``, read three times
         (validation and bounds, blocks, values). Each chunk is validated as
         `AMRCells` validates; overlaps across chunks are found from the
         blocks. ``sample()`` yields a few contiguous runs of cells from
         across the data, from which the block size is chosen (default: the
-        first chunk)."""
+        first chunk). ``positions()``, when given, yields the same chunks
+        with ``value`` None, for the pass that needs no values."""
         lo = np.full(3, np.iinfo(np.int64).max)
         hi = np.full(3, np.iinfo(np.int64).min)
         lmax, n = 0, 0
@@ -143,11 +140,15 @@ class BlockVolume(mi.Object):
 
         def check(chunk):                        # validated and measured in threads, in order
             start, pos, level, value = chunk
-            check_cells(pos, level, value, source, start)
             if not len(value):
+                check_cells(pos, level, value, source, start)
                 return 0, None, None, 0
-            w = np.int64(1) << level.astype(np.int64)
-            return len(value), pos.min(axis=0), (pos + w[:, None]).max(axis=0), int(level.max())
+            measured = _check_and_measure(pos, level, value)
+            if measured is None:                 # something is wrong (or unusual dtypes): the full check
+                check_cells(pos, level, value, source, start)
+                w = np.int64(1) << np.asarray(level).astype(np.int64)
+                measured = pos.min(axis=0), (pos + w[:, None]).max(axis=0), int(np.max(level))
+            return (len(value),) + tuple(measured)
 
         for m, clo, chi, cmax in ordered_map(check, numbered()):
             bar.update(m)
@@ -160,7 +161,7 @@ class BlockVolume(mi.Object):
             bar.close()
             raise ValueError(f"{source}: bounding box {lo.tolist()}..{hi.tolist()} exceeds 2**31 finest cells")
         with bar:
-            return _build(chunks, lo, hi, lmax, source, overlap, block, sample, method, bar)
+            return _build(chunks, lo, hi, lmax, source, overlap, block, sample, method, bar, positions)
 
     # ---- Properties ----------------------------------------------------
     def __len__(self):
@@ -194,14 +195,8 @@ class BlockVolume(mi.Object):
     def _cell_counts(self):
         """``(covers_bounds, partial_block_cells)``, counted block by block, once."""
         if self._covers is None:
-            b3 = self.block ** 3
-            total, partial = 0, 0
-            step = max(1, (1 << 22) // b3)
-            for s in range(0, len(self.level), step):
-                present = (~np.isnan(self.values[s * b3:(s + step) * b3].reshape(-1, b3))).sum(axis=1)
-                total += int((present.astype(np.int64) << (3 * self.level[s:s + step].astype(np.int64))).sum())
-                partial += int(present[present < b3].sum())
-            self._covers = (total == int(np.prod((self.hi - self.lo).astype(np.int64))), partial)
+            _, _, volume, partial = scan_values(self.values, self.level, self.block)
+            self._covers = (volume == int(np.prod((self.hi - self.lo).astype(np.int64))), partial)
         return self._covers
 
     @property
@@ -383,10 +378,122 @@ def _distinct(keys: np.ndarray) -> np.ndarray:
     return np.unique(keys)
 
 
-def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="tent", bar=None):
+def _check_and_measure(pos, level, value):
+    """Fast validation of one chunk (levels in range, finite values, corners
+    aligned) and its measures ``(lo (3,), hi (3,), max level)``; ``None``
+    when anything is wrong (then `check_cells` names the first bad cell).
+    Works in the file's int32 where it can: a corner aligned to its width
+    ``w`` has ``pos + w - 1 == pos | (w - 1)``, which cannot overflow."""
+    level = np.asarray(level)
+    if level.dtype.kind not in "iu" or not np.isfinite(value).all():
+        return None
+    if level.min() < 0 or level.max() > MAX_LEVEL:
+        return None
+    lv = level.astype(np.int32, copy=False)
+    mask = (np.int32(1) << lv) - np.int32(1)
+    lo, hi = np.empty(3, np.int64), np.empty(3, np.int64)
+    for a in range(3):
+        c = pos[:, a]
+        if c.dtype.itemsize > 4:
+            if np.any((c & mask) != 0):
+                return None
+            lo[a], hi[a] = c.min(), (c | mask).max() + 1
+            continue
+        if np.bitwise_and(c, mask).any():
+            return None
+        lo[a], hi[a] = int(c.min()), int(np.bitwise_or(c, mask).max()) + 1
+    return lo, hi, int(lv.max())
+
+
+def _level_coords(pos, level, origin):
+    """Level coordinates ``(pos - origin) >> level`` as three int32 columns
+    (x, y, z). The differences lie in [0, 2^31) (bounds are checked before),
+    so int32 arithmetic that wraps gives them exactly."""
+    lv = np.asarray(level).astype(np.int32, copy=False)
+    out = []
+    for a in range(3):
+        o = int(origin[a])
+        o = np.int32(((o + 2**31) % 2**32) - 2**31)          # origin modulo 2^32, as int32
+        c = pos[:, a]
+        if c.dtype != np.int32:
+            c = (c.astype(np.int64) - int(origin[a])).astype(np.int32)
+        else:
+            with np.errstate(over="ignore"):
+                c = c - o
+        out.append(np.right_shift(c, lv))
+    return out
+
+
+def _packed_keys(q, level, lb: int) -> np.ndarray:
+    """Packed int64 block keys (see `_block_keys`) of level coordinates ``q``
+    (three int32 columns) for blocks of ``2^lb`` cells per side."""
+    key = np.asarray(level).astype(np.int64) << (3 * KEY_AXIS_BITS)
+    key |= (q[2] >> lb).astype(np.int64) << (2 * KEY_AXIS_BITS)
+    key |= (q[1] >> lb).astype(np.int64) << KEY_AXIS_BITS
+    key |= q[0] >> lb
+    return key
+
+
+def scan_values(values: np.ndarray, level: np.ndarray, block: int, bar=None):
+    """One pass over the values of blocks (in threads): ``(present cells,
+    (min, max) of the values, present cells weighted by their volume in
+    finest cells, cells in blocks that are not full)``."""
+    b3 = block ** 3
+    step = max(1, CHUNK // b3)
+
+    def scan(s):
+        v = values[s * b3:(s + step) * b3].reshape(-1, b3)
+        present = np.count_nonzero(v == v, axis=1)               # NaN != NaN
+        volume = int((present.astype(np.int64) << (3 * level[s:s + step].astype(np.int64))).sum())
+        lo, hi = np.fmin.reduce(v, axis=None), np.fmax.reduce(v, axis=None)   # NaN only if all are
+        return int(present.sum()), lo, hi, volume, int(present[present < b3].sum()), len(present) * b3
+    n, lo, hi, volume, partial = 0, np.inf, -np.inf, 0, 0
+    for m, clo, chi, cvol, cpart, slots in ordered_map(scan, range(0, len(level), step)):
+        n, volume, partial = n + m, volume + cvol, partial + cpart
+        if m:
+            lo, hi = min(lo, float(clo)), max(hi, float(chi))
+        if bar is not None:
+            bar.update(slots)
+    return n, (lo, hi), volume, partial
+
+
+def _place_checked(chunks, values, keys, origin, packed, b, source, overlap, block_keys) -> int:
+    """Place the values chunk by chunk in stream order, finding repeated
+    cells: with ``overlap == "error"`` the first one is named, else the
+    first cell of a slot is kept. Returns the cells placed."""
+    n, start = 0, 0
+    for pos, level, value in chunks():
+        L = level.astype(np.int64)
+        q = (pos.astype(np.int64) - origin) >> L[:, None]
+        slot = _slot(np.searchsorted(keys, block_keys(pos, level, b)), q, b)
+        m = len(slot)
+        taken = ~np.isnan(values[slot])           # placed by an earlier chunk
+        free = np.nonzero(~taken)[0]
+        fslot = slot[free]
+        _, first = np.unique(fslot, return_index=True)
+        lost = np.ones(len(free), dtype=bool)
+        lost[first] = False
+        if taken.any() or lost.any():
+            if overlap == "error":
+                dup = taken.copy()
+                dup[free[lost]] = True
+                i = int(np.argmax(dup))
+                raise ValueError(
+                    f"{source}: cell {start + i} at {np.asarray(pos[i]).tolist()} (level {int(level[i])}) "
+                    "duplicates another cell: cells overlap finer or duplicate cells; pass "
+                    "overlap='finest' to keep the finer ones")
+            free = free[first]                    # duplicates at one level: keep the first
+        values[slot[free]] = np.asarray(value, dtype=np.float32)[free]
+        n += len(free)
+        start += m
+    return n
+
+
+def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="tent", bar=None, positions=None):
     """Choose the block size (from ``sample()``, or the first chunk, for
     the reconstruction ``method``: name or object), then two passes over
-    ``chunks()``: the set of blocks, then the values."""
+    ``chunks()``: the set of blocks (over ``positions()`` when given), then
+    the values."""
     origin = (np.asarray(lo, dtype=np.int64) >> lmax) << lmax
     sizes = BLOCK_SIZES if block is None else (int(block),)
     for b in sizes:
@@ -394,9 +501,15 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
             raise ValueError(f"{source}: block size must be a power of two, got {b}")
     packed = int(np.max(np.asarray(hi, dtype=np.int64) - origin)) // min(sizes) < (1 << KEY_AXIS_BITS)
 
+    def keys_and_coords(pos, level, b):           # block keys and level coordinates of cells
+        q = _level_coords(pos, level, origin)
+        lb = b.bit_length() - 1
+        if packed:
+            return _packed_keys(q, level, lb), q
+        return _block_keys(np.stack([c >> lb for c in q], axis=1), level, False), q
+
     def block_keys(pos, level, b):
-        L = level.astype(np.int64)
-        return _block_keys(((pos.astype(np.int64) - origin) >> L[:, None]) // b, L, packed)
+        return keys_and_coords(pos, level, b)[0]
     # ---- Block size: fewest bytes per cell on the sample ----
     with_ghosts = reconstruction_method(method).needs_ghosts
     if len(sizes) > 1:
@@ -414,7 +527,8 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
         b = sizes[0]
     # ---- Pass 1: the blocks (each chunk's in a thread) ----
     parts = []
-    for part, m in ordered_map(lambda c: (_distinct(block_keys(c[0], c[1], b)), len(c[1])), chunks()):
+    for part, m in ordered_map(lambda c: (_distinct(block_keys(c[0], c[1], b)), len(c[1])),
+                               (positions or chunks)()):
         parts.append(part)
         if bar is not None:
             bar.update(m)
@@ -426,49 +540,36 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     if len(keys) * b3 >= 2**32:
         raise ValueError(f"{source}: {len(keys)} blocks of {b}^3 values exceed 2**32 values")
     values = np.full(len(keys) * b3, np.nan, dtype=np.float32)
-    # ---- Pass 2: place each cell's value; a second value in a slot is a duplicate ----
-    n, start = 0, 0
+    # ---- Pass 2: place each cell's value (in threads: a slot is written once
+    # unless cells repeat, which the count of placed values reveals) ----
+    lb = b.bit_length() - 1
 
-    def slots(chunk):                             # in threads; the values are placed in order below
+    def place(chunk):
         pos, level, value = chunk
-        L = level.astype(np.int64)
-        q = (pos.astype(np.int64) - origin) >> L[:, None]
-        return _slot(np.searchsorted(keys, _block_keys(q // b, L, packed)), q, b), pos, level, value
+        keys_c, q = keys_and_coords(pos, level, b)
+        heads = np.flatnonzero(np.r_[True, keys_c[1:] != keys_c[:-1]])     # runs of one block
+        blk = np.searchsorted(keys, keys_c[heads])
+        blk = np.repeat(blk, np.diff(np.r_[heads, len(keys_c)]))
+        m = np.int32(b - 1)
+        local = (q[0] & m) | ((q[1] & m) << lb) | ((q[2] & m) << (2 * lb))
+        values[(blk << (3 * lb)) | local] = value
+        return len(value)
 
-    for slot, pos, level, value in ordered_map(slots, chunks()):
-        m = len(slot)
-        taken = ~np.isnan(values[slot])           # placed by an earlier chunk
-        free = np.nonzero(~taken)[0]
-        fslot = slot[free]
-        if len(free) < (1 << 24):
-            # a slot twice in this chunk: write each cell's index (exact in
-            # float32) and read it back; the later write wins
-            mark = np.arange(len(free), dtype=np.float32)
-            values[fslot] = mark
-            lost = values[fslot] != mark
-            values[fslot] = np.nan
-        else:
-            _, first = np.unique(fslot, return_index=True)
-            lost = np.ones(len(free), dtype=bool)
-            lost[first] = False
-        if taken.any() or lost.any():
-            if overlap == "error":
-                dup = taken.copy()
-                dup[free[lost]] = True
-                i = int(np.argmax(dup))
-                raise ValueError(
-                    f"{source}: cell {start + i} at {np.asarray(pos[i]).tolist()} (level {int(level[i])}) "
-                    "duplicates another cell: cells overlap finer or duplicate cells; pass "
-                    "overlap='finest' to keep the finer ones")
-            _, first = np.unique(fslot, return_index=True)    # duplicates at one level: keep the first
-            free = free[first]
-        values[slot[free]] = np.asarray(value, dtype=np.float32)[free]
-        n += len(free)
-        start += m
+    n = 0
+    for m in ordered_map(place, chunks()):
+        n += m
         if bar is not None:
             bar.update(m)
+    if bar is not None and bar.total is not None:
+        bar.total += len(values)                   # the scan of the values below
+    placed, value_range, volume, partial = scan_values(values, blevel, b, bar)
+    if placed != n:                               # repeated cells: place again, in order, chunk by chunk
+        values[:] = np.nan
+        n = _place_checked(chunks, values, keys, origin, packed, b, source, overlap, block_keys)
+        placed, value_range, volume, partial = scan_values(values, blevel, b)
+    box = int(np.prod(np.asarray(hi, np.int64) - np.asarray(lo, np.int64)))
     vol = BlockVolume(b, blevel, coord, values, origin, np.asarray(lo, np.int64), np.asarray(hi, np.int64),
-                      n, source)
+                      n, source, value_range=value_range, cell_counts=(volume == box, partial))
     removed = _remove_overlaps(vol, overlap)
     if removed:                                   # coarse cells dropped: bounds and range may shrink
         vol.n_cells -= removed
@@ -482,6 +583,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
             hi = np.maximum(hi, (pos + (np.int64(1) << level.astype(np.int64))[:, None]).max(axis=0))
         vol.lo, vol.hi = lo, hi
         vol._update_range()
+        vol._covers = None                        # counted again on first use
     return vol
 
 

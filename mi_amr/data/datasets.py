@@ -19,8 +19,10 @@ box). Simulation codes write *block-structured* data instead, and so does
 * ``blocks``: the ``cloud`` field on fixed-size blocks of ``nxb^3`` cells
   (8^3-32^3, as FLASH/PARAMESH writes them): the same top-down refinement,
   applied to whole blocks. `block_leaves` gives the blocks, `block_cells`
-  their cells chunk by chunk, so that 10^8-cell files are written without
-  holding per-cell arrays of the whole data (`write_block_dataset`).
+  their cells chunk by chunk, so that 10^8-10^9-cell files are written
+  without holding per-cell arrays of the whole data (`write_block_dataset`).
+  With several sizes (``nxb=(8, 16, 32)``) each leaf is cut into blocks of
+  one of them: *mixed* blocks, as codes with per-patch sizes write them.
 
 One data set has a single level (`uniform_dataset`; ``levels`` does not
 apply):
@@ -216,42 +218,93 @@ def ensure_dataset(path, name: str, cells: int = 20000, levels: int = 4, seed: i
     return path
 
 
-def block_leaves(cells: int, levels: int = 4, seed: int = 0, nxb: int | None = None):
+def block_leaves(cells: int, levels: int = 4, seed: int = 0, nxb=None):
     """Leaf blocks of the ``blocks`` data set: about ``cells / nxb^3`` blocks
     of ``nxb^3`` cells each, refined top-down like the ``cloud`` data set
     (one block there stands for one cell here). ``nxb`` defaults to
-    `DEFAULT_NXB`, less for data sets under 64 such blocks. Returns ``(lo
-    (K, 3) int64 finest units, level (K,), nxb, n_fine, seed)``: the
-    argument list of `block_cells`."""
+    `DEFAULT_NXB`, less for data sets under 64 such blocks. A sequence of
+    sizes (e.g. ``(8, 16, 32)``) gives *mixed* blocks: each leaf of the
+    largest size is cut into same-level blocks of one of the sizes, chosen
+    at random by seed. Returns ``(lo (K, 3) int64 finest units, level (K,),
+    nxb (an int, or (K,) sizes when mixed), n_fine, seed)``: the argument
+    list of `block_cells`."""
+    sizes = None
+    if nxb is not None and np.ndim(nxb) > 0:
+        sizes = np.array(sorted(set(int(s) for s in nxb)), dtype=np.int64)
+        if len(sizes) == 1:
+            nxb, sizes = int(sizes[0]), None
+        else:
+            nxb = int(sizes[-1])
     if nxb is None:
         nxb = int(np.clip(2 ** int(np.floor(np.log2(max(cells / 64, 8)) / 3)), 2, DEFAULT_NXB))
-    if nxb < 2 or nxb & (nxb - 1):
-        raise ValueError(f"nxb must be a power of two >= 2, got {nxb}")
+    for s in ([nxb] if sizes is None else sizes):
+        if s < 2 or s & (s - 1):
+            raise ValueError(f"nxb must be a power of two >= 2, got {int(s)}")
     units = make_dataset("cloud", max(64, int(round(cells / nxb ** 3))), levels, seed)
     lo_units, hi_units = units.bounds
     n_fine = int((hi_units - lo_units).max()) * nxb
-    return units.pos * nxb, units.level, nxb, n_fine, seed
+    lo, level = units.pos * nxb, units.level
+    if sizes is None:
+        return lo, level, nxb, n_fine, seed
+    choice = sizes[np.random.default_rng(seed + 1).integers(len(sizes), size=len(level))]
+    parts = []                                   # (unit, sub-block, lo, level, size) per size
+    for s in sizes:
+        u = np.nonzero(choice == s)[0]
+        offs = block_offsets(nxb // int(s)) * s                      # sub-block corners, level units
+        w = (np.int64(1) << level[u].astype(np.int64))[:, None, None]
+        sub_lo = (lo[u][:, None, :] + offs[None] * w).reshape(-1, 3)
+        parts.append((np.repeat(u, len(offs)), np.tile(np.arange(len(offs)), len(u)), sub_lo,
+                      np.repeat(level[u], len(offs)), np.full(len(u) * len(offs), s)))
+    unit, sub, sub_lo, sub_level, size = (np.concatenate([p[i] for p in parts]) for i in range(5))
+    order = np.lexsort((sub, unit))              # the blocks of each leaf together, leaves in order
+    return sub_lo[order], sub_level[order], size[order], n_fine, seed
 
 
-def block_cells(lo, level, nxb: int, n_fine: int, seed: int, chunk: int = 1 << 21):
-    """Yield ``(pos int64 (m, 3), level int32 (m,), value float32 (m,))`` of
-    the cells of the blocks ``lo``/``level`` (see `block_leaves`), a few
-    blocks at a time; the values sample the ``cloud`` field at cell centres."""
-    f, _ = _field("cloud", seed)
-    local = block_offsets(nxb)
-    step = max(1, chunk // nxb ** 3)
-    for s in range(0, len(level), step):
-        L = level[s:s + step].astype(np.int64)
+def _block_chunk(lo, level, size, n_fine: int, f):
+    """Cells of the blocks ``lo``/``level`` of sizes ``size`` (K,), grouped
+    by size, each block's cells together: ``(pos, level, value)``."""
+    out = []
+    for s in np.unique(size):
+        sel = np.nonzero(size == s)[0]
+        local = block_offsets(int(s))
+        L = level[sel].astype(np.int64)
         w = (np.int64(1) << L)[:, None, None]
-        pos = (lo[s:s + step, None, :] + local[None] * w).reshape(-1, 3)
-        lev = np.repeat(L, nxb ** 3).astype(np.int32)
-        x = (pos + 0.5 * np.repeat(w[:, 0, 0], nxb ** 3)[:, None]) / n_fine
-        yield pos, lev, f(x).astype(np.float32)
+        pos = (lo[sel][:, None, :] + local[None] * w).reshape(-1, 3)
+        lev = np.repeat(L, len(local)).astype(np.int32)
+        x = (pos + 0.5 * np.repeat(w[:, 0, 0], len(local))[:, None]) / n_fine
+        out.append((pos, lev, f(x).astype(np.float32)))
+    if len(out) == 1:
+        return out[0]
+    return tuple(np.concatenate([o[i] for o in out]) for i in range(3))
 
 
-def write_block_dataset(path, cells: int, levels: int = 4, seed: int = 0, nxb: int | None = None) -> Path:
+def _chunk_bounds(size, chunk: int):
+    """Block ranges ``[s, e)`` of about ``chunk`` cells each."""
+    ends = np.cumsum(size.astype(np.int64) ** 3)
+    cuts = np.searchsorted(ends, np.arange(chunk, int(ends[-1]), chunk), side="right")
+    edges = np.unique(np.concatenate([[0], np.maximum(cuts, 1), [len(size)]]))
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def block_cells(lo, level, nxb, n_fine: int, seed: int, chunk: int = 1 << 21, threads: int | None = 1):
+    """Yield ``(pos int64 (m, 3), level int32 (m,), value float32 (m,))`` of
+    the cells of the blocks ``lo``/``level`` of ``nxb`` cells per side (an
+    int, or one size per block; see `block_leaves`), about ``chunk`` cells
+    at a time; the values sample the ``cloud`` field at cell centres.
+    ``threads``: chunks computed in that many threads (None: every core)."""
+    from ..parallel import ordered_map
+    f, _ = _field("cloud", seed)
+    size = np.broadcast_to(np.asarray(nxb, dtype=np.int64), level.shape)
+    if not len(level):
+        return
+    yield from ordered_map(lambda r: _block_chunk(lo[r[0]:r[1]], level[r[0]:r[1]], size[r[0]:r[1]], n_fine, f),
+                           _chunk_bounds(size, chunk), threads=threads)
+
+
+def write_block_dataset(path, cells: int, levels: int = 4, seed: int = 0, nxb=None, progress_bar=None) -> Path:
     """Write the ``blocks`` data set as an ExaBricks pair ``path`` (``.cells``)
-    + ``.scalars``, streaming block by block (memory: the chunks only)."""
+    + ``.scalars``, streaming block by block on every core (memory: a few
+    chunks); ``nxb``: see `block_leaves`."""
     path = Path(path)
     if path.suffix != ".cells":
         raise ValueError(f"{path}: the streaming writer writes .cells files")
@@ -259,7 +312,9 @@ def write_block_dataset(path, cells: int, levels: int = 4, seed: int = 0, nxb: i
     args = block_leaves(cells, levels, seed, nxb)
     tmp_c, tmp_s = path.with_suffix(".cells.part"), path.with_suffix(".scalars.part")
     with open(tmp_c, "wb") as fc, open(tmp_s, "wb") as fs:
-        for pos, lev, val in block_cells(*args):
+        for pos, lev, val in block_cells(*args, threads=None):
+            if progress_bar is not None:
+                progress_bar.update(len(lev))
             rec = np.empty((len(lev), 4), dtype="<i4")
             rec[:, :3], rec[:, 3] = pos, lev
             fc.write(rec.tobytes())

@@ -94,13 +94,13 @@ def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "erro
         v = np.fromfile(scalars_path, dtype="<f4", count=e - s, offset=4 * s) if values else None
         return r[:, :3], r[:, 3], v
 
-    def chunks():
+    def chunks(values=True):
         for s in range(0, n, chunk):
-            yield read(s, min(n, s + chunk))
+            yield read(s, min(n, s + chunk), values)
     meta = metadata.read_sidecar(cells_path)
     vol = BlockVolume.from_chunks(chunks, str(cells_path), overlap=overlap, block=block,
                                   sample=lambda: sample_runs(n, lambda s, e: read(s, e, False)),
-                                  method=method, total=n)
+                                  method=method, total=n, positions=lambda: chunks(False))
     vol.meta = meta
     return vol
 

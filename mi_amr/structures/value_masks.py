@@ -26,10 +26,13 @@ look-up per mask byte.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
+from ..parallel import ordered_map
 from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
 
@@ -96,7 +99,10 @@ def value_masks(data: AMRCells | BlockVolume, grid, method: str | Reconstruction
     rel = volume.origin - np.asarray(grid.lo, dtype=np.int64)
     B = volume.block
 
-    def fold(level, coord, bits):
+    lock = threading.Lock()
+
+    def fold(item):                                   # in threads; the fold into masks one at a time
+        level, coord, bits, n = item
         for L in np.unique(level):
             L = int(L)
             sel = np.nonzero(level == L)[0]
@@ -111,11 +117,13 @@ def value_masks(data: AMRCells | BlockVolume, grid, method: str | Reconstruction
             q0 = coord[sel].astype(np.int64) << volume.log2_block
             idx, (m,), ok = block_windows(q0, B, span, res, [(bits[sel], np.bitwise_or, np.uint64(0))])
             ok &= m != 0
-            np.bitwise_or.at(masks, idx[ok], m[ok])
+            idx, m = idx[ok], m[ok]
+            with lock:
+                np.bitwise_or.at(masks, idx, m)
+        return n
 
     with progress(len(volume), f"value masks {'x'.join(str(int(r)) for r in res)}") as bar:
-        for level, coord, bits, n in method.mask_items(volume, bins):
-            fold(level, coord, bits)
+        for n in ordered_map(fold, method.mask_items(volume, bins)):
             bar.update(n)
     return masks
 

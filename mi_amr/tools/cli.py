@@ -310,7 +310,9 @@ def cmd_dataset(args):
     from ..data.io import save_cells
     if args.name == "blocks" and Path(args.output).suffix == ".cells":
         # streamed block by block: no per-cell array of the whole data set
-        out = write_block_dataset(args.output, args.cells, args.levels, args.seed, args.nxb)
+        from ..progress import progress
+        with progress(int(args.cells), f"writing {args.output}") as bar:
+            out = write_block_dataset(args.output, int(args.cells), args.levels, args.seed, args.nxb, bar)
         print(f"wrote {out}: {out.stat().st_size // 16} cells in blocks")
         return
     if args.nxb is not None:
@@ -318,6 +320,30 @@ def cmd_dataset(args):
     cells = make_dataset(args.name, args.cells, args.levels, args.seed)
     out = save_cells(cells, args.output)
     print(f"wrote {out}: {cells}")
+
+
+def _count(text: str) -> int:
+    """A positive count, written as an integer or in e-notation (1.31e9)."""
+    import math
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v) or v < 1 or v != round(v):
+        raise argparse.ArgumentTypeError(f"not a positive whole count: {text!r}")
+    return int(round(v))
+
+
+def _block_sizes(text: str):
+    """``16`` or ``8,16,32``: one block size, or mixed sizes."""
+    try:
+        sizes = [int(t) for t in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"block sizes must be integers, got {text!r}") from None
+    bad = [s for s in sizes if s < 2 or s & (s - 1)]
+    if bad:
+        raise argparse.ArgumentTypeError(f"block sizes must be powers of two >= 2, got {bad[0]}")
+    return sizes[0] if len(sizes) == 1 else tuple(sizes)
 
 
 def _render_flags(p, spp: int):
@@ -427,10 +453,11 @@ def build_parser():
                    help="octree-like: cloud, shell, stadium; block-structured (FLASH-like nxb^3 blocks): "
                         "blocks; one uniform level (the cloud field on a grid of about --cells points): sparse")
     d.add_argument("output")
-    d.add_argument("--cells", type=int, default=20000)
+    d.add_argument("--cells", type=_count, default=20000, help="about this many cells (1e8 and 1.31e9 are taken)")
     d.add_argument("--levels", type=int, default=4)
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--nxb", type=int, default=None, help="cells per block side of 'blocks' (default 16)")
+    d.add_argument("--nxb", type=_block_sizes, default=None, metavar="N[,N...]",
+                   help="cells per block side of 'blocks' (default 16); several (e.g. 8,16,32): mixed sizes")
     d.set_defaults(func=cmd_dataset)
     return p
 
