@@ -27,7 +27,8 @@ def volume():
 
 @pytest.fixture
 def written(volume, tmp_path):
-    return write_amrb(volume, tmp_path / "v.amrb")
+    from mi_amr.native_file import save_native
+    return save_native(volume, tmp_path / "v.amrb")              # with the stored grids
 
 
 def assert_same(a: BlockVolume, b: BlockVolume):
@@ -46,6 +47,18 @@ def test01_round_trip_is_exact(volume, written, monkeypatch):
     assert_same(volume, load_volume(written))
     header = read_header(written)
     assert all(s["offset"] % 64 == 0 for s in header["sections"].values())
+    # the stored grids are the ones a medium would build, for each method
+    from mi_amr.structures.cost_model import file_grids
+    expected = file_grids(volume)
+    assert set(back.stored_grids) == set(expected) == {"nearest", "tent"}
+    for method, g in expected.items():
+        for field in ("res", "vmin", "vmax", "bits", "masks"):
+            if g[field] is None:
+                assert back.stored_grids[method][field] is None
+            else:
+                np.testing.assert_array_equal(back.stored_grids[method][field], g[field])
+        assert back.stored_grids[method]["bins"] == g["bins"]
+    assert expected["nearest"]["masks"] is not None and expected["tent"]["masks"] is None
     # an empty volume and one whose values span several checksummed chunks
     empty = BlockVolume.from_dense(np.full((4, 4, 4), np.nan, np.float32), block=4)
     assert len(read_amrb(write_amrb(empty, written.with_name("e.amrb"))).level) == 0
@@ -57,19 +70,27 @@ def test01_round_trip_is_exact(volume, written, monkeypatch):
     assert_same(big, read_amrb(path))
 
 
-def test02_the_medium_and_the_cli_open_it(llvm, volume, tmp_path):
+def test02_the_medium_and_the_cli_open_it(llvm, volume, tmp_path, monkeypatch):
     """``filename="X.amrb"`` gives the medium the same data as the blocks
-    themselves; ``mi-amr convert`` writes it from a .cells file and
+    themselves and the same majorants from the stored grids, without
+    building one; ``mi-amr convert`` writes it from a .cells file and
     ``mi-amr render X.amrb`` renders it."""
     import mitsuba as mi
+    from mi_amr.structures import macrocell_grid
     from mi_amr.tools.cli import main
     cells = random_amr(4, 16, 3)
     save_cells(cells, tmp_path / "c.cells")
     assert main(["convert", str(tmp_path / "c.cells"), str(tmp_path / "c.amrb")]) == 0
     assert_same(load_volume(tmp_path / "c.cells"), read_amrb(tmp_path / "c.amrb"))
-    a = mi.load_dict({"type": "amr", "filename": str(tmp_path / "c.amrb"), "transfer_function": "spiky"})
-    b = mi.load_dict({"type": "amr", "filename": str(tmp_path / "c.cells"), "transfer_function": "spiky"})
-    np.testing.assert_array_equal(a.majorant_grid, b.majorant_grid)
+    for method in ("tent", "nearest"):
+        b = mi.load_dict({"type": "amr", "filename": str(tmp_path / "c.cells"), "transfer_function": "spiky",
+                          "reconstruction": method})
+        with monkeypatch.context() as m:                    # from the file, no grid is built
+            m.setattr(macrocell_grid, "_RangeSplat", None)
+            a = mi.load_dict({"type": "amr", "filename": str(tmp_path / "c.amrb"),
+                              "transfer_function": "spiky", "reconstruction": method})
+        np.testing.assert_array_equal(a.majorant_grid, b.majorant_grid)
+        del a, b
     from conftest import render_cli
     r = render_cli([tmp_path / "c.amrb", "-o", tmp_path / "o.exr", "--spp", "1", "--res", "16"])
     assert r.returncode == 0, r.stderr
@@ -97,7 +118,8 @@ def test03_damage_is_refused_with_one_line(written):
     _refused(bad, "not an mi-amr|truncated")
     bad.write_bytes(data + b"x")
     _refused(bad, "trailing data")
-    for name in ("level", "coord", "values"):                                  # one flipped bit per section
+    assert len(header["sections"]) == 3 + 7                                    # blocks and two grids
+    for name in header["sections"]:                                            # one flipped bit per section
         s = header["sections"][name]
         at = s["offset"] + s["nbytes"] // 2
         bad.write_bytes(data[:at] + bytes([data[at] ^ 0x10]) + data[at + 1:])
@@ -105,8 +127,8 @@ def test03_damage_is_refused_with_one_line(written):
     at = 32 + 10                                                               # in the header's JSON
     bad.write_bytes(data[:at] + bytes([data[at] ^ 0x01]) + data[at + 1:])
     _refused(bad, "header is corrupted")
-    bad.write_bytes(data[:8] + struct.pack("<I", 2) + data[12:])               # another version
-    _refused(bad, "format version 2, this mi-amr reads version 1")
+    bad.write_bytes(data[:8] + struct.pack("<I", 3) + data[12:])               # another version
+    _refused(bad, "format version 3, this mi-amr reads versions 1, 2")
     import json
     import zlib
     n = struct.unpack_from("<I", data, 12)[0]
@@ -186,3 +208,24 @@ def test05_an_interrupted_write_leaves_nothing_under_the_target(volume, tmp_path
     with pytest.raises(KeyboardInterrupt):
         write_amrb(BlockVolume.from_cells(random_amr(6, 8, 2)), target)
     assert target.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["v.amrb"]
+
+
+def test06_version_1_files_open_without_grids(volume, tmp_path):
+    """A file without stored grids (as version 1 wrote them) opens; a
+    header whose grid sections do not match is refused."""
+    import json
+    import zlib
+    plain = write_amrb(volume, tmp_path / "p.amrb")
+    data = plain.read_bytes()
+    old = tmp_path / "v1.amrb"
+    old.write_bytes(data[:8] + struct.pack("<I", 1) + data[12:])
+    back = read_amrb(old)
+    assert_same(volume, back) and back.stored_grids == {}
+    n = struct.unpack_from("<I", data, 12)[0]
+    head = json.loads(data[32:32 + n])
+    head["grids"] = [{"method": "tent", "res": [4, 4, 4], "arrays": ["vmin", "vmax", "bits"], "bins": None}]
+    text = json.dumps(head).encode()
+    bad = tmp_path / "bad.amrb"
+    bad.write_bytes(data[:12] + struct.pack("<II", len(text), zlib.crc32(text)) + data[20:32] + text
+                    + data[32 + n:])
+    _refused(bad, "header is malformed|not those the header describes")

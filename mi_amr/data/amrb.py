@@ -15,8 +15,12 @@ layout, for other tools). Little-endian throughout:
   each `CHUNK_BYTES` chunk);
 * the sections, each at a 64-byte aligned offset: ``level`` (uint8, one per
   block), ``coord`` (int32, 3 per block), ``values`` (float32, B^3 per
-  block, NaN where a level has no cell); the file ends where the last one
-  does.
+  block, NaN where a level has no cell); then (version 2, optional) the
+  macrocell grids that a medium would build first, one per reconstruction
+  method named in the header's ``grids``: ``grid.M.vmin``, ``grid.M.vmax``
+  (float32), ``grid.M.bits`` (uint32 level masks) and ``grid.M.masks``
+  (uint64 value masks, where the method uses them), one entry per
+  macrocell, x fastest; the file ends where the last section does.
 
 Writing goes to a temporary name beside the target, renamed over it only
 once complete and flushed: an interrupted write leaves nothing under the
@@ -39,8 +43,10 @@ from ..progress import progress
 from .blocks import BlockVolume
 
 MAGIC = b"MIAMRB\r\n"
-#: Format version; a reader refuses any other.
-VERSION = 1
+#: Format version written; a reader refuses any not in `READ_VERSIONS`.
+VERSION = 2
+#: Versions this reader opens (version 1 has no stored grids).
+READ_VERSIONS = (1, 2)
 PREAMBLE = struct.Struct("<8sIII12x")
 ALIGN = 64
 #: Largest header a reader accepts (a 26 GB file's is a few kB).
@@ -48,6 +54,8 @@ MAX_HEADER_BYTES = 1 << 26
 #: Bytes per checksummed chunk (chunks are read and verified in parallel).
 CHUNK_BYTES = 1 << 24
 SECTIONS = (("level", "<u1"), ("coord", "<i4"), ("values", "<f4"))
+#: Arrays of a stored macrocell grid (``masks`` optional), one entry per macrocell.
+GRID_ARRAYS = (("vmin", "<f4"), ("vmax", "<f4"), ("bits", "<u4"), ("masks", "<u8"))
 
 
 class AmrbError(ValueError):
@@ -69,23 +77,44 @@ def _chunks(nbytes: int, chunk: int):
     return [(s, min(chunk, nbytes - s)) for s in range(0, nbytes, chunk)]
 
 
-def write_amrb(volume: BlockVolume, path) -> Path:
+def write_amrb(volume: BlockVolume, path, grids: dict | None = None) -> Path:
     """Write ``volume`` to ``path`` (``.amrb``) atomically: streamed chunk by
-    chunk into ``path.tmp-PID``, flushed, then renamed over ``path``."""
+    chunk into ``path.tmp-PID``, flushed, then renamed over ``path``.
+    ``grids``: macrocell grids to store, by reconstruction method name:
+    ``{"res": (3,), "vmin", "vmax", "bits", "masks" (or None), "bins":
+    (lo, hi) of the masks' value bins (or None)}`` (made by
+    `mi_amr.structures.cost_model.file_grids`)."""
     path = Path(path)
     arrays = {"level": np.ascontiguousarray(volume.level, dtype="<u1"),
               "coord": np.ascontiguousarray(volume.coord, dtype="<i4"),
               "values": np.ascontiguousarray(volume.values, dtype="<f4")}
+    order = list(SECTIONS)
+    stored = []
+    for method, g in (grids or {}).items():
+        res = [int(r) for r in g["res"]]
+        names = []
+        for field, dtype in GRID_ARRAYS:
+            if g.get(field) is None:
+                continue
+            a = np.ascontiguousarray(g[field], dtype=dtype).reshape(-1)
+            if a.size != int(np.prod(res)):
+                raise ValueError(f"{path}: grid {method!r} {field} has {a.size} entries for {res} macrocells")
+            arrays[f"grid.{method}.{field}"] = a
+            order.append((f"grid.{method}.{field}", dtype))
+            names.append(field)
+        stored.append({"method": str(method), "res": res, "arrays": names,
+                       "bins": None if g.get("bins") is None else [float(b) for b in g["bins"]]})
     covers, partial = volume._cell_counts()
     sections, offset = [], 0
-    for name, dtype in SECTIONS:
+    for name, dtype in order:
         a = arrays[name]
         sections.append({"name": name, "dtype": dtype, "shape": list(a.shape), "nbytes": int(a.nbytes)})
     header = {"block": volume.block, "n_blocks": int(len(volume.level)), "n_cells": volume.n_cells,
               "origin": [int(x) for x in volume.origin], "lo": [int(x) for x in volume.lo],
               "hi": [int(x) for x in volume.hi], "value_range": list(map(float, volume.value_range)),
               "covers_bounds": bool(covers), "partial_block_cells": int(partial),
-              "source": str(volume.source), "meta": volume.meta, "chunk_bytes": CHUNK_BYTES}
+              "source": str(volume.source), "meta": volume.meta, "chunk_bytes": CHUNK_BYTES,
+              "grids": stored}
     # the checksums go into the header, so they are computed first (one pass
     # over memory, in parallel: zlib releases the GIL), then the bytes written
     for s in sections:
@@ -143,8 +172,9 @@ def read_header(path) -> dict:
         magic, version, n, crc = PREAMBLE.unpack(pre)
         if magic != MAGIC:
             _fail(path, "damaged signature (copied as text?)")
-        if version != VERSION:
-            _fail(path, f"format version {version}, this mi-amr reads version {VERSION}")
+        if version not in READ_VERSIONS:
+            _fail(path, f"format version {version}, this mi-amr reads versions "
+                        f"{', '.join(map(str, READ_VERSIONS))}")
         if n > min(size - PREAMBLE.size, MAX_HEADER_BYTES):
             _fail(path, f"truncated in the header ({size} bytes) or a damaged header length ({n})")
         text = f.read(n)
@@ -155,7 +185,20 @@ def read_header(path) -> dict:
     try:
         header = json.loads(text)
         sections = {s["name"]: s for s in header["sections"]}
-        for name, dtype in SECTIONS:
+        expected = list(SECTIONS)
+        grid_dtypes = dict(GRID_ARRAYS)
+        for g in header.setdefault("grids", []):
+            n_cells = int(np.prod([int(r) for r in g["res"]]))
+            if len(g["res"]) != 3 or n_cells < 1 or not {"vmin", "vmax", "bits"} <= set(g["arrays"]):
+                _fail(path, f"grid {g['method']!r} is inconsistent (resolution {g['res']}, arrays {g['arrays']})")
+            for field in g["arrays"]:
+                name = f"grid.{g['method']}.{field}"
+                expected.append((name, grid_dtypes[field]))
+                if sections[name]["shape"] != [n_cells]:
+                    _fail(path, f"section {name!r} does not hold one entry per macrocell of {g['res']}")
+        if len(expected) != len(sections):
+            _fail(path, f"sections {sorted(sections)} are not those the header describes")
+        for name, dtype in expected:
             s = sections[name]
             if s["dtype"] != dtype or int(np.prod(s["shape"])) * np.dtype(dtype).itemsize != s["nbytes"]:
                 _fail(path, f"section {name!r} is inconsistent ({s['dtype']}, shape {s['shape']}, "
@@ -172,7 +215,7 @@ def read_header(path) -> dict:
             or sections["values"]["shape"] != [k * b3]):
         _fail(path, f"section shapes do not match {k} blocks of {header['block']}^3 cells")
     at = PREAMBLE.size + n                     # sections: aligned, in order, after the header, apart
-    for name, _ in SECTIONS:
+    for name, _ in expected:
         off = sections[name]["offset"]
         if not isinstance(off, int) or off < at or off % ALIGN:
             _fail(path, f"section {name!r} has a bad offset {off!r}")
@@ -183,6 +226,7 @@ def read_header(path) -> dict:
     if size > end:
         _fail(path, f"{size - end} bytes of trailing data after the last section")
     header["sections"] = sections
+    header["section_order"] = expected
     return header
 
 
@@ -195,7 +239,7 @@ def read_amrb(path) -> BlockVolume:
     fd = os.open(path, os.O_RDONLY)
     try:
         jobs = []
-        for name, dtype in SECTIONS:
+        for name, dtype in header["section_order"]:
             s = header["sections"][name]
             a = np.empty(s["shape"], dtype=dtype)
             arrays[name] = a
@@ -218,8 +262,13 @@ def read_amrb(path) -> BlockVolume:
                 bar.update(n)
     finally:
         os.close(fd)
-    return BlockVolume(header["block"], arrays["level"], arrays["coord"], arrays["values"],
-                       np.array(header["origin"], np.int64), np.array(header["lo"], np.int64),
-                       np.array(header["hi"], np.int64), header["n_cells"], header.get("source") or str(path),
-                       header.get("meta") or {}, value_range=tuple(header["value_range"]),
-                       cell_counts=(bool(header["covers_bounds"]), int(header["partial_block_cells"])))
+    volume = BlockVolume(header["block"], arrays["level"], arrays["coord"], arrays["values"],
+                         np.array(header["origin"], np.int64), np.array(header["lo"], np.int64),
+                         np.array(header["hi"], np.int64), header["n_cells"], header.get("source") or str(path),
+                         header.get("meta") or {}, value_range=tuple(header["value_range"]),
+                         cell_counts=(bool(header["covers_bounds"]), int(header["partial_block_cells"])))
+    for g in header["grids"]:
+        grid = {field: arrays.get(f"grid.{g['method']}.{field}") for field, _ in GRID_ARRAYS}
+        volume.stored_grids[g["method"]] = dict(grid, res=np.array(g["res"], np.int64),
+                                                bins=None if g["bins"] is None else tuple(g["bins"]))
+    return volume

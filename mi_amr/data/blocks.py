@@ -65,6 +65,9 @@ class BlockVolume(mi.Object):
         self.n_cells = int(n_cells)
         self.source = source
         self.meta = dict(meta or {})         # physical metadata (`mi_amr.data.metadata`)
+        # macrocell grids read from a native file, by reconstruction method
+        # (`mi_amr.data.amrb`), used by `MacrocellGrid` instead of a build
+        self.stored_grids = {}
         self._covers = None if cell_counts is None else tuple(cell_counts)
         if value_range is None:
             self._update_range()

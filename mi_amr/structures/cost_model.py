@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..data.cells import AMRCells
-from ..reconstruction import Reconstruction
+from ..reconstruction import Reconstruction, reconstruction_method
 from ..transfer.function import range_majorants_host
 from .macrocell_grid import MacrocellGrid
 from .value_masks import mask_max_alpha_host
@@ -134,9 +134,7 @@ def auto_grid(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.
     (``grids[R] = grid``), from which `MacrocellGrid.pooled` makes the
     chosen one. With ``masks`` the grids carry value masks and the
     majorants use them."""
-    lo, hi = cells.bounds
-    ext = int((hi - lo).max())
-    cands = sorted(c for c in candidates if c <= max(ext, min(candidates)))
+    cands = _candidates(cells, candidates)
     finest = cands[-1]
     g = MacrocellGrid(cells, finest, support=support, masks=masks)
     if grids is not None:
@@ -174,6 +172,29 @@ def auto_grid(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.
     allowed = [p for p in costs if p.refinement in refinements]
     best = min(allowed, key=lambda p: (costs[p], p.refinement, p.resolution))
     return best, costs
+
+
+def _candidates(cells, candidates=CANDIDATES) -> list:
+    """The resolutions `auto_grid` weighs for ``cells``: none finer than
+    the longest side of the data in finest cells (but at least the coarsest)."""
+    lo, hi = cells.bounds
+    ext = int((hi - lo).max())
+    return sorted(c for c in candidates if c <= max(ext, min(candidates)))
+
+
+def file_grids(volume, methods=None) -> dict:
+    """The grids `auto_grid` builds first (its finest candidate, with value
+    masks where a method's majorants use them), for each reconstruction
+    method: what a native file stores so that a medium opened from it
+    builds none (`mi_amr.data.amrb.write_amrb`)."""
+    from ..reconstruction import METHODS
+    finest = _candidates(volume)[-1]
+    out = {}
+    for name in (methods or METHODS):
+        method = reconstruction_method(name)
+        out[method.name] = MacrocellGrid(volume, finest, support=method,
+                                         masks=method.value_masks_tighten).to_file()
+    return out
 
 
 def _uniform_cost(mu: np.ndarray, resolution: int) -> float:

@@ -97,12 +97,14 @@ class MacrocellGrid:
             res = np.asarray(resolution, dtype=np.int64)
             if res.shape != (3,) or np.any(res < 1):
                 raise ValueError(f"grid_resolution must be 3 positive ints, got {resolution}")
+        self.res = res
+        self.lo, self.extent = lo, ext
+        if self._from_file(cells, support, masks):
+            return
         slots = cells.values.size if isinstance(cells, BlockVolume) else len(cells)
         require(grid_bytes(float(np.prod(res)), slots),
                 f"a macrocell grid of {'x'.join(str(int(r)) for r in res)} cells", memory_limit,
                 "choose a smaller grid_resolution")
-        self.res = res
-        self.lo, self.extent = lo, ext
         n = int(np.prod(res))
         vmin = np.full(n, np.inf, dtype=np.float32)
         vmax = np.full(n, -np.inf, dtype=np.float32)
@@ -128,6 +130,23 @@ class MacrocellGrid:
             volume = cells if isinstance(cells, BlockVolume) else BlockVolume.from_cells(cells, method=support)
             self.bins = ValueBins.of(volume)
             self.masks = value_masks(volume, self, support, self.bins)
+
+    def _from_file(self, cells, support, masks: bool) -> bool:
+        """Take the grid a native file stored for this method and resolution
+        (`BlockVolume.stored_grids`, made by the same build when the file
+        was written); False when it has none."""
+        g = getattr(cells, "stored_grids", {}).get(support.name)
+        if g is None or not np.array_equal(g["res"], self.res) or (masks and g["masks"] is None):
+            return False
+        self.vmin, self.vmax, self.level_bits = g["vmin"], g["vmax"], g["bits"]
+        self.masks = g["masks"] if masks else None
+        self.bins = ValueBins(*g["bins"]) if masks else None
+        return True
+
+    def to_file(self) -> dict:
+        """This grid as `mi_amr.data.amrb.write_amrb` stores it."""
+        return {"res": self.res, "vmin": self.vmin, "vmax": self.vmax, "bits": self.level_bits,
+                "masks": self.masks, "bins": None if self.bins is None else (self.bins.lo, self.bins.hi)}
 
     def pooled(self, resolution: int) -> "MacrocellGrid | None":
         """The grid of ``resolution`` (longest axis) made by merging blocks of

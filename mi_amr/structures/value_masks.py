@@ -52,8 +52,7 @@ class ValueBins:
     def of(cls, volume: BlockVolume) -> "ValueBins":
         """The bins of a data set (made once per data object: `HOST_CACHE`)."""
         from .cache import HOST_CACHE
-        return HOST_CACHE.get(volume, "value_bins",
-                              lambda: cls(float(np.nanmin(volume.values)), float(np.nanmax(volume.values))))
+        return HOST_CACHE.get(volume, "value_bins", lambda: cls(*volume.value_range))
 
     def index(self, v) -> np.ndarray:
         """Bin of each finite value ``v`` (int64)."""
@@ -102,7 +101,8 @@ def value_masks(data: AMRCells | BlockVolume, grid, method: str | Reconstruction
     lock = threading.Lock()
 
     def fold(item):                                   # in threads; the fold into masks one at a time
-        level, coord, bits, n = item
+        level, coord, work = item
+        bits, n = work()
         for L in np.unique(level):
             L = int(L)
             sel = np.nonzero(level == L)[0]

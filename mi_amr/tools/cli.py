@@ -270,7 +270,11 @@ def cmd_convert(args):
         from ..data.transform import apply_value_transform
         cells, floor = apply_value_transform(cells, "log10")
         print(f"values replaced by log10(max(v, {floor:.6g})): {floor:.6g} is the smallest positive value")
-    out = save_cells(cells, args.output)
+    if Path(args.output).suffix == ".amrb":
+        from ..native_file import save_native
+        out = save_native(cells, args.output)          # with the grids a medium builds first
+    else:
+        out = save_cells(cells, args.output)
     print(f"wrote {out}: {cells}")
 
 

@@ -55,9 +55,9 @@ def data_file(kind: str, n: int, data_dir: Path, source: str = "cells") -> Path:
         raise ValueError(f"unknown source {source!r} (choose from cells, amrb)")
     native = path.with_suffix(".amrb")
     if not native.exists():
-        from ..data.amrb import write_amrb
         from ..data.io import load_volume
-        write_amrb(load_volume(path), native)
+        from ..native_file import save_native
+        save_native(load_volume(path), native)
     return native
 
 
