@@ -107,10 +107,10 @@ class Reconstruction:
 
     # ---- Value masks ---------------------------------------------------
     def mask_items(self, volume, bins):
-        """Yield ``(level (k,), coord (k, 3), bits (k, B, B, B) uint64,
-        cells)`` per chunk of blocks: the value bins of the item based at
-        each cell of each block (``bits`` indexed [block, z, y, x]) and the
-        cells read."""
+        """Yield ``(level (k,), coord (k, 3), work)`` per chunk of blocks:
+        ``work()`` (called in a worker thread) returns the value bins of the
+        item based at each cell of each block ((k, B, B, B) uint64, indexed
+        [block, z, y, x]) and the cells read."""
         raise NotImplementedError
 
     def mask_item_box(self, q, w):

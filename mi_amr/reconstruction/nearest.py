@@ -54,10 +54,12 @@ class Nearest(Reconstruction):
 
     # ---- Value masks: the bin of every cell, over its box ----------------
     def mask_items(self, volume, bins):
-        for level, coord, values in volume.block_chunks():
+        def work(values):
             present = ~np.isnan(values)
             bit = np.uint64(1) << bins.index(np.where(present, values, bins.lo)).astype(np.uint64)
-            yield level, coord, np.where(present, bit, np.uint64(0)), int(np.count_nonzero(present))
+            return np.where(present, bit, np.uint64(0)), int(np.count_nonzero(present))
+        for level, coord, values in volume.block_chunks():
+            yield level, coord, (lambda v=values: work(v))
 
     def mask_item_box(self, q, w):
         return self.support_box(q * w, w)                # the cell's box

@@ -71,7 +71,7 @@ class Tent(Reconstruction):
         combination of the corners of the level-L stencil around it. Kept
         for tests: ``value_masks_tighten`` is false (see the module docstring)."""
         for level, coord, smin, smax, n in stencil_ranges(volume):
-            yield level, coord, bins.bits(smin, smax), n
+            yield level, coord, (lambda a=smin, b=smax, n=n: (bins.bits(a, b), n))
 
     def mask_item_box(self, q, w):
         # the stencil based at cell q: from the centre of q to the centre of q + 1
