@@ -229,3 +229,41 @@ def test06_version_1_files_open_without_grids(volume, tmp_path):
     bad.write_bytes(data[:12] + struct.pack("<II", len(text), zlib.crc32(text)) + data[20:32] + text
                     + data[32 + n:])
     _refused(bad, "header is malformed|not those the header describes")
+
+
+def test07_ctrl_c_during_a_conversion_stops_it_cleanly(tmp_path):
+    """SIGINT while ``mi-amr convert`` is reading a .cells file: exit status
+    130 and one line saying so, within seconds, and nothing under the
+    target name or a temporary one (a real process, a real signal)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    from mi_amr.data.datasets import write_block_dataset
+    src = write_block_dataset(tmp_path / "big.cells", 3_000_000, 4)
+    out = tmp_path / "big.amrb"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-m", "mi_amr.tools.cli", "convert", str(src), str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 60
+        files = {str(src), str(src.with_suffix(".scalars"))}
+        while time.monotonic() < deadline and proc.poll() is None:       # until it reads the cells
+            try:
+                open_now = {os.readlink(f"/proc/{proc.pid}/fd/{fd}") for fd in os.listdir(f"/proc/{proc.pid}/fd")}
+            except OSError:                                              # an fd closed while listed
+                continue
+            if open_now & files:
+                break
+            time.sleep(0.002)
+        assert proc.poll() is None, "the conversion ended before it could be interrupted"
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert time.monotonic() - t0 < 10
+    lines = [l for l in err.splitlines() if l.strip()]
+    assert lines == ["mi-amr convert: interrupted"], err
+    assert not out.exists() and not list(tmp_path.glob("*.tmp-*"))
