@@ -83,10 +83,14 @@ def test03_streaming_load_equals_in_memory(tmp_path, chunk):
 
 
 @pytest.mark.parametrize("chunk", [100, 1 << 22])
-def test04_streaming_load_finds_overlaps_across_chunks(tmp_path, chunk):
+def test04_streaming_load_finds_overlaps_across_chunks(tmp_path, chunk, monkeypatch):
     """A coarse cell over finer ones, and a duplicate, in different chunks
     or in one: a clear error naming the file (or, with overlap='finest',
-    the cells AMRCells keeps)."""
+    the cells AMRCells keeps; with small chunks the coarse cell covers fine
+    cells of several chunks of the overlap check, which run in threads)."""
+    import mi_amr.data.blocks
+    if chunk == 100:
+        monkeypatch.setattr(mi_amr.data.blocks, "CHUNK", 64)
     cells = random_amr(1)
     bad = [(np.concatenate([cells.pos, [[0, 0, 0]]]), np.r_[cells.level, 3], np.r_[cells.value, 1.0]),
            (np.concatenate([cells.pos, cells.pos[:1]]), np.r_[cells.level, cells.level[:1]],
@@ -96,8 +100,10 @@ def test04_streaming_load_finds_overlaps_across_chunks(tmp_path, chunk):
         write_exabricks(mi_amr.AMRCells(pos, level, value, validate=False), path)
         with pytest.raises(ValueError, match=rf"bad{i}.cells.*overlap finer or duplicate"):
             read_exabricks_blocks(path, chunk=chunk)
-        kept = read_exabricks_blocks(path, chunk=chunk, overlap="finest").to_cells()
+        kept_blocks = read_exabricks_blocks(path, chunk=chunk, overlap="finest")
+        kept = kept_blocks.to_cells()
         ref = read_exabricks(path, overlap="finest")
+        assert len(kept_blocks) == len(kept) == len(ref)
         for a, b in zip(sorted_cells(ref), sorted_cells(kept)):
             np.testing.assert_array_equal(a, b)
 

@@ -257,16 +257,20 @@ class BlockVolume(mi.Object):
         block k (ghosts numbered after the K blocks), or ``0xFFFFFFFF``."""
         ghost_coord, ghost_level = ghost_blocks(self.coord, self.level)
         coord = self.coord.astype(np.int64)
-        keys = _block_keys(coord, self.level, False)
+        packed = _fits_packed(coord, 1)
+        keys = _block_keys(coord, self.level, packed)
         order = np.argsort(keys)
         all_coord = np.concatenate([coord, ghost_coord])
         all_level = np.concatenate([self.level, ghost_level])
         neighbours = np.full((len(all_level), 7), 0xFFFFFFFF, dtype=np.uint32)
-        for d, off in enumerate(UPPER_OFFSETS):
-            k = _block_keys(all_coord + off, all_level, False)
+
+        def find(d):                               # one column per thread
+            k = _block_keys(all_coord + UPPER_OFFSETS[d], all_level, packed)
             i = np.minimum(np.searchsorted(keys, k, sorter=order), len(keys) - 1)
             hit = keys[order[i]] == k
             neighbours[hit, d] = order[i][hit]
+        for _ in ordered_map(find, range(len(UPPER_OFFSETS))):
+            pass
         return ghost_coord.astype(np.int32), ghost_level, neighbours
 
     def lookup(self, level: int, q: np.ndarray):
@@ -324,11 +328,12 @@ def ghost_blocks(coord: np.ndarray, level: np.ndarray):
     """The missing blocks at ``coord - d`` (d in `UPPER_OFFSETS`, same level)
     of the given blocks: ``(coord int64 (G, 3), level (G,))``, distinct."""
     coord = np.asarray(coord, dtype=np.int64)
-    keys = np.unique(_block_keys(coord, level, False))
+    packed = _fits_packed(coord)
+    keys = np.unique(_block_keys(coord, level, packed))
     cand_c = np.concatenate([coord - off for off in UPPER_OFFSETS])
     cand_l = np.tile(level, len(UPPER_OFFSETS))
     ok = np.all(cand_c >= 0, axis=1)
-    cand_k, first = np.unique(_block_keys(cand_c[ok], cand_l[ok], False), return_index=True)
+    cand_k, first = np.unique(_block_keys(cand_c[ok], cand_l[ok], packed), return_index=True)
     ghost = ~np.isin(cand_k, keys)
     return cand_c[ok][first[ghost]], cand_l[ok][first[ghost]]
 
@@ -361,6 +366,12 @@ def _block_keys(coord: np.ndarray, level: np.ndarray, packed: bool = True) -> np
     rows[:, :3] = coord[:, ::-1]
     rows[:, 3] = level
     return np.ascontiguousarray(rows).view(np.dtype((np.void, 16))).ravel()
+
+
+def _fits_packed(coord: np.ndarray, margin: int = 0) -> bool:
+    """Whether block coordinates (plus ``margin``) fit packed int64 keys
+    (sorting and searching those is much faster than 16-byte keys)."""
+    return not len(coord) or int(coord.max()) + margin < (1 << KEY_AXIS_BITS)
 
 
 def _unpack_keys(keys: np.ndarray, packed: bool):
@@ -590,6 +601,25 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     return vol
 
 
+def _under_coarse_cells(vol: BlockVolume, fine, coarse, k: int):
+    """The fine blocks (and their ancestor blocks ``coarse``, ``k`` levels
+    up) whose region holds at least one coarse cell: only their cells can
+    be covered. A fine block spans ``max(1, B >> k)^3`` cells of its
+    ancestor level, looked up in threads."""
+    b = vol.block
+    s = max(1, b >> k)
+    local = block_offsets(s)
+    step = max(1, CHUNK // len(local))
+
+    def any_present(start):
+        f, c = fine[start:start + step], coarse[start:start + step]
+        q = ((vol.coord[f].astype(np.int64) << vol.log2_block) >> k)[:, None, :] + local[None]   # (m, s^3, 3)
+        slot = _slot(np.repeat(c, len(local)), q.reshape(-1, 3), b)
+        return (vol.values[slot] == vol.values[slot]).reshape(len(f), -1).any(axis=1)             # not NaN
+    keep = np.concatenate([np.zeros(0, bool)] + list(ordered_map(any_present, range(0, len(fine), step))))
+    return fine[keep], coarse[keep]
+
+
 def _remove_overlaps(vol: BlockVolume, overlap: str) -> int:
     """Find coarse cells that cover finer ones, level pair by level pair:
     a fine block whose ancestor block (at the coarse level) does not exist
@@ -610,14 +640,21 @@ def _remove_overlaps(vol: BlockVolume, overlap: str) -> int:
             i = np.minimum(np.searchsorted(ckeys, anc, sorter=corder), len(csel) - 1)
             match = ckeys[corder[i]] == anc
             cand, cblock = fsel[match], csel[corder[i[match]]]     # fine blocks and their ancestor block
+            cand, cblock = _under_coarse_cells(vol, cand, cblock, k)
             step = max(1, CHUNK // b3)
-            for s in range(0, len(cand), step):
+
+            def covered(s, k=k, cand=cand, cblock=cblock):          # in threads: nothing is written
                 blocks, anc_block = cand[s:s + step], cblock[s:s + step]
                 v = vol.values.reshape(-1, b3)[blocks]
                 bi, ci = np.nonzero(~np.isnan(v))
                 q = (vol.coord[blocks][bi].astype(np.int64) << vol.log2_block) + local[ci]
                 slot = _slot(anc_block[bi], q >> k, b)             # the coarse cell over each fine one
-                hit = ~np.isnan(vol.values[slot])
+                return q, slot, ~np.isnan(vol.values[slot])
+            # tested in threads, removed here in order: a coarse cell that an
+            # earlier chunk removed is tested again, so it is counted once
+            for q, slot, hit in ordered_map(covered, range(0, len(cand), step)):
+                if hit.any():
+                    hit &= ~np.isnan(vol.values[slot])
                 if not hit.any():
                     continue
                 if overlap == "error":

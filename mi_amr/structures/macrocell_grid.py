@@ -16,6 +16,7 @@ Majorants are derived from the ranges through the transfer function (see
 
 from __future__ import annotations
 
+import functools
 import threading
 
 import numpy as np
@@ -33,6 +34,12 @@ from .value_masks import ValueBins, value_masks
 BLOCK_CHUNK = 1 << 20
 #: Distinct window patterns up to which blocks are reduced over plain slices.
 WINDOW_PATTERNS = 8
+
+
+@functools.lru_cache(maxsize=None)
+def _row_mix(n: int) -> np.ndarray:
+    """``n`` odd 64-bit multipliers that hash a row of window bounds (`_block_window_reduce`)."""
+    return np.random.default_rng(0x5EED + n).integers(1, 2**62, n, dtype=np.int64) | 1
 
 
 
@@ -425,10 +432,13 @@ def _block_window_reduce(a, axis, qa, qb, op, fill):
         out_shape = list(a.shape)
         out_shape[axis] = qa.shape[1]
         return np.full(out_shape, fill, dtype=a.dtype)
-    # window bounds lie in [-1, B]: one byte each, so that finding the patterns stays small
-    pattern = np.concatenate([qa, qb], axis=1).astype(np.int8)
-    rows, inverse = np.unique(pattern, axis=0, return_inverse=True)
-    if len(rows) <= WINDOW_PATTERNS:
+    # the patterns: rows hashed to one int64 (sorting rows is slow), each
+    # row then compared with its group's first, so a collision cannot pass
+    pattern = np.concatenate([qa, qb], axis=1)
+    hashed = (pattern * _row_mix(pattern.shape[1])).sum(axis=1)          # wraps: a hash
+    _, first, inverse = np.unique(hashed, return_index=True, return_inverse=True)
+    rows = pattern[first]
+    if len(rows) <= WINDOW_PATTERNS and np.array_equal(rows[inverse.reshape(-1)], pattern):
         out_shape = list(a.shape)
         out_shape[axis] = qa.shape[1]
         out = np.empty(out_shape, dtype=a.dtype)
