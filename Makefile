@@ -47,4 +47,4 @@ bench: setup
 
 # load, build, memory and frame time from 10^5 to 10^8 cells (writes ~2 GB of data to out/data)
 bench-scale: setup
-	$(RUN) -m mi_amr.bench --scale 1e5 1e6 1e7 1e8 --out out/bench-scale
+	$(RUN) -m mi_amr.bench --scale 1e7 1e8 --out out/bench-scale
