@@ -26,8 +26,10 @@ BYTES_PER_TREE_ITEM = 16
 BYTES_PER_TREE_NODE = 100
 #: Bytes per macrocell: host ranges and level mask, device copies, majorants.
 BYTES_PER_MACROCELL = 48
-#: Cells read per chunk when streaming (`mi_amr.data.blocks`).
-CHUNK = 1 << 22
+#: Cells read per chunk when streaming (`mi_amr.data.blocks`), and per chunk of
+#: the builds that read blocks back: small enough that the chunks in flight on
+#: every core stay a few bytes per cell at 10^7 cells.
+CHUNK = 1 << 20
 
 
 def load_bytes(n_cells: int, chunk: int = CHUNK) -> float:

@@ -21,7 +21,7 @@ import numpy as np
 from . import metadata
 from .blocks import BlockVolume, sample_runs
 from .cells import AMRCells
-from ..memory import load_bytes, require, structure_bytes
+from ..memory import CHUNK, load_bytes, require, structure_bytes
 
 #: The AMR file types read and written by extension.
 FILE_TYPES = ".cells, .npz or .amrb"
@@ -76,7 +76,7 @@ def read_exabricks(cells_path, scalars_path=None, *, overlap: str = "error") -> 
 
 
 def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "error",
-                          block: int | None = None, chunk: int = 1 << 22, method: str = "tent") -> BlockVolume:
+                          block: int | None = None, chunk: int = CHUNK, method: str = "tent") -> BlockVolume:
     """Stream an ExaBricks pair into a `BlockVolume`: both files are read
     ``chunk`` cells at a time (three passes), validated as strictly as
     `read_exabricks`; no per-cell array of the whole file is made.
@@ -155,7 +155,7 @@ def _npz_meta(z, path) -> dict:
 
 
 def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
-                    chunk: int = 1 << 22) -> BlockVolume:
+                    chunk: int = CHUNK) -> BlockVolume:
     """Stream an ``.npz`` archive into a `BlockVolume`: the three members are
     decompressed side by side, ``chunk`` cells at a time (no whole-data
     array is made); validated as strictly as `read_npz`."""
