@@ -36,6 +36,23 @@ NEIGHBOUR_BYTES_PER_BLOCK = 28
 SAMPLE = 1 << 17
 
 
+class DeferredChunk:
+    """A chunk of raw cells read by the worker thread that takes it (so
+    reading a file overlaps the work on other chunks): ``n`` cells, ``read()``
+    returns ``(pos, level, value)``. Chunk sources may yield these or plain
+    triples."""
+
+    __slots__ = ("n", "read")
+
+    def __init__(self, n: int, read):
+        self.n, self.read = int(n), read
+
+
+def _resolve(chunk):
+    """The ``(pos, level, value)`` of a chunk, read now if it is deferred."""
+    return chunk.read() if isinstance(chunk, DeferredChunk) else chunk
+
+
 class BlockVolume(mi.Object):
     """AMR cells stored as aligned same-level blocks (see module docstring).
 
@@ -137,12 +154,13 @@ class BlockVolume(mi.Object):
 
         def numbered():                          # each chunk with the index of its first cell
             start = 0
-            for pos, level, value in chunks():
-                yield start, pos, level, value
-                start += len(value)
+            for chunk in chunks():
+                yield start, chunk
+                start += chunk.n if isinstance(chunk, DeferredChunk) else len(chunk[1])
 
-        def check(chunk):                        # validated and measured in threads, in order
-            start, pos, level, value = chunk
+        def check(item):                         # validated and measured in threads, in order
+            start, chunk = item
+            pos, level, value = _resolve(chunk)
             if not len(value):
                 check_cells(pos, level, value, source, start)
                 return 0, None, None, 0
@@ -476,7 +494,8 @@ def _place_checked(chunks, values, keys, origin, packed, b, source, overlap, blo
     cells: with ``overlap == "error"`` the first one is named, else the
     first cell of a slot is kept. Returns the cells placed."""
     n, start = 0, 0
-    for pos, level, value in chunks():
+    for chunk in chunks():
+        pos, level, value = _resolve(chunk)
         L = level.astype(np.int64)
         q = (pos.astype(np.int64) - origin) >> L[:, None]
         slot = _slot(np.searchsorted(keys, block_keys(pos, level, b)), q, b)
@@ -527,22 +546,25 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     # ---- Block size: fewest bytes per cell on the sample ----
     with_ghosts = reconstruction_method(method).needs_ghosts
     if len(sizes) > 1:
-        runs = list(sample() if sample is not None else [next(iter(chunks()))])
-        counts, ghosts = {}, {}
-        for b in sizes:
-            counts[b], ghosts[b] = 0, 0
-            for p, lv, _ in runs:
-                c, L = _unpack_keys(_distinct(block_keys(p, lv, b)), packed)
-                counts[b] += len(L)
-                if with_ghosts:
-                    ghosts[b] += len(ghost_blocks(c, L)[1])
+        runs = [_resolve(c) for c in (sample() if sample is not None else [next(iter(chunks()))])]
+        counts, ghosts = dict.fromkeys(sizes, 0), dict.fromkeys(sizes, 0)
+
+        def count(job):                           # blocks (and ghosts) of one size on one run, in threads
+            b, (p, lv, _) = job
+            c, L = _unpack_keys(_distinct(block_keys(p, lv, b)), packed)
+            return b, len(L), len(ghost_blocks(c, L)[1]) if with_ghosts else 0
+        for b, k, g in ordered_map(count, [(b, run) for b in sizes for run in runs]):
+            counts[b] += k
+            ghosts[b] += g
         b = choose_block_size(counts, ghosts if with_ghosts else None)
     else:
         b = sizes[0]
     # ---- Pass 1: the blocks (each chunk's in a thread) ----
     parts = []
-    for part, m in ordered_map(lambda c: (_distinct(block_keys(c[0], c[1], b)), len(c[1])),
-                               (positions or chunks)()):
+    def distinct_blocks(chunk):
+        pos, level, _ = _resolve(chunk)
+        return _distinct(block_keys(pos, level, b)), len(level)
+    for part, m in ordered_map(distinct_blocks, (positions or chunks)()):
         parts.append(part)
         if bar is not None:
             bar.update(m)
@@ -559,7 +581,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     lb = b.bit_length() - 1
 
     def place(chunk):
-        pos, level, value = chunk
+        pos, level, value = _resolve(chunk)
         keys_c, q = keys_and_coords(pos, level, b)
         heads = np.flatnonzero(np.r_[True, keys_c[1:] != keys_c[:-1]])     # runs of one block
         blk = np.searchsorted(keys, keys_c[heads])

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metadata
-from .blocks import BlockVolume, sample_runs
+from .blocks import BlockVolume, DeferredChunk, sample_runs
 from .cells import AMRCells
 from ..memory import CHUNK, load_bytes, require, structure_bytes
 
@@ -94,9 +94,10 @@ def read_exabricks_blocks(cells_path, scalars_path=None, *, overlap: str = "erro
         v = np.fromfile(scalars_path, dtype="<f4", count=e - s, offset=4 * s) if values else None
         return r[:, :3], r[:, 3], v
 
-    def chunks(values=True):
+    def chunks(values=True):                   # read by the worker threads
         for s in range(0, n, chunk):
-            yield read(s, min(n, s + chunk), values)
+            e = min(n, s + chunk)
+            yield DeferredChunk(e - s, lambda s=s, e=e: read(s, e, values))
     meta = metadata.read_sidecar(cells_path)
     vol = BlockVolume.from_chunks(chunks, str(cells_path), overlap=overlap, block=block,
                                   sample=lambda: sample_runs(n, lambda s, e: read(s, e, False)),
