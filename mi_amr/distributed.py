@@ -186,9 +186,11 @@ def render_local(scene, spp: int, chunk_spp: int | None = None, seed: int = 0, s
     if isinstance(scene, mi.Scene):
         loaded = scene
     elif isinstance(scene, dict):
-        loaded = mi.load_dict(scene)
+        loaded = mi.load_dict(scene, parallel=False)
     else:
-        loaded = mi.load_file(str(scene), **(params or {}))
+        # on this thread: Mitsuba's parallel loader may build a medium on a worker
+        # thread, where Ctrl-C cannot reach it until the whole load is over
+        loaded = mi.load_file(str(scene), parallel=False, **(params or {}))
     sums = []
     with tqdm(total=spp, unit="spp", desc=desc, disable=not progress) as bar:
         for n, s in zip(plan, seeds):

@@ -231,23 +231,20 @@ def test06_version_1_files_open_without_grids(volume, tmp_path):
     _refused(bad, "header is malformed|not those the header describes")
 
 
-def test07_ctrl_c_during_a_conversion_stops_it_cleanly(tmp_path):
-    """SIGINT while ``mi-amr convert`` is reading a .cells file: exit status
-    130 and one line saying so, within seconds, and nothing under the
-    target name or a temporary one (a real process, a real signal)."""
+def _interrupt_while_reading(argv, files, timeout=60):
+    """Run ``python -m mi_amr.tools.cli *argv``, send it SIGINT once it has
+    one of ``files`` open, and return ``(returncode, stderr, seconds from the
+    signal to the exit)``."""
     import signal
     import subprocess
     import sys
     import time
-    from mi_amr.data.datasets import write_block_dataset
-    src = write_block_dataset(tmp_path / "big.cells", 3_000_000, 4)
-    out = tmp_path / "big.amrb"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "mi_amr.tools.cli", "convert", str(src), str(out)],
+    proc = subprocess.Popen([sys.executable, "-m", "mi_amr.tools.cli", *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    files = {str(f) for f in files}
     try:
-        deadline = time.monotonic() + 60
-        files = {str(src), str(src.with_suffix(".scalars"))}
+        deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and proc.poll() is None:       # until it reads the cells
             try:
                 open_now = {os.readlink(f"/proc/{proc.pid}/fd/{fd}") for fd in os.listdir(f"/proc/{proc.pid}/fd")}
@@ -256,14 +253,50 @@ def test07_ctrl_c_during_a_conversion_stops_it_cleanly(tmp_path):
             if open_now & files:
                 break
             time.sleep(0.002)
-        assert proc.poll() is None, "the conversion ended before it could be interrupted"
+        assert proc.poll() is None, "the command ended before it could be interrupted"
         t0 = time.monotonic()
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=30)
+        return proc.returncode, err, time.monotonic() - t0
     finally:
         proc.kill()
-    assert proc.returncode == 130, err
-    assert time.monotonic() - t0 < 10
+
+
+@pytest.fixture(scope="module")
+def big_cells(tmp_path_factory):
+    """A .cells file of 3 x 10^6 cells: loading it takes seconds."""
+    from mi_amr.data.datasets import write_block_dataset
+    return write_block_dataset(tmp_path_factory.mktemp("big") / "big.cells", 3_000_000, 4)
+
+
+def test07_ctrl_c_during_a_conversion_stops_it_cleanly(big_cells, tmp_path):
+    """SIGINT while ``mi-amr convert`` is reading a .cells file: exit status
+    130 and one line saying so, within seconds, and nothing under the
+    target name or a temporary one (a real process, a real signal)."""
+    out = tmp_path / "big.amrb"
+    rc, err, seconds = _interrupt_while_reading(["convert", str(big_cells), str(out)],
+                                                [big_cells, big_cells.with_suffix(".scalars")])
+    assert rc == 130, err
+    assert seconds < 10
     lines = [l for l in err.splitlines() if l.strip()]
     assert lines == ["mi-amr convert: interrupted"], err
     assert not out.exists() and not list(tmp_path.glob("*.tmp-*"))
+
+
+def test08_ctrl_c_during_a_scene_load_stops_it_cleanly(big_cells, tmp_path):
+    """SIGINT while ``mi-amr render scene.xml`` loads its medium's .cells
+    file (inside Mitsuba's plugin constructor, which turns the interrupt
+    into a RuntimeError): exit status 130 and the same one line."""
+    from pathlib import Path
+    scene = (Path(__file__).parents[1] / "scenes" / "blocks.xml").read_text()
+    assert "data/blocks.cells" in scene
+    xml = tmp_path / "big.xml"
+    xml.write_text(scene.replace("data/blocks.cells", str(big_cells)))
+    out = tmp_path / "big.exr"
+    rc, err, seconds = _interrupt_while_reading(["render", str(xml), "-o", str(out), "--spp", "1", "-D", "res=16"],
+                                                [big_cells, big_cells.with_suffix(".scalars")])
+    assert rc == 130, err
+    assert seconds < 10
+    lines = [l for l in err.splitlines() if l.strip()]
+    assert lines == ["mi-amr render: interrupted"], err
+    assert not out.exists()

@@ -480,6 +480,9 @@ def main(argv=None):
     except RuntimeError as e:
         if "failed to instantiate" not in str(e):     # not a scene that failed to load
             raise
+        if _plugin_error(str(e)).rstrip(": ").endswith("KeyboardInterrupt"):   # Ctrl-C inside a plugin
+            print(f"mi-amr {args.command}: interrupted", file=sys.stderr)
+            return 130
         print(f"mi-amr {args.command}: error: {_plugin_error(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:                 # Ctrl-C: writers have removed what they had begun
