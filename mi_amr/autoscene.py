@@ -57,6 +57,8 @@ class ScenePlan:
     origin: np.ndarray                # camera position
     fov: float = FOV
     notes: list = dc_field(default_factory=list)
+    target: tuple = (0.0, 0.0, 0.0)   # the point the camera looks at
+    up: tuple = (0.0, 0.0, 1.0)       # the camera's up direction
 
     def floor_height(self) -> float:
         """The ground plane, just below the domain (z up)."""
@@ -250,7 +252,7 @@ def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: st
         "type": "scene",
         "integrator": {"type": integrator, "max_depth": 64},
         "sensor": {"type": "perspective", "fov": plan.fov,
-                   "to_world": T().look_at(plan.origin.tolist(), [0, 0, 0], [0, 0, 1]),
+                   "to_world": T().look_at(np.asarray(plan.origin, float).tolist(), list(plan.target), list(plan.up)),
                    "sampler": {"type": "independent", "sample_count": spp},
                    "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
         "sky": {"type": "sunsky", "sun_direction": SUN_DIRECTION, "turbidity": 3.0,
@@ -271,7 +273,7 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
     matrix = " ".join(f"{x:.9g}" for x in m.ravel())
     cube = m @ np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
     cube_matrix = " ".join(f"{x:.9g}" for x in cube.ravel())
-    o = ", ".join(f"{x:.6g}" for x in plan.origin)
+    o, t, u = (", ".join(f"{float(x):.9g}" for x in v) for v in (plan.origin, plan.target, plan.up))
     notes = "\n         ".join(plan.notes)
     text = f"""<scene version="3.0.0">
     <!-- made by mi-amr from the data alone; edit and re-render with
@@ -287,7 +289,7 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
     <sensor type="perspective">
         <float name="fov" value="{plan.fov}"/>
         <transform name="to_world">
-            <lookat origin="{o}" target="0, 0, 0" up="0, 0, 1"/>
+            <lookat origin="{o}" target="{t}" up="{u}"/>
         </transform>
         <sampler type="independent">
             <integer name="sample_count" value="$spp"/>

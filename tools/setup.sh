@@ -1,6 +1,7 @@
 #!/bin/sh
-# Idempotent set-up: libLLVM 19 for Dr.Jit's LLVM backend, the .venv with
-# mi-amr installed (editable, with test extras). Safe to run every time.
+# Idempotent set-up: libLLVM 19 for Dr.Jit's LLVM backend, Debian's chromium for
+# the browser tests of mi-amr view, the .venv with mi-amr installed (editable,
+# with test extras). Safe to run every time.
 set -e
 cd "$(dirname "$0")/.."
 if ! tools/find-llvm19 >/dev/null; then
@@ -8,6 +9,12 @@ if ! tools/find-llvm19 >/dev/null; then
     SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
     $SUDO apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libllvm19 >/dev/null
+fi
+if ! command -v chromium >/dev/null 2>&1; then
+    echo "== installing chromium (the browser tests of mi-amr view drive it with Playwright)"
+    SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null
 fi
 PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then

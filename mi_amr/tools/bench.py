@@ -2,6 +2,7 @@
 
     python -m mi_amr.bench [--quick] --out DIR [FILE.cells ...]
     python -m mi_amr.bench --scale 1e5 1e6 1e7 1e8 --out DIR    (see scale_bench)
+    python -m mi_amr.bench --view DATA --out DIR               (see view_bench)
 
 For each data set (the synthetic ``cloud``, ``shell``, ``stadium`` and any
 ``.cells`` file given) x transfer function (``spiky``, ``foggy``) x
@@ -355,6 +356,11 @@ def main(argv=None):
     p.add_argument("--cold-kernels", action="store_true",
                    help="scale benchmark: each process starts with an empty Dr.Jit kernel cache")
     p.add_argument("--data-dir", default="out/data", help="where the scale benchmark keeps its .cells files")
+    p.add_argument("--view", metavar="DATA", default=None,
+                   help="how interactive mi-amr view is on DATA, measured in the page (chromium): frames/s "
+                        "while dragging, change-to-frame and change-to-denoised times (--res, --repeats)")
+    p.add_argument("--view-field", default=None, help="field of --view's data")
+    p.add_argument("--view-preview-scale", type=float, default=0.5, help="--view: the viewer's preview scale")
     p.add_argument("--distributed", action="store_true",
                    help="speed-up of a Dask LocalCluster over one process (256x256, 256 spp unless "
                         "--res/--spp are given)")
@@ -362,6 +368,12 @@ def main(argv=None):
     p.add_argument("--chunk-spp", type=int, default=32, help="samples per chunk of --distributed")
     p.add_argument("--dist-scene", default="scenes/demo.xml", help="scene of --distributed")
     args = p.parse_args(argv)
+    if args.view:
+        from .view_bench import run
+        run(args.view, args.view_field, 256 if args.res == 128 else args.res, Path(args.out), args.repeats,
+            preview_scale=args.view_preview_scale)
+        print(f"wrote {args.out}/view.json and view.md")
+        return 0
     if args.distributed:
         ensure_llvm_path()
         import mitsuba as mi

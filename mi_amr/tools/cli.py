@@ -58,6 +58,10 @@ def _scene_from_data(args):
 
 
 def cmd_render(args):
+    if args.denoise:                          # before any work: is the denoiser there?
+        from ..view.engine import denoiser
+        if denoiser()[0] is None:
+            raise ValueError(f"--denoise: {denoiser()[1]}")
     _set_variant(args.variant)
     import drjit as dr
     import numpy as np
@@ -110,9 +114,56 @@ def cmd_render(args):
             what = " ".join(f"{a}={b}" for a, b in params.items() if a in varying)
             print(f"wrote {path} and {path.with_suffix('.png')} ({img.shape[1]}x{img.shape[0]}, "
                   f"{spp} spp{', ' + what if what else ''})")
+    if args.denoise:
+        _denoise_images(args, frames, images)
     if not args.quiet:
         print(f"{len(frames)} frame(s) in {seconds:.2f} s")
     dr.sync_thread()
+
+
+def _denoise_images(args, frames, images):
+    """``--denoise``: OUT-denoised.exr/.png beside each image."""
+    import numpy as np
+
+    from ..view.engine import denoiser
+    from .images import write_exr, write_png
+    denoise, missing = denoiser()
+    if denoise is None:
+        raise ValueError(f"--denoise: {missing}")
+    out = Path(args.output)
+    for k, image in enumerate(images):
+        path = out if len(frames) == 1 else out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
+        path = path.with_name(f"{path.stem}-denoised{path.suffix}")
+        clean = denoise(np.asarray(image, dtype=np.float32)[..., :3])
+        write_exr(path, clean)
+        write_png(path.with_suffix(".png"), clean)
+        if not args.quiet:
+            print(f"wrote {path} and {path.with_suffix('.png')} (denoised)")
+
+
+def cmd_view(args):
+    import webbrowser
+
+    from ..view.engine import ViewEngine
+    from ..view.server import ViewServer, warn_if_exposed
+    if Path(args.scene).suffix.lower() == ".xml" and args.field:
+        raise ValueError("--field is for data, not XML scenes")
+    if not Path(args.scene).exists():
+        raise FileNotFoundError(f"{args.scene}: no such file or directory")
+    _set_variant(args.variant)
+    engine = ViewEngine(args.scene, args.field, res=args.res, max_spp=args.max_spp,
+                        preview_scale=args.preview_scale, variant=args.variant)
+    server = ViewServer(engine, args.host, args.port, out_dir=args.out)
+    warn_if_exposed(args.host)
+    engine.start()
+    print(f"mi-amr view: {server.url}", flush=True)
+    print("(Ctrl-C stops the viewer)", flush=True)
+    if not args.no_browser:
+        webbrowser.open(server.url)
+    try:
+        server.run()
+    finally:
+        engine.stop()
 
 
 def _frames(args) -> tuple[list[dict], list[str]]:
@@ -389,6 +440,8 @@ def build_parser():
     r.add_argument("--tf", help="data: TF preset (spiky, foggy, ramp, constant) or .json file (default spiky)")
     r.add_argument("--res", type=int, default=400, help="data: image width and height (default 400)")
     r.add_argument("-o", "--output", required=True, help="output .exr path")
+    r.add_argument("--denoise", action="store_true",
+                   help="also write OUT-denoised.exr/.png: Intel Open Image Denoise (mi-amr[view] extra)")
     _render_flags(r, 64)
     r.add_argument("--chunk-spp", type=int, default=None,
                    help="samples per chunk (default: spp / max(8, 2 x workers), rounded up)")
@@ -400,6 +453,25 @@ def build_parser():
                    help="one frame per combination of comma-separated -D values (e.g. -D tf=spiky,foggy), "
                         "written as OUTPUT_000.exr, ...; rendered frame-parallel on a cluster")
     r.set_defaults(func=cmd_render)
+
+    v = _command(sub, "view", "explore data (or an XML scene with an amr medium) in the browser: "
+                 "progressive path tracing, mouse camera, TF editor over the histogram, snapshots "
+                 "(mi-amr[view] extra)",
+                 "mi-amr view DD0018/DD0018 --field density --out snapshots/")
+    v.add_argument("scene", help="data (a .cells/.npz/.amrb file or anything yt can load) or an XML scene")
+    v.add_argument("--field", help="data: the field to show (e.g. density)")
+    v.add_argument("--port", type=int, default=0, help="port (default: a free one)")
+    v.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1: this machine only; anything else is reachable "
+                        "from other machines, with the token)")
+    v.add_argument("--out", default=".", help="folder for snapshots (default: the current one)")
+    v.add_argument("--no-browser", action="store_true", help="print the URL, do not open a browser")
+    v.add_argument("--res", type=int, default=256, help="image width (default 256)")
+    v.add_argument("--max-spp", type=int, default=1024, help="stop refining at this many spp (default 1024)")
+    v.add_argument("--preview-scale", type=float, default=0.5,
+                   help="resolution of the first pass after a change, while dragging (default 0.5; 1: off)")
+    v.add_argument("--variant", default="llvm_ad_rgb")
+    v.set_defaults(func=cmd_view)
 
     f = _command(sub, "reference", "render a scene with every amr medium replaced by "
                                    "heterogeneous + gridvolume (dense resampling)",

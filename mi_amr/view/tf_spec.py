@@ -1,0 +1,143 @@
+"""What the viewer's transfer-function editor edits, and the table it gives.
+
+The editor works in *display* units: the values themselves (linear) or their
+log10, over a value range ``[lo, hi]`` of those units; opacity control
+points ``(u, alpha)`` lie in the normalised display value ``u = (d - lo) /
+(hi - lo)``, colour comes from a matplotlib colormap over ``u``. The medium
+holds its values in *stored* units (``value_transform`` none or log10, fixed
+at load: docs/design.md section 11). `TFSpec.table` samples the display-space
+TF at the entries of a table that is uniform in stored units, so both
+display modes work over one loaded medium: switching them changes the table,
+not the data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..transfer.function import TransferFunction
+
+#: Entries of the tables the editor makes (fine enough for a linear display
+#: over log-stored values spanning several decades).
+TABLE_SIZE = 1024
+#: Colormaps offered in the editor ("scene": the medium's own colours).
+COLORMAPS = ("plasma", "viridis", "magma", "inferno", "cividis", "turbo", "coolwarm", "gray")
+#: Most control points a message may carry.
+MAX_POINTS = 256
+
+
+def spiky_points() -> list[tuple[float, float]]:
+    """The ``spiky`` preset's opacity as control points (three tents)."""
+    pts = [(0.0, 0.0)]
+    for c, a in ((0.25, 0.55), (0.5, 0.8), (0.8, 1.0)):
+        pts += [(c - 0.025, 0.0), (c, a), (c + 0.025, 0.0)]
+    return pts + [(1.0, 0.0)]
+
+
+PRESET_POINTS = {
+    "spiky": ("plasma", spiky_points()),
+    "foggy": ("viridis", [(0.0, 0.0), (0.15, 0.02), (0.5, 0.08), (1.0, 0.15)]),
+    "ramp": ("viridis", [(0.0, 0.0), (1.0, 1.0)]),
+}
+
+
+@dataclass
+class TFSpec:
+    """The editor's state (display units; see the module docstring)."""
+    points: list = field(default_factory=spiky_points)
+    colormap: str = "plasma"
+    log: bool = False
+    range: tuple = (0.0, 1.0)
+    density: float = 1.0
+
+    def to_json(self) -> dict:
+        return {"points": [list(map(float, p)) for p in self.points], "colormap": self.colormap,
+                "log": bool(self.log), "range": [float(self.range[0]), float(self.range[1])],
+                "density": float(self.density)}
+
+    @classmethod
+    def from_message(cls, msg: dict, current: "TFSpec", log_available: bool,
+                     colormaps=COLORMAPS) -> "TFSpec":
+        """A validated spec from an editor message (missing keys keep
+        ``current``'s); a `ValueError` names the first bad field."""
+        points = msg.get("points", current.points)
+        if not isinstance(points, list) or not 2 <= len(points) <= MAX_POINTS:
+            raise ValueError(f"points: a list of 2 to {MAX_POINTS} [u, alpha] pairs")
+        try:
+            pts = np.array(points, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError("points: a list of [u, alpha] number pairs") from None
+        if pts.ndim != 2 or pts.shape[1] != 2 or not np.all(np.isfinite(pts)):
+            raise ValueError("points: a list of finite [u, alpha] pairs")
+        if pts[:, 0].min() < 0 or pts[:, 0].max() > 1 or pts[:, 1].min() < 0 or pts[:, 1].max() > 1:
+            raise ValueError("points: u and alpha must lie in [0, 1]")
+        cmap = msg.get("colormap", current.colormap)
+        if cmap not in colormaps:
+            raise ValueError(f"colormap: one of {', '.join(colormaps)}")
+        log = msg.get("log", current.log)
+        if not isinstance(log, bool):
+            raise ValueError("log: true or false")
+        if log and not log_available:
+            raise ValueError("log: these data hold values <= 0 over much of the volume; "
+                             "the log10 display is not available")
+        rng = msg.get("range", current.range)
+        try:
+            lo, hi = (float(x) for x in rng)
+        except (TypeError, ValueError):
+            raise ValueError("range: [lo, hi], two numbers") from None
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError("range: finite, with lo < hi")
+        if not log and log_available and hi <= 0:
+            raise ValueError("range: hi must be above 0 (the data are positive)")
+        density = msg.get("density", current.density)
+        if isinstance(density, bool) or not isinstance(density, (int, float)) \
+                or not np.isfinite(density) or not density > 0:
+            raise ValueError("density: a positive number")
+        order = np.argsort(pts[:, 0], kind="stable")
+        return cls([tuple(p) for p in pts[order].tolist()], cmap, log, (lo, hi), float(density))
+
+    def table(self, stored_log: bool, scene_rgb: np.ndarray | None = None) -> TransferFunction:
+        """The medium's TF: `TABLE_SIZE` entries uniform in stored units over
+        this spec's range; ``scene_rgb`` (N, 3): the colours of the
+        "scene" colormap (the medium's own, over u)."""
+        import matplotlib
+        lo, hi = self.range
+        if stored_log and not self.log:
+            # linear display over log10-stored values: entries uniform in log10
+            s_lo = np.log10(max(lo, hi * 1e-12)) if lo <= 0 else np.log10(lo)
+            s_hi = np.log10(hi)
+            x = np.linspace(s_lo, s_hi, TABLE_SIZE)
+            u = (10.0 ** x - lo) / (hi - lo)
+            domain = (s_lo, s_hi)
+        else:
+            # same units (a log display needs log-stored values: from_message checks)
+            u = np.linspace(0.0, 1.0, TABLE_SIZE)
+            domain = (lo, hi)
+        u = np.clip(u, 0.0, 1.0)
+        pts = np.asarray(self.points, dtype=np.float64)
+        rgba = np.empty((TABLE_SIZE, 4))
+        if self.colormap == "scene" and scene_rgb is not None:
+            grid = np.linspace(0, 1, len(scene_rgb))
+            for c in range(3):
+                rgba[:, c] = np.interp(u, grid, scene_rgb[:, c])
+        else:
+            rgba[:, :3] = matplotlib.colormaps[self.colormap](u)[:, :3]
+        rgba[:, 3] = np.interp(u, pts[:, 0], pts[:, 1])
+        return TransferFunction(np.clip(rgba, 0.0, 1.0), domain)
+
+
+def histogram(volume, spec: TFSpec, stored_log: bool, bins: int = 128) -> list[float]:
+    """Volume-weighted histogram of the display values over ``spec.range``
+    (``bins`` shares of the volume inside the range, summing to at most 1)."""
+    from ..autoscene import _cells_and_weights
+    lo, hi = spec.range
+    hist = np.zeros(bins)
+    total = 0.0
+    for v, w in _cells_and_weights(volume):
+        if stored_log and not spec.log:
+            v = 10.0 ** v
+        hist += np.histogram(v, bins=bins, range=(lo, hi), weights=w)[0]
+        total += float(w.sum())
+    return (hist / total).tolist() if total else hist.tolist()

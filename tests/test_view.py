@@ -1,0 +1,391 @@
+"""``mi-amr view``: the editor's state and its checks, the server's token and
+its answers to hostile messages, and the page in a real browser (Debian's
+chromium driven by Playwright): it loads with the token and is refused
+without, its image appears and refines, a drag in the TF editor and an
+orbit change it, a snapshot's XML renders to the same picture, two tabs
+keep their own views."""
+
+import json
+import shutil
+import struct
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mi_amr.view.camera import OrbitCamera
+from mi_amr.view.engine import safe_name
+from mi_amr.view.tf_spec import TABLE_SIZE, TFSpec, spiky_points
+
+pytest.importorskip("starlette")
+
+
+# ---- the editor's state ------------------------------------------------------------
+def test01_tf_spec_tables_and_refusals():
+    """A log display over log-stored values is the table itself; a linear
+    display over them puts each entry's opacity at 10^x; bad messages are
+    refused with the field named and leave the spec as it was."""
+    spec = TFSpec([(0.0, 0.0), (0.5, 1.0), (1.0, 0.0)], "viridis", True, (-2.0, 2.0), 5.0)
+    tf = spec.table(stored_log=True)
+    assert tf.domain == (-2.0, 2.0) and len(tf) == TABLE_SIZE
+    u = np.linspace(0, 1, TABLE_SIZE)
+    np.testing.assert_allclose(tf.rgba[:, 3], np.interp(u, [0, 0.5, 1], [0, 1, 0]), atol=1e-6)
+    lin = TFSpec(spec.points, "viridis", False, (1.0, 100.0), 5.0).table(stored_log=True)
+    assert lin.domain == pytest.approx((0.0, 2.0))
+    x = np.linspace(0.0, 2.0, TABLE_SIZE)
+    np.testing.assert_allclose(lin.rgba[:, 3], np.interp((10 ** x - 1) / 99, [0, 0.5, 1], [0, 1, 0]), atol=1e-6)
+    bad = [{"points": [[0, 0]]}, {"points": [[0, 0], [1, float("nan")]]}, {"points": [[0, 0], [2, 1]]},
+           {"points": "x"}, {"points": [[0, 0]] * 10000}, {"colormap": "../../etc"}, {"log": "yes"},
+           {"range": [1, 1]}, {"range": [0, float("inf")]}, {"range": "a"}, {"density": -1},
+           {"density": True}, {"density": "2"}]
+    for msg in bad:
+        with pytest.raises(ValueError):
+            TFSpec.from_message(msg, spec, log_available=True)
+    with pytest.raises(ValueError, match="log"):
+        TFSpec.from_message({"log": True}, TFSpec(spiky_points(), "plasma", False, (0, 1), 1.0), log_available=False)
+    ok = TFSpec.from_message({"points": [[1, 0.5], [0, 0.2]], "density": 3}, spec, log_available=True)
+    assert ok.points == [(0.0, 0.2), (1.0, 0.5)] and ok.density == 3.0 and ok.range == spec.range
+
+
+def test02_orbit_camera_round_trip_and_refusals():
+    origin, target, up = np.array([1.5, 1.0, 0.35]), np.array([0.1, -0.2, 0.0]), (0.0, 0.0, 1.0)
+    cam = OrbitCamera.looking(origin, target, up, 35.0)
+    np.testing.assert_allclose(cam.origin, origin, atol=1e-9)
+    moved = cam.from_message({"azimuth": cam.azimuth + 90, "distance": 2.0})
+    assert np.linalg.norm(moved.origin - np.asarray(target)) == pytest.approx(2.0)
+    assert moved.elevation == pytest.approx(cam.elevation)
+    for msg in ({"azimuth": float("nan")}, {"azimuth": "1"}, {"distance": 0}, {"distance": True},
+                {"target": [0, 0]}, {"target": ["a", 0, 0]}, {"elevation": 1e9}):
+        with pytest.raises(ValueError):
+            cam.from_message(msg)
+
+
+def test03_snapshot_names_stay_in_the_folder():
+    assert safe_name("cloud-1_v2.final") == "cloud-1_v2.final"
+    for name in ("../x", "/etc/passwd", "a/b", "a\\b", "", ".hidden", "x" * 101, None, "nul\0", "é"):
+        with pytest.raises(ValueError):
+            safe_name(name)
+
+
+# ---- a server on small data ----------------------------------------------------------
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """A viewer of a 20,000-cell cloud at 64x64, on loopback, on its own thread."""
+    from mi_amr.data.datasets import make_dataset
+    from mi_amr.data.io import save_cells
+    from mi_amr.view.engine import ViewEngine
+    from mi_amr.view.server import ViewServer
+    root = tmp_path_factory.mktemp("view")
+    src = save_cells(make_dataset("cloud", cells=20000, seed=0), root / "cloud.cells")
+    engine = ViewEngine(src, res=64, max_spp=64).start()
+    server = ViewServer(engine, out_dir=root / "snapshots", quiet=True).start()
+    assert engine.ready.wait(120) and engine.error is None, engine.error
+    yield server, root
+    server.stop()
+    engine.stop()
+
+
+def _get(url):
+    try:
+        with urllib.request.urlopen(url, timeout=30) as r:
+            return r.status, r.read().decode(errors="replace")
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode(errors="replace")
+
+
+def _frame(ws, timeout=30):
+    """The next binary frame's header (JSON replies before it are returned too)."""
+    replies, deadline = [], time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        m = ws.recv(timeout=deadline - time.monotonic())
+        if isinstance(m, bytes):
+            n = struct.unpack(">I", m[:4])[0]
+            ws.send(json.dumps({"type": "ack"}))
+            return json.loads(m[4:4 + n]), replies
+        replies.append(json.loads(m))
+    raise AssertionError("no frame")
+
+
+def test04_every_request_needs_the_token(served):
+    from websockets.exceptions import ConnectionClosed, InvalidStatus
+    from websockets.sync.client import connect
+    server, _ = served
+    base = f"http://127.0.0.1:{server.port}"
+    assert server.host == "127.0.0.1"
+    assert _get(f"{base}/")[0] == 403
+    assert _get(f"{base}/?token=wrong")[0] == 403
+    assert _get(f"{base}/static/viewer.js")[0] == 403
+    assert _get(f"{base}/static/viewer.js?token={server.token}")[0] == 200
+    status, body = _get(server.url)
+    assert status == 200 and 'data-testid="view"' in body
+    with pytest.raises((ConnectionClosed, InvalidStatus)):
+        with connect(f"ws://127.0.0.1:{server.port}/ws?token=wrong") as ws:
+            ws.recv(timeout=10)
+
+
+def test05_hostile_messages_get_errors_and_the_server_goes_on(served):
+    """Binary, not JSON, no object, unknown type, oversized, NaN camera,
+    thousands of TF points, a snapshot name that leaves the folder: an
+    error reply each, and the view still renders after a valid change."""
+    from websockets.sync.client import connect
+    server, root = served
+    with connect(f"ws://127.0.0.1:{server.port}/ws?token={server.token}", max_size=2**24) as ws:
+        header, replies = _frame(ws)
+        hello = next(r for r in replies if r["type"] == "hello")
+        assert hello["log_available"] in (True, False) and hello["size"] == [64, 64]
+        hostile = [b"\x00\x01binary", "not json {", "[1, 2]", json.dumps({"type": "reboot"}), "x" * 100_000,
+                   json.dumps({"type": "camera", "azimuth": "NaN"}), '{"type": "camera", "distance": NaN}',
+                   json.dumps({"type": "tf", "points": [[0, 0]] * 5000}),
+                   json.dumps({"type": "snapshot", "name": "../../escape"}),
+                   json.dumps({"type": "snapshot", "name": "/tmp/abs"}), json.dumps({"type": "denoise", "on": 1})]
+        for h in hostile:
+            ws.send(h)
+            while True:
+                m = ws.recv(timeout=30)
+                if isinstance(m, bytes):
+                    ws.send(json.dumps({"type": "ack"}))
+                    continue
+                reply = json.loads(m)
+                if reply["type"] == "error":
+                    break
+            assert reply["message"], h
+        assert not (root / "escape.xml").exists() and not Path("/tmp/abs.xml").exists()
+        version_before = header["version"]
+        ws.send(json.dumps({"type": "camera", "azimuth": hello["camera"]["azimuth"] + 20}))
+        while header["version"] == version_before:
+            header, _ = _frame(ws)
+        assert header["version"] == version_before + 1
+
+
+# ---- the page in a real browser ----------------------------------------------------------
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        pytest.fail("Debian's chromium is missing: make setup installs it (apt-get install chromium)")
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=exe, args=[
+            "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+            "--disable-sync", "--no-first-run"])
+        yield b
+        b.close()
+
+
+def _canvas(page) -> np.ndarray:
+    data = page.evaluate("""() => { const c = document.querySelector('[data-testid=view]');
+        return Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data); }""")
+    return np.array(data, np.float64).reshape(-1, 4)[:, :3]
+
+
+def _stats(page):
+    return page.evaluate("window.viewerStats")
+
+
+def _changes_within(page, action, seconds=2.0):
+    """Run ``action``; return (seconds until a frame of the new state is on
+    screen, how much the picture changed: mean |delta| in 8-bit units)."""
+    before, version0 = _canvas(page), _stats(page)["lastFrame"]["version"]
+    t0 = time.monotonic()
+    action()
+    page.wait_for_function(f"window.viewerStats.lastFrame.version > {version0}", timeout=seconds * 1000 + 5000)
+    took = time.monotonic() - t0
+    page.wait_for_timeout(50)
+    return took, float(np.abs(_canvas(page) - before).mean())
+
+
+def test06_the_page_in_a_browser(served, browser):
+    """Refused without the token; with it an image appears and refines (the
+    spp counter rises); a TF-editor drag and an orbit each change the
+    picture within 2 s; a snapshot writes EXR, PNG and XML, and the XML
+    renders to the same picture within noise."""
+    server, root = served
+    page = browser.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(f"http://127.0.0.1:{server.port}/")
+    assert "403" in page.content()
+    page.goto(server.url)
+    page.wait_for_function("window.viewerStats && window.viewerStats.frames > 0", timeout=60000)
+    assert _canvas(page).mean() > 1.0                      # not black: an image appeared
+    page.wait_for_function("window.viewerStats.lastFrame.spp >= 8 && !window.viewerStats.lastFrame.preview",
+                           timeout=60000)
+    assert "spp" in page.get_by_test_id("spp").inner_text()
+    for testid in ("tf-editor", "density", "colormap", "log", "snapshot"):
+        assert page.get_by_test_id(testid).count() == 1
+
+    editor = page.get_by_test_id("tf-editor").bounding_box()      # spiky: the tallest peak at u = 0.8
+
+    def drag_tf_point():
+        x = editor["x"] + 8 + 0.8 * (editor["width"] - 16)
+        y_peak = editor["y"] + 8                          # alpha 1 at the top of the plot
+        page.mouse.move(x, y_peak)
+        page.mouse.down()
+        page.mouse.move(x, y_peak + 0.6 * editor["height"], steps=5)
+        page.mouse.up()
+    took, delta = _changes_within(page, drag_tf_point)
+    assert took < 2.0 and delta > 0.5, (took, delta)
+
+    view = page.get_by_test_id("view").bounding_box()
+
+    def orbit():
+        page.mouse.move(view["x"] + 100, view["y"] + 100)
+        page.mouse.down()
+        page.mouse.move(view["x"] + 220, view["y"] + 120, steps=6)
+        page.mouse.up()
+    took, delta = _changes_within(page, orbit)
+    assert took < 2.0 and delta > 0.5, (took, delta)
+
+    page.wait_for_function("window.viewerStats.lastFrame.spp >= 16 && !window.viewerStats.lastFrame.preview",
+                           timeout=60000)
+    page.get_by_test_id("snapshot-name").fill("shot")
+    page.get_by_test_id("snapshot").click()
+    page.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=60000)
+    snap = _stats(page)["snapshots"][0]
+    out = root / "snapshots"
+    for ext in (".exr", ".png", ".xml", ".tf.json"):
+        assert (out / f"shot{ext}").is_file()
+    assert {Path(f).name for f in snap["files"]} == {"shot.exr", "shot.png", "shot.xml", "shot.tf.json"}
+    assert errors == [] and _stats(page)["errors"] == []
+    page.close()
+    _same_picture(out / "shot.exr", out / "shot.xml", snap["spp"])
+
+
+def _same_picture(exr, xml, spp, passes=16, block=8):
+    """The snapshot's EXR (one image of ``spp`` samples) against ``passes``
+    renders of its XML at the same spp: per 8x8 block, |z| < 6 with the
+    pass-to-pass variance (Student's t with 15 degrees of freedom: P(|t| > 6)
+    is 2.4e-5 per block, a false alarm about 0.2% over 64 blocks)."""
+    import mitsuba as mi
+
+    from mi_amr.testing import render_passes
+    from mi_amr.tools.images import read_exr
+    mi.set_variant("llvm_ad_rgb")
+    scene = mi.load_file(str(xml))
+    ref = render_passes(scene, passes, spp, seed0=1000)
+    img = read_exr(exr)[..., :3].astype(np.float64)
+    assert img.shape == ref.shape[1:]
+
+    def blocks(a):
+        h, w = a.shape[-3] // block, a.shape[-2] // block
+        return a[..., :h * block, :w * block, :].reshape(*a.shape[:-3], h, block, w, block, 3).mean(axis=(-4, -2, -1))
+    b_img, b_ref = blocks(img), blocks(ref)
+    var = b_ref.var(axis=0, ddof=1)
+    z = (b_img - b_ref.mean(axis=0)) / np.sqrt(var * (1 + 1 / passes) + 1e-12)
+    assert np.abs(z).max() < 6.0, (np.abs(z).max(), z.round(1))
+
+
+def test07_two_tabs_keep_their_own_views(served, browser):
+    """Tab A orbits while tab B refines: B's camera and version stay, and
+    B's accumulation holds only its own camera (its snapshot renders to the
+    same picture), though both share one scene."""
+    server, root = served
+    a, b = browser.new_page(), browser.new_page()
+    for p in (a, b):
+        p.goto(server.url)
+        p.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview", timeout=60000)
+    b_version = _stats(b)["lastFrame"]["version"]
+    box = a.get_by_test_id("view").bounding_box()
+    a.mouse.move(box["x"] + 50, box["y"] + 50)
+    a.mouse.down()
+    a.mouse.move(box["x"] + 250, box["y"] + 60, steps=8)
+    a.mouse.up()
+    a.wait_for_function("window.viewerStats.lastFrame.version > 0", timeout=10000)
+    b.wait_for_function("window.viewerStats.lastFrame.spp >= 16 && !window.viewerStats.lastFrame.preview",
+                        timeout=60000)
+    assert _stats(b)["lastFrame"]["version"] == b_version
+    b.get_by_test_id("snapshot-name").fill("tab-b")
+    b.get_by_test_id("snapshot").click()
+    b.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=60000)
+    spp = _stats(b)["snapshots"][0]["spp"]
+    a.close()
+    b.close()
+    _same_picture(root / "snapshots" / "tab-b.exr", root / "snapshots" / "tab-b.xml", spp)
+
+
+def test08_a_yt_data_set_in_the_viewer(tmp_path):
+    """An Enzo output through yt (``mi-amr view DIR --field Density``): the
+    view renders, and its snapshot writes the data once as .amrb beside an
+    XML that renders to the same picture."""
+    pytest.importorskip("yt")
+    from amr_formats import write_enzo
+    from mi_amr.view.engine import ViewEngine
+    rng = np.random.default_rng(3)
+    x, y, z = np.meshgrid(*[np.arange(16)] * 3, indexing="ij")
+    top = 1.0 + 4.0 * np.exp(-((x - 9) ** 2 + (y - 7) ** 2 + (z - 8) ** 2) / 30.0) + 0.1 * rng.random((16, 16, 16))
+    path = write_enzo(tmp_path / "DD0003", "DD0003", top, [((8, 8, 8), 3.0 + 2.0 * rng.random((8, 8, 8)))])
+    engine = ViewEngine(path, "Density", res=32, max_spp=16).start()
+    try:
+        assert engine.ready.wait(120) and engine.error is None, engine.error
+        frames = []
+        view = engine.open_view(lambda header, jpeg: frames.append(header))
+        deadline = time.monotonic() + 60
+        while not (frames and frames[-1]["spp"] >= 16) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert frames[-1]["spp"] == 16 and frames[-1]["width"] == 32
+        files = engine.snapshot(view, tmp_path / "out", "enzo")
+    finally:
+        engine.stop()
+    assert [f.name for f in files] == ["enzo.exr", "enzo.png", "enzo.xml", "enzo.tf.json"]
+    assert list((tmp_path / "out").glob("*.amrb")), "the yt data were not written for the XML"
+    _same_picture(files[0], files[2], 16, block=8)
+
+
+def test09_notebook_frame_and_command_line(served, tmp_path, capsys):
+    """``mi_amr.view.notebook`` shows the same page (an IFrame of a served
+    URL); ``mi-amr view`` names a missing file; ``mi-amr render --denoise``
+    writes the denoised image beside the noisy one."""
+    pytest.importorskip("IPython")
+    from mi_amr.tools.cli import main
+    from mi_amr.tools.images import read_exr
+    from mi_amr.view import notebook
+    _, root = served
+    frame = notebook(root / "cloud.cells", res=32, out_dir=tmp_path)
+    try:
+        assert frame.engine.ready.wait(120)
+        status, body = _get(frame.src)
+        assert status == 200 and 'data-testid="tf-editor"' in body and "127.0.0.1" in frame.src
+    finally:
+        frame.server.stop()
+        frame.engine.stop()
+    assert main(["view", str(tmp_path / "missing.cells"), "--no-browser"]) == 2
+    assert "missing.cells" in capsys.readouterr().err
+    scene = Path(__file__).parents[1] / "scenes" / "blocks.xml"
+    out = tmp_path / "b.exr"
+    assert main(["render", str(scene), "-o", str(out), "--spp", "4", "-D", "res=32", "--denoise", "-q"]) == 0
+    noisy, clean = read_exr(out), read_exr(tmp_path / "b-denoised.exr")
+    assert clean.shape == noisy.shape[:2] + (3,) and np.isfinite(clean).all()
+    assert abs(clean.mean() - noisy[..., :3].mean()) < 0.1 * noisy[..., :3].mean()
+    # the denoiser smooths: neighbouring pixels differ less than in the noisy image
+    assert np.abs(np.diff(clean, axis=1)).mean() < np.abs(np.diff(noisy[..., :3], axis=1)).mean()
+
+
+def test10_an_xml_scene_in_the_viewer(tmp_path):
+    """``mi-amr view scenes/blocks.xml``: the scene's own camera, colours
+    and density to start with; after an orbit and a TF change the snapshot
+    is the source XML with the new camera and TF (its relative data path
+    still found), rendering to the same picture."""
+    from mi_amr.view.engine import ViewEngine
+    scene = Path(__file__).parents[1] / "scenes" / "blocks.xml"
+    engine = ViewEngine(scene, res=32, max_spp=16).start()
+    try:
+        assert engine.ready.wait(120) and engine.error is None, engine.error
+        assert "scene" in engine.colormaps and engine.initial_spec.colormap == "scene"
+        frames = []
+        view = engine.open_view(lambda header, jpeg: frames.append(header))
+        engine.change(view, {"type": "camera", "azimuth": view.camera.azimuth + 40, "elevation": 20})
+        engine.change(view, {"type": "tf", "density": view.spec.density * 0.5, "colormap": "viridis"})
+        deadline = time.monotonic() + 60
+        while not (frames and frames[-1]["spp"] >= 16 and frames[-1]["version"] == 2) \
+                and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert frames[-1]["spp"] == 16
+        files = engine.snapshot(view, tmp_path, "blocks")
+    finally:
+        engine.stop()
+    text = files[2].read_text()
+    assert "lookat" in text and "blocks.tf.json" in text and "data/blocks.cells" in text
+    _same_picture(files[0], files[2], 16, block=8)
