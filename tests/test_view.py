@@ -5,6 +5,7 @@ without, its image appears and refines, a drag in the TF editor and an
 orbit change it, a snapshot's XML renders to the same picture, two tabs
 keep their own views."""
 
+import gc
 import json
 import shutil
 import struct
@@ -264,8 +265,12 @@ def _same_picture(exr, xml, spp, passes=16, block=8):
     from mi_amr.testing import render_passes
     from mi_amr.tools.images import read_exr
     mi.set_variant("llvm_ad_rgb")
-    scene = mi.load_file(str(xml))
-    ref = render_passes(scene, passes, spp, seed0=1000)
+    from mi_amr.view.engine import JIT_LOCK
+    with JIT_LOCK:             # a viewer may be rendering on its thread
+        scene = mi.load_file(str(xml))
+        ref = render_passes(scene, passes, spp, seed0=1000)
+        del scene              # collected here, not inside another thread's frozen pass
+        gc.collect()
     img = read_exr(exr)[..., :3].astype(np.float64)
     assert img.shape == ref.shape[1:]
 
@@ -355,7 +360,10 @@ def test09_notebook_frame_and_command_line(served, tmp_path, capsys):
     assert "missing.cells" in capsys.readouterr().err
     scene = Path(__file__).parents[1] / "scenes" / "blocks.xml"
     out = tmp_path / "b.exr"
-    assert main(["render", str(scene), "-o", str(out), "--spp", "4", "-D", "res=32", "--denoise", "-q"]) == 0
+    from mi_amr.view.engine import JIT_LOCK
+    with JIT_LOCK:             # the served viewer may be rendering on its thread
+        assert main(["render", str(scene), "-o", str(out), "--spp", "4", "-D", "res=32", "--denoise", "-q"]) == 0
+        gc.collect()
     noisy, clean = read_exr(out), read_exr(tmp_path / "b-denoised.exr")
     assert clean.shape == noisy.shape[:2] + (3,) and np.isfinite(clean).all()
     assert abs(clean.mean() - noisy[..., :3].mean()) < 0.1 * noisy[..., :3].mean()
@@ -389,3 +397,46 @@ def test10_an_xml_scene_in_the_viewer(tmp_path):
     text = files[2].read_text()
     assert "lookat" in text and "blocks.tf.json" in text and "data/blocks.cells" in text
     _same_picture(files[0], files[2], 16, block=8)
+
+
+def test11_the_editor_histogram_is_the_volume_weighted_one():
+    """Re-binned from the fine histogram, the editor's bins hold the
+    volume-weighted shares of direct counting (within one fine bin's mass
+    at each edge), in linear and log10 display over log-stored values."""
+    from mi_amr.autoscene import _cells_and_weights
+    from mi_amr.data.blocks import BlockVolume
+    from mi_amr.data.datasets import make_dataset
+    from mi_amr.data.transform import apply_value_transform
+    from mi_amr.view.tf_spec import Histogram
+    vol, _ = apply_value_transform(BlockVolume.from_cells(make_dataset("cloud", cells=20000, seed=4)), "log10")
+    hist = Histogram(vol)
+    v = np.concatenate([a for a, _ in _cells_and_weights(vol)])
+    w = np.concatenate([b for _, b in _cells_and_weights(vol)])
+    lo, hi = np.quantile(v, [0.2, 0.9])
+    for spec, x in ((TFSpec(log=True, range=(lo, hi)), v), (TFSpec(log=False, range=(10 ** lo, 10 ** hi)), 10 ** v)):
+        got = np.array(hist.shares(spec, stored_log=True, bins=32))
+        direct = np.histogram(x, bins=32, range=spec.range, weights=w)[0] / w.sum()
+        assert np.abs(got - direct).max() < 0.01, np.abs(got - direct).max()
+        assert got.sum() == pytest.approx(direct.sum(), abs=0.01)
+
+
+def test12_a_missing_denoiser_is_said_not_hidden(monkeypatch, tmp_path, capsys):
+    """Without mitsuba-oidn the page is told why (and the denoise switch is
+    refused with that reason), and ``mi-amr render --denoise`` stops before
+    rendering with one line naming the extra."""
+    import mi_amr.view.engine as eng
+    from mi_amr.tools.cli import main
+    monkeypatch.setattr(eng, "denoiser", lambda: (None, "denoising needs mitsuba-oidn: pip install 'mi-amr[view]'"))
+    engine = eng.ViewEngine("unused.cells")
+    engine.initial_camera = OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0)
+    engine.initial_spec, engine.colormaps, engine.log_available = TFSpec(), ("plasma",), False
+    engine.size, engine.max_spp, engine.description = [64, 64], 8, "test"
+    engine.ready.set()
+    view = engine.open_view(lambda header, jpeg: None)
+    hello = engine.describe(view)
+    assert hello["denoiser"] is False and "mi-amr[view]" in hello["denoiser_missing"] and hello["denoise"] is False
+    with pytest.raises(ValueError, match="mitsuba-oidn"):
+        engine.change(view, {"type": "denoise", "on": True})
+    scene = Path(__file__).parents[1] / "scenes" / "blocks.xml"
+    assert main(["render", str(scene), "-o", str(tmp_path / "x.exr"), "--denoise"]) == 2
+    assert "mitsuba-oidn" in capsys.readouterr().err and not (tmp_path / "x.exr").exists()

@@ -31,10 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from .camera import OrbitCamera
-from .tf_spec import COLORMAPS, PRESET_POINTS, TFSpec, histogram
+from .tf_spec import COLORMAPS, PRESET_POINTS, Histogram, TFSpec
 
 #: Samples per pixel after which a view stops refining.
 DEFAULT_MAX_SPP = 1024
+#: Held around every Dr.Jit call of a viewer (scene changes, frozen passes):
+#: recording a frozen function while another thread traces or renders is
+#: not safe. Code that renders in the same process while a viewer runs (a
+#: notebook, a test) takes it too: ``with mi_amr.view.engine.JIT_LOCK: ...``.
+JIT_LOCK = threading.RLock()
 
 
 def denoiser():
@@ -106,6 +111,7 @@ class ViewEngine:
         self._scene_lock = threading.Lock()      # the scene: render, apply, snapshot
         self._stop = False
         self._listeners: list = []               # status(dict) callbacks
+        self._histogram = None
         self._denoise, self.denoiser_missing = denoiser()
         self._thread = threading.Thread(target=self._run, name="mi-amr view", daemon=True)
 
@@ -115,10 +121,30 @@ class ViewEngine:
         return self
 
     def stop(self):
+        """End the render thread, which lets go of the scene first."""
         with self._wake:
             self._stop = True
             self._wake.notify_all()
-        self._thread.join(timeout=30)
+        if self._thread.is_alive():
+            self._thread.join(timeout=60)
+
+    def _release(self):
+        """On the render thread, before it ends: drop the scene, its frozen
+        recordings and every Dr.Jit variable of it, and collect them here.
+        Freed later from another thread (after this one's Dr.Jit state is
+        gone), they crashed a later render."""
+        import gc
+        with self._wake:
+            self._views.clear()
+        with JIT_LOCK:
+            for name in ("_render", "_forget", "params", "medium", "scene", "_applied", "_histogram"):
+                self.__dict__.pop(name, None)
+            gc.collect()
+        try:
+            import drjit as dr
+            dr.sync_thread()
+        except Exception:
+            pass
 
     def on_status(self, callback):
         """``callback(status dict)`` on load progress and when ready or failed."""
@@ -133,11 +159,9 @@ class ViewEngine:
     def _load(self):
         from .._llvm import ensure_llvm_path
         ensure_llvm_path()
-        import drjit as dr
         import mitsuba as mi
         if mi.variant() != self.variant:
             mi.set_variant(self.variant)
-        import mi_amr
         from ..progress import listen
 
         last = [0.0]
@@ -149,12 +173,19 @@ class ViewEngine:
                 self._set_status(desc=desc, done=done or 0, total=total)
         stop_listening = listen(heard)
         try:
-            if str(self.source).lower().endswith(".xml"):
-                self._load_xml(mi)
-            else:
-                self._load_data(mi)
+            with JIT_LOCK:
+                self._load_scene(mi)
         finally:
             stop_listening()
+
+    def _load_scene(self, mi):
+        import drjit as dr
+        import mi_amr
+        """The scene, its parameters and the frozen pass (under `JIT_LOCK`)."""
+        if str(self.source).lower().endswith(".xml"):
+            self._load_xml(mi)
+        else:
+            self._load_data(mi)
         self.medium = mi_amr.amr_media(self.scene)[0]
         self.params = mi.traverse(self.scene)
         # the first sensor's keys (named after its id: "sensor" in planned scenes)
@@ -180,6 +211,8 @@ class ViewEngine:
                 raise RuntimeError(f"rendered {image.shape[:2]}, expected {(size[1], size[0])}")
             return image
         self._render = render
+        self._forget = lambda size: frozen.pop(tuple(size), None)
+        self._failures = 0
         self._seeds = itertools.count()
 
     def _load_data(self, mi):
@@ -260,9 +293,11 @@ class ViewEngine:
 
     def change(self, view: View, msg: dict):
         """Apply a page message of type camera, tf or denoise to ``view``
-        (a `ValueError` names what is wrong; the view is then unchanged)."""
+        (a `ValueError` names what is wrong; the view is then unchanged).
+        Returns whether the histogram's range or units changed."""
         kind = msg.get("type")
         with self._wake:
+            before = view.spec
             if kind == "camera":
                 view.camera = view.camera.from_message(msg)
             elif kind == "tf":
@@ -280,11 +315,14 @@ class ViewEngine:
             view.version += 1
             view.changed_at = time.perf_counter()
             self._wake.notify_all()
+            return (before.range, before.log) != (view.spec.range, view.spec.log)
 
     def histogram(self, view: View) -> dict:
         """The volume-weighted histogram under the view's TF editor."""
+        if self._histogram is None:
+            self._histogram = Histogram(self.medium.volume)
         spec = view.spec
-        return {"type": "histogram", "counts": histogram(self.medium.volume, spec, self.stored_log),
+        return {"type": "histogram", "counts": self._histogram.shares(spec, self.stored_log),
                 "range": list(spec.range), "log": spec.log}
 
     # ---- Rendering ---------------------------------------------------------------
@@ -295,14 +333,18 @@ class ViewEngine:
             self.error = f"{type(e).__name__}: {e}" if not isinstance(e, (ValueError, OSError)) else str(e)
             self._set_status(state="error", desc=self.error)
             self.ready.set()
+            self._release()
             return
         self._set_status(state="ready", desc="ready")
         self.ready.set()
         turn = 0
         while True:
             with self._wake:
-                if self._stop:
-                    return
+                stopping = self._stop
+            if stopping:
+                self._release()
+                return
+            with self._wake:
                 views = [v for v in self._views.values() if self._needs_work(v)]
                 if not views:
                     self._wake.wait(0.25)
@@ -335,9 +377,23 @@ class ViewEngine:
         size = [max(8, int(self.size[0] * self.preview_scale)), max(8, int(self.size[1] * self.preview_scale))] \
             if preview else list(self.size)
         t0 = time.perf_counter()
-        with self._scene_lock:
-            self._apply(camera, spec, size)
-            image = self._render(next(self._seeds), size)
+        try:
+            with self._scene_lock, JIT_LOCK:
+                self._apply(camera, spec, size)
+                image = self._render(next(self._seeds), size)
+        except Exception as e:                       # say it, forget the recording, go on
+            import sys
+            print(f"mi-amr view: a pass failed ({type(e).__name__}: {str(e).splitlines()[0]}); "
+                  "rendering again", file=sys.stderr)
+            self._failures += 1
+            self._forget(size)
+            self._applied = {}
+            if self._failures >= 3:
+                self._set_status(state="error", desc=f"rendering fails: {e}")
+                with self._wake:
+                    self._stop = True
+            return
+        self._failures = 0
         render_ms = 1e3 * (time.perf_counter() - t0)
         with self._wake:
             if view.closed:
@@ -350,6 +406,8 @@ class ViewEngine:
             elif preview:
                 view.preview_version = version
                 shown, spp, denoised = image, 1, False
+                if view.denoise and self._denoise is not None:    # clean while dragging, too
+                    shown, denoised = self._denoise(image), True
             else:
                 if view.accum_version != version:
                     view.accum, view.spp, view.accum_version, view.denoised = image.astype(np.float64), 1, version, None

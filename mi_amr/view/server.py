@@ -161,9 +161,8 @@ async def _handle(message, engine, view, out_dir, loop, acked):
             acked.set()
             return None
         if kind in ("camera", "tf", "denoise"):
-            engine.change(view, msg)
-            if kind == "tf" and any(k in msg for k in ("range", "log")):
-                return await loop.run_in_executor(None, engine.histogram, view)
+            if engine.change(view, msg):          # a new range or units: a new histogram
+                return engine.histogram(view)
             return None
         if kind == "histogram":
             return await loop.run_in_executor(None, engine.histogram, view)

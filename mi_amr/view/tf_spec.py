@@ -128,16 +128,33 @@ class TFSpec:
         return TransferFunction(np.clip(rgba, 0.0, 1.0), domain)
 
 
-def histogram(volume, spec: TFSpec, stored_log: bool, bins: int = 128) -> list[float]:
-    """Volume-weighted histogram of the display values over ``spec.range``
-    (``bins`` shares of the volume inside the range, summing to at most 1)."""
-    from ..autoscene import _cells_and_weights
-    lo, hi = spec.range
-    hist = np.zeros(bins)
-    total = 0.0
-    for v, w in _cells_and_weights(volume):
+#: Bins of the fine histogram that every editor histogram is re-binned from.
+FINE_BINS = 1 << 14
+
+
+class Histogram:
+    """The volume-weighted distribution of the stored values, computed once
+    (`FINE_BINS` bins over their range), re-binned for any display range
+    and mode in microseconds: the cumulative distribution interpolated at
+    the display bins' edges (mapped to stored units)."""
+
+    def __init__(self, volume):
+        from ..autoscene import _cells_and_weights
+        lo, hi = volume.value_range
+        if not hi > lo:
+            lo, hi = lo - 0.5, hi + 0.5
+        counts, total = np.zeros(FINE_BINS), 0.0
+        for v, w in _cells_and_weights(volume):
+            counts += np.histogram(v, bins=FINE_BINS, range=(lo, hi), weights=w)[0]
+            total += float(w.sum())
+        self.edges = np.linspace(lo, hi, FINE_BINS + 1)
+        self.cdf = np.concatenate([[0.0], np.cumsum(counts)]) / (total or 1.0)
+
+    def shares(self, spec: TFSpec, stored_log: bool, bins: int = 128) -> list[float]:
+        """Share of the volume in each of ``bins`` display bins over ``spec.range``."""
+        edges = np.linspace(spec.range[0], spec.range[1], bins + 1)
         if stored_log and not spec.log:
-            v = 10.0 ** v
-        hist += np.histogram(v, bins=bins, range=(lo, hi), weights=w)[0]
-        total += float(w.sum())
-    return (hist / total).tolist() if total else hist.tolist()
+            with np.errstate(divide="ignore", invalid="ignore"):
+                edges = np.where(edges > 0, np.log10(np.maximum(edges, 1e-300)), -np.inf)
+        cdf = np.interp(edges, self.edges, self.cdf, left=0.0, right=1.0)
+        return np.maximum(np.diff(cdf), 0.0).tolist()

@@ -13,11 +13,12 @@ let version = 0;                 // change messages sent (the server's view vers
 const changeTimes = new Map();   // version -> time it was sent
 let dragging = null;             // camera drag state
 let pendingCamera = false, pendingTf = false;
+const denoisedShown = { version: -1, full: false };   // of the newest version
 
 // Figures read by people (the stats line) and by tests (window.viewerStats).
 const stats = window.viewerStats = {
   frames: 0, denoisedFrames: 0, lastFrame: null, frameTimes: [], latencies: [],
-  denoiseLatencies: [], lastChange: 0, errors: [], snapshots: [], ready: false,
+  denoiseLatencies: [], fullDenoiseLatencies: [], lastChange: 0, errors: [], snapshots: [], ready: false,
 };
 
 function send(msg) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(msg)); }
@@ -101,9 +102,16 @@ async function onFrame(buffer) {
     if (v <= header.version) { stats.latencies.push(now - t); changeTimes.delete(v); }
   }
   if (stats.latencies.length > 500) stats.latencies.splice(0, stats.latencies.length - 500);
-  if (header.denoised) {
+  if (header.denoised) {        // the first denoised image (preview, then full size) after the last change
     stats.denoisedFrames += 1;
-    if (header.version === version && header.spp === 1) stats.denoiseLatencies.push(now - stats.lastChange);
+    if (header.version === version && denoisedShown.version !== version) {
+      denoisedShown.version = version; denoisedShown.full = false;
+      stats.denoiseLatencies.push(now - stats.lastChange);
+    }
+    if (header.version === version && !header.preview && !denoisedShown.full) {
+      denoisedShown.full = true;
+      stats.fullDenoiseLatencies.push(now - stats.lastChange);
+    }
   }
   $("spp").textContent = `${header.preview ? "preview" : header.spp + " spp"}${header.denoised ? ", denoised" : ""}`;
   const recent = stats.frameTimes.filter((t) => now - t < 1000).length;
