@@ -27,12 +27,11 @@ def listen(callback):
     return stop
 
 
-def _told(bar):
+def _told(bar, desc: str):
     """``bar`` with its ``update`` and ``close`` also telling the listeners
     (a disabled tqdm counts nothing, so the count is kept here)."""
     done = [0]
     update, close = bar.update, bar.close
-    desc = bar.desc if isinstance(getattr(bar, "desc", None), str) else ""
 
     def told_update(n=1):
         done[0] += n
@@ -55,5 +54,4 @@ def progress(total=None, desc: str = "", unit: str = "cell"):
     terminals only, and leaves no line behind."""
     bar = tqdm(total=total, desc=desc, unit=unit, unit_scale=True, delay=1.0, leave=False,
                disable=None, dynamic_ncols=True)
-    bar.desc = desc
-    return _told(bar)
+    return _told(bar, desc)

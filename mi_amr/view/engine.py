@@ -25,7 +25,7 @@ import io
 import itertools
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -79,10 +79,8 @@ class View:
     spp: int = 0
     accum_version: int = -1
     preview_version: int = -1
-    frames: int = 0
     denoised: np.ndarray | None = None   # the newest denoised image of the accumulation
     closed: bool = False
-    changed_at: float = field(default_factory=time.perf_counter)
 
 
 class ViewEngine:
@@ -108,7 +106,6 @@ class ViewEngine:
         self._ids = itertools.count(1)
         self._lock = threading.RLock()           # views and their state
         self._wake = threading.Condition(self._lock)
-        self._scene_lock = threading.Lock()      # the scene: render, apply, snapshot
         self._stop = False
         self._listeners: list = []               # status(dict) callbacks
         self._histogram = None
@@ -147,8 +144,10 @@ class ViewEngine:
             pass
 
     def on_status(self, callback):
-        """``callback(status dict)`` on load progress and when ready or failed."""
+        """``callback(status dict)`` on load progress and when ready or failed;
+        returns a function that stops it."""
         self._listeners.append(callback)
+        return lambda: self._listeners.remove(callback) if callback in self._listeners else None
 
     def _set_status(self, **kw):
         self.status = dict(self.status, **kw)
@@ -313,7 +312,6 @@ class ViewEngine:
             else:
                 raise ValueError(f"unknown message type {kind!r}")
             view.version += 1
-            view.changed_at = time.perf_counter()
             self._wake.notify_all()
             return (before.range, before.log) != (view.spec.range, view.spec.log)
 
@@ -378,7 +376,7 @@ class ViewEngine:
             if preview else list(self.size)
         t0 = time.perf_counter()
         try:
-            with self._scene_lock, JIT_LOCK:
+            with JIT_LOCK:
                 self._apply(camera, spec, size)
                 image = self._render(next(self._seeds), size)
         except Exception as e:                       # say it, forget the recording, go on
@@ -401,13 +399,11 @@ class ViewEngine:
             if view.version != version:
                 # the view changed while this pass ran (a drag): show it, as the
                 # newest picture there is, but accumulate nothing into it
-                preview = True
-                shown, spp, denoised = image, 1, False
+                preview, shown, spp, denoised = True, image, 1, False
             elif preview:
                 view.preview_version = version
-                shown, spp, denoised = image, 1, False
-                if view.denoise and self._denoise is not None:    # clean while dragging, too
-                    shown, denoised = self._denoise(image), True
+                shown, spp = image, 1
+                denoised = view.denoise and self._denoise is not None          # clean while dragging, too
             else:
                 if view.accum_version != version:
                     view.accum, view.spp, view.accum_version, view.denoised = image.astype(np.float64), 1, version, None
@@ -415,15 +411,17 @@ class ViewEngine:
                     view.accum += image
                     view.spp += 1
                 spp = view.spp
-                shown, denoised = view.accum / spp, False
-                if view.denoise and self._denoise is not None:
-                    if spp & (spp - 1) == 0 or spp == self.max_spp:     # at 1, 2, 4, 8, ... spp
-                        shown, denoised = self._denoise(shown), True
-                        view.denoised = shown
-                    else:
-                        shown = None                     # keep the last denoised image on screen
-            view.frames += 1
+                shown = view.accum / spp
+                denoised = view.denoise and self._denoise is not None
+                if denoised and not (spp & (spp - 1) == 0 or spp == self.max_spp):   # at 1, 2, 4, 8, ... spp
+                    shown = None                         # keep the last denoised image on screen
             send = view.send
+        if shown is not None and denoised:               # outside the lock: the page's changes go on
+            shown = self._denoise(shown)
+            if not preview:
+                with self._wake:
+                    if view.accum_version == version and view.spp == spp:
+                        view.denoised = shown
         if shown is not None:
             header = {"type": "frame", "version": version, "spp": spp, "denoised": denoised,
                       "preview": preview, "width": size[0], "height": size[1],

@@ -112,7 +112,7 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, disconnect):
             head = json.dumps(header).encode()
             await ws.send_bytes(struct.pack(">I", len(head)) + head + jpeg)
 
-    engine.on_status(status)
+    stop_status = engine.on_status(status)
     await outbox.put(dict(engine.status, type="status"))
     tasks = [asyncio.create_task(writer())]
     view = None
@@ -137,7 +137,7 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, disconnect):
     finally:
         for t in tasks:
             t.cancel()
-        engine._listeners.remove(status) if status in engine._listeners else None
+        stop_status()
         if view is not None:
             engine.close_view(view)
 
