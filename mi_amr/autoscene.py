@@ -129,8 +129,9 @@ def _from_yt(ds, field):
     return cells, ext, f"{ds} field {field}"
 
 
-def _cells_and_weights(data):
-    """Chunks of (values, volume weights) of the present cells."""
+def cells_and_weights(data):
+    """Chunks of ``(values float64, volume weights)`` of the present cells
+    (weights in finest-cell volumes: 8^level)."""
     if isinstance(data, AMRCells):
         yield data.value.astype(np.float64), np.exp2(3.0 * data.level)
         return
@@ -146,7 +147,7 @@ def _cells_and_weights(data):
 def positive_share(data) -> float:
     """Share of the volume whose values are above 0."""
     pos = total = 0.0
-    for v, w in _cells_and_weights(data):
+    for v, w in cells_and_weights(data):
         pos += float(w[v > 0].sum())
         total += float(w.sum())
     return pos / total if total else 0.0
@@ -157,7 +158,7 @@ def weighted_percentiles(data, qs, log: bool = False) -> list[float]:
     log10 with ``log``, values <= 0 left out), from a histogram of
     `HISTOGRAM_BINS` bins: within one bin width."""
     lo, hi = (np.inf, -np.inf)
-    for v, _ in _cells_and_weights(data):
+    for v, _ in cells_and_weights(data):
         if log:
             v = v[v > 0]
             if not v.size:
@@ -171,7 +172,7 @@ def weighted_percentiles(data, qs, log: bool = False) -> list[float]:
         return [lo for _ in qs]
     edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
     hist = np.zeros(HISTOGRAM_BINS)
-    for v, w in _cells_and_weights(data):
+    for v, w in cells_and_weights(data):
         if log:
             keep = v > 0
             v, w = np.log10(v[keep]), w[keep]
@@ -228,7 +229,7 @@ def _mean_alpha(volume, tf, value_range, log) -> float:
     """Volume-weighted mean TF opacity of the cells."""
     fn = TransferFunction.load(tf, value_range)
     total = weight = 0.0
-    for v, w in _cells_and_weights(volume):
+    for v, w in cells_and_weights(volume):
         if log:      # values <= 0 take the floor, below the range: the TF's low end
             v = np.log10(np.where(v > 0, v, 1.0)) - np.where(v > 0, 0.0, np.inf)
         total += float((fn(v)[:, 3] * w).sum())

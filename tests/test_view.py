@@ -138,6 +138,7 @@ def test05_hostile_messages_get_errors_and_the_server_goes_on(served):
         header, replies = _frame(ws)
         hello = next(r for r in replies if r["type"] == "hello")
         assert hello["log_available"] in (True, False) and hello["size"] == [32, 32]
+        assert hello["colormap_stops"]["viridis"][0] == "#440154"         # matplotlib's own colours
         hostile = [b"\x00\x01binary", "not json {", "[1, 2]", json.dumps({"type": "reboot"}), "x" * 100_000,
                    json.dumps({"type": "camera", "azimuth": "NaN"}), '{"type": "camera", "distance": NaN}',
                    json.dumps({"type": "tf", "points": [[0, 0]] * 5000}),
@@ -404,15 +405,15 @@ def test11_the_editor_histogram_is_the_volume_weighted_one():
     """Re-binned from the fine histogram, the editor's bins hold the
     volume-weighted shares of direct counting (within one fine bin's mass
     at each edge), in linear and log10 display over log-stored values."""
-    from mi_amr.autoscene import _cells_and_weights
+    from mi_amr.autoscene import cells_and_weights
     from mi_amr.data.blocks import BlockVolume
     from mi_amr.data.datasets import make_dataset
     from mi_amr.data.transform import apply_value_transform
     from mi_amr.view.tf_spec import Histogram
     vol, _ = apply_value_transform(BlockVolume.from_cells(make_dataset("cloud", cells=20000, seed=4)), "log10")
     hist = Histogram(vol)
-    v = np.concatenate([a for a, _ in _cells_and_weights(vol)])
-    w = np.concatenate([b for _, b in _cells_and_weights(vol)])
+    v = np.concatenate([a for a, _ in cells_and_weights(vol)])
+    w = np.concatenate([b for _, b in cells_and_weights(vol)])
     lo, hi = np.quantile(v, [0.2, 0.9])
     for spec, x in ((TFSpec(log=True, range=(lo, hi)), v), (TFSpec(log=False, range=(10 ** lo, 10 ** hi)), 10 ** v)):
         got = np.array(hist.shares(spec, stored_log=True, bins=32))

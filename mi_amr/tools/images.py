@@ -42,12 +42,22 @@ def read_exr(path) -> np.ndarray:
     return np.stack([ch[k] for k in keys], axis=-1)
 
 
-def write_png(path, image) -> Path:
-    """sRGB 8-bit preview of a linear float image, via ``mitsuba.Bitmap``."""
+def _srgb8_bitmap(image):
     import mitsuba as mi
     img = np.nan_to_num(np.asarray(image, dtype=np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
     bmp = mi.Bitmap(np.ascontiguousarray(img), mi.Bitmap.PixelFormat.RGB)
-    bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True).write(str(path))
+    return bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
+
+
+def srgb8(image) -> np.ndarray:
+    """A linear float image (H, W, 3+) as sRGB uint8 (H, W, 3), as `write_png`
+    writes it (``mitsuba.Bitmap``: clipped, NaN/Inf as 0)."""
+    return np.array(_srgb8_bitmap(image), copy=True).reshape(*np.shape(image)[:2], 3)
+
+
+def write_png(path, image) -> Path:
+    """sRGB 8-bit preview of a linear float image, via ``mitsuba.Bitmap``."""
+    _srgb8_bitmap(image).write(str(path))
     return Path(path)
 
 

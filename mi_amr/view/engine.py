@@ -9,10 +9,11 @@ and TF into the scene: the camera through ``mi.traverse``, the TF through
 `set_transfer_function` (majorants recomputed, nothing recompiled); the
 pass itself is a ``dr.freeze``-recorded ``mi.render``, replayed without
 tracing. A change restarts the view's accumulation; a pass rendered for a
-state that changed meanwhile is dropped; the first pass after a change is
-rendered at ``preview_scale`` of the resolution (quick feedback while a
-control is dragged). With the denoiser (`mitsuba_oidn`) on, a view sees
-denoised images of its accumulation at 1, 2, 4, 8, ... spp.
+state that changed meanwhile is shown (the newest picture there is) but
+accumulated into nothing; the first pass after a change is rendered at
+``preview_scale`` of the resolution (quick feedback while a control is
+dragged). With the denoiser (`mitsuba_oidn`) on, a view sees denoised
+previews and denoised images of its accumulation at 1, 2, 4, 8, ... spp.
 
 Images reach a view through its ``send(header, jpeg_bytes)``, called from
 the render thread; the server keeps only the newest unsent one (stale
@@ -31,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera import OrbitCamera
-from .tf_spec import COLORMAPS, PRESET_POINTS, Histogram, TFSpec
+from .tf_spec import COLORMAPS, PRESET_POINTS, Histogram, TFSpec, colormap_stops
 
 #: Samples per pixel after which a view stops refining.
 DEFAULT_MAX_SPP = 1024
@@ -52,17 +53,13 @@ def denoiser():
     return (lambda img: np.asarray(mitsuba_oidn.denoise(np.ascontiguousarray(img, np.float32), hdr=True))), None
 
 
-def to_srgb8(image: np.ndarray) -> np.ndarray:
-    """Linear RGB (H, W, 3) -> sRGB uint8 (clipped; NaN/Inf as 0)."""
-    x = np.clip(np.nan_to_num(np.asarray(image, np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0), 0, 1)
-    x = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return (x * 255 + 0.5).astype(np.uint8)
-
-
 def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:
+    """A linear RGB image as the page shows it (sRGB, 8 bits, JPEG)."""
     from PIL import Image
+
+    from ..tools.images import srgb8
     buf = io.BytesIO()
-    Image.fromarray(to_srgb8(image)).save(buf, format="JPEG", quality=quality)
+    Image.fromarray(srgb8(image)).save(buf, format="JPEG", quality=quality)
     return buf.getvalue()
 
 
@@ -104,11 +101,11 @@ class ViewEngine:
         self.ready = threading.Event()
         self._views: dict[int, View] = {}
         self._ids = itertools.count(1)
-        self._lock = threading.RLock()           # views and their state
-        self._wake = threading.Condition(self._lock)
+        self._wake = threading.Condition(threading.RLock())     # the views and their state
         self._stop = False
         self._listeners: list = []               # status(dict) callbacks
         self._histogram = None
+        self.scene_rgb = None                    # the medium's own colours (XML scenes)
         self._denoise, self.denoiser_missing = denoiser()
         self._thread = threading.Thread(target=self._run, name="mi-amr view", daemon=True)
 
@@ -178,9 +175,9 @@ class ViewEngine:
             stop_listening()
 
     def _load_scene(self, mi):
+        """The scene, its parameters and the frozen pass (under `JIT_LOCK`)."""
         import drjit as dr
         import mi_amr
-        """The scene, its parameters and the frozen pass (under `JIT_LOCK`)."""
         if str(self.source).lower().endswith(".xml"):
             self._load_xml(mi)
         else:
@@ -288,7 +285,7 @@ class ViewEngine:
                 "colormaps": list(self.colormaps), "log_available": self.log_available,
                 "denoiser": self._denoise is not None, "denoiser_missing": self.denoiser_missing,
                 "denoise": view.denoise, "size": self.size, "max_spp": self.max_spp,
-                "data": self.description}
+                "data": self.description, "colormap_stops": colormap_stops(self.colormaps, self.scene_rgb)}
 
     def change(self, view: View, msg: dict):
         """Apply a page message of type camera, tf or denoise to ``view``
@@ -307,8 +304,7 @@ class ViewEngine:
                     raise ValueError("denoise: 'on' must be true or false")
                 if on and self._denoise is None:
                     raise ValueError(self.denoiser_missing)
-                view.denoise = on
-                view.accum_version = -1            # resend in the new mode (restarts the view)
+                view.denoise = on                  # the version bump below restarts the view
             else:
                 raise ValueError(f"unknown message type {kind!r}")
             view.version += 1
@@ -359,14 +355,15 @@ class ViewEngine:
 
     def _apply(self, camera: OrbitCamera, spec: TFSpec, size):
         """Put a view's state into the scene (only what differs)."""
-        if self._applied.get("camera") != camera:
+        moved = self._applied.get("camera") != camera
+        resized = self._applied.get("size") != size
+        if moved:
             self.params[self._keys["to_world"]] = camera.transform()
-            self._applied["camera"] = camera
-            self.params.update()
-        if self._applied.get("size") != size:
+        if resized:
             self.params[self._keys["size"]] = size
-            self._applied["size"] = size
+        if moved or resized:
             self.params.update()
+            self._applied.update(camera=camera, size=size)
         if self._applied.get("spec") != spec:
             self.medium.set_transfer_function(spec.table(self.stored_log, self.scene_rgb), spec.density)
             self._applied["spec"] = spec

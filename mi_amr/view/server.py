@@ -165,7 +165,7 @@ async def _handle(message, engine, view, out_dir, loop, acked):
                 return engine.histogram(view)
             return None
         if kind == "histogram":
-            return await loop.run_in_executor(None, engine.histogram, view)
+            return engine.histogram(view)
         if kind == "snapshot":
             paths = await loop.run_in_executor(None, engine.snapshot, view, out_dir, msg.get("name"))
             return {"type": "snapshot", "files": [str(p) for p in paths], "spp": view.spp}

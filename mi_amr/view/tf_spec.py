@@ -132,6 +132,24 @@ class TFSpec:
 FINE_BINS = 1 << 14
 
 
+def colormap_stops(names, scene_rgb=None, n: int = 9) -> dict:
+    """``{name: ["#rrggbb", ...]}``: ``n`` colours of each colormap over u in
+    [0, 1], what the editor's colour strip shows ("scene": the medium's own)."""
+    import matplotlib
+    u = np.linspace(0, 1, n)
+    out = {}
+    for name in names:
+        if name == "scene":
+            if scene_rgb is None:
+                continue
+            grid = np.linspace(0, 1, len(scene_rgb))
+            rgb = np.stack([np.interp(u, grid, scene_rgb[:, c]) for c in range(3)], axis=1)
+        else:
+            rgb = matplotlib.colormaps[name](u)[:, :3]
+        out[name] = ["#%02x%02x%02x" % tuple(int(round(255 * float(x))) for x in np.clip(c, 0, 1)) for c in rgb]
+    return out
+
+
 class Histogram:
     """The volume-weighted distribution of the stored values, computed once
     (`FINE_BINS` bins over their range), re-binned for any display range
@@ -139,12 +157,12 @@ class Histogram:
     the display bins' edges (mapped to stored units)."""
 
     def __init__(self, volume):
-        from ..autoscene import _cells_and_weights
+        from ..autoscene import cells_and_weights
         lo, hi = volume.value_range
         if not hi > lo:
             lo, hi = lo - 0.5, hi + 0.5
         counts, total = np.zeros(FINE_BINS), 0.0
-        for v, w in _cells_and_weights(volume):
+        for v, w in cells_and_weights(volume):
             counts += np.histogram(v, bins=FINE_BINS, range=(lo, hi), weights=w)[0]
             total += float(w.sum())
         self.edges = np.linspace(lo, hi, FINE_BINS + 1)

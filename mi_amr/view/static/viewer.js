@@ -8,7 +8,8 @@ const token = new URLSearchParams(location.search).get("token") || "";
 const view = $("view"), ctx = view.getContext("2d");
 const editor = $("tf-editor"), ectx = editor.getContext("2d");
 
-let ws = null, camera = null, tf = null, histogram = null, colormapsReady = false;
+let ws = null, camera = null, tf = null, histogram = null;
+let colormapStops = {};          // name -> colours over u, from the server (matplotlib's own)
 let version = 0;                 // change messages sent (the server's view version)
 const changeTimes = new Map();   // version -> time it was sent
 let dragging = null;             // camera drag state
@@ -66,7 +67,7 @@ function onJson(msg) {
     $("data").textContent = msg.data;
     const sel = $("colormap");
     sel.innerHTML = msg.colormaps.map((c) => `<option>${c}</option>`).join("");
-    colormapsReady = true;
+    colormapStops = msg.colormap_stops;
     $("log").disabled = !msg.log_available;
     if (!msg.log_available) $("log").title = "the data hold values <= 0: no log10 display";
     $("denoise").checked = msg.denoise;
@@ -174,8 +175,8 @@ function drawEditor() {
     c.forEach((v, i) => { const bh = plotH() * Math.sqrt(v) / m; ectx.fillRect(PAD.l + i * bw, PAD.t + plotH() - bh, bw + 0.5, bh); });
   }
   if (!tf) return;
-  const grad = ectx.createLinearGradient(PAD.l, 0, PAD.l + plotW(), 0);   // colour strip (approximate)
-  const stops = COLORMAP_STOPS[tf.colormap] || COLORMAP_STOPS.gray;
+  const grad = ectx.createLinearGradient(PAD.l, 0, PAD.l + plotW(), 0);   // the colour strip
+  const stops = colormapStops[tf.colormap] || ["#000000", "#ffffff"];
   stops.forEach((c, i) => grad.addColorStop(i / (stops.length - 1), c));
   ectx.fillStyle = grad; ectx.fillRect(PAD.l, h - PAD.b + 6, plotW(), 10);
   ectx.strokeStyle = "#f0f0f0"; ectx.lineWidth = 1.5; ectx.beginPath();
@@ -185,17 +186,6 @@ function drawEditor() {
   tf.points.forEach(([u, a]) => { ectx.beginPath(); ectx.arc(toX(u), toY(a), 4, 0, 2 * Math.PI); ectx.fill(); });
 }
 
-const COLORMAP_STOPS = {
-  plasma: ["#0d0887", "#7e03a8", "#cc4778", "#f89540", "#f0f921"],
-  viridis: ["#440154", "#3b528b", "#21918c", "#5ec962", "#fde725"],
-  magma: ["#000004", "#51127c", "#b73779", "#fc8961", "#fcfdbf"],
-  inferno: ["#000004", "#56106e", "#bb3754", "#f98e09", "#fcffa4"],
-  cividis: ["#00204c", "#414d6b", "#7c7b78", "#bcaf6f", "#ffe945"],
-  turbo: ["#30123b", "#28bceb", "#a4fc3c", "#fb7e21", "#7a0403"],
-  coolwarm: ["#3b4cc0", "#aac7fd", "#dddddd", "#f7a889", "#b40426"],
-  gray: ["#000000", "#ffffff"],
-  scene: ["#777777", "#bbbbbb"],
-};
 
 function nearestPoint(x, y) {
   let best = -1, bd = 10;
