@@ -11,10 +11,15 @@ PYTEST_ARGS ?=
 JOBS  ?= auto
 XDIST  = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadfile)
 
-.PHONY: setup demo gallery test test-all test-gpu bench bench-quick bench-scale clean
+.PHONY: setup peers demo gallery test test-all test-gpu bench bench-quick bench-scale clean
 
 setup:
 	@tools/setup.sh
+
+# optional benchmark peers (bench --peers eradiate): .venv-eradiate with
+# Eradiate's Mitsuba fork (it pins its own Dr.Jit)
+peers: setup
+	@tools/setup-peers.sh
 
 demo: setup
 	$(RUN) -m mi_amr.tools.cli render scenes/demo.xml -o out/demo.exr --spp $(SPP)

@@ -19,7 +19,27 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
     records = json.loads((out / "results.json").read_text())
     assert [r["config"] for r in records] == ["reference", "volpath/ray", "amrvolpath/grid/hash",
                                               "amrvolpath/abr/brick", "amrvolpath/default",
-                                              "amrvolpath/default-plain"]
+                                              "amrvolpath/default-plain", "empty", "scattering floor"]
+    # the scattering floor: a uniform cell with as many real collisions per
+    # frame as the default (bisection on 1-spp counts: Poisson noise allowed)
+    floor = records.pop()
+    target = records[4]["counters"]["real"]
+    assert floor["real_target"] == target
+    assert abs(floor["real_reached"] - target) <= 0.25 * target + 3 * target ** 0.5
+    assert floor["seconds_per_frame"] > 0 and floor["floor_share"] == 1.0
+    assert all(r["floor_share"] == pytest.approx(floor["seconds_per_frame"] / r["seconds_per_frame"])
+               for r in records)
+    assert "| scattering floor |" in (out / "tables.md").read_text()
+    # the limit: the empty-medium frame, timed in the same rounds, and each
+    # row's share of it (per-round ratios of the same rounds' frames)
+    empty = records.pop()
+    assert empty["limit_share"] == 1.0 and empty["seconds_per_frame"] > 0
+    for r in records:
+        lo, hi = r["limit_share_range"]
+        assert 0 < lo <= r["limit_share"] <= hi
+        ratios = sorted(e / t for e, t in zip(empty["frame_seconds"], r["frame_seconds"]))
+        assert (lo, hi) == (ratios[0], ratios[-1])
+    assert "| empty medium (the limit) |" in (out / "tables.md").read_text()
     for r in records:
         for field in ("dataset", "tf", "config", "seconds_per_spp", "rmse", "efficiency",
                       "efficiency_vs_reference", "lookups_per_collision", "structure_bytes"):
@@ -119,7 +139,7 @@ def test05_bench_on_a_users_data_set(llvm, tmp_path):
                  "--repeats", "1", "--tfs", "foggy", "--sweep", "--curve-spp", "1",
                  "--configs", "reference", "amrvolpath/default"]) == 0
     records = json.loads((out / "results.json").read_text())
-    assert [r["dataset"] for r in records] == ["sim.npz"] * 2
+    assert [r["dataset"] for r in records] == ["sim.npz"] * 4          # with the limit and the floor
     assert records[1]["efficiency_vs_reference"] > 0 and math.isfinite(records[1]["rmse"])
     assert "## sim.npz" in (out / "tables.md").read_text()
 

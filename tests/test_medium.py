@@ -215,3 +215,30 @@ def test11_slow_settings_warn_once_and_name_the_faster_one(llvm, capfd, setting,
     mi.load_dict({"type": "amr", "data": cells})
     out = capfd.readouterr()
     assert faster not in out.out + out.err
+
+
+def test12_stock_volpath_warns_once_where_it_is_predicted_slower(llvm, capfd):
+    """When stock volpath renders a medium whose majorants keep most rays
+    near the global one (a fog filling the cube: the ray-wise majorant saves
+    nothing), one warning per process names amrvolpath; a medium with empty
+    space around a small dense core (where it pays), amrvolpath itself, and
+    a second such render say nothing."""
+    from conftest import volume_scene
+    from mi_amr.plugins import medium as medium_module
+    from mi_amr.structures.cost_model import volpath_collision_share, volpath_speedup
+    medium_module._WARNED.clear()
+    fog = mi_amr.dense_to_amr(np.ones((16, 16, 16), np.float32), 0.0, 1)
+    x = np.linspace(-1, 1, 16)
+    r = np.sqrt(x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2)
+    core = mi_amr.dense_to_amr(np.where(r < 0.3, 1.0, 0.0).astype(np.float32), 0.0, 1)
+
+    def medium(cells):
+        return {"type": "amr", "data": cells, "transfer_function": "foggy", "density_scale": 5.0}
+
+    assert volpath_collision_share(mi.load_dict(medium(fog)).majorant_grid) == pytest.approx(1.0)
+    assert volpath_speedup(mi.load_dict(medium(core)).majorant_grid) > 1.0
+    for cells, integrator in ((core, "volpath"), (fog, "amrvolpath"), (fog, "volpath"), (fog, "volpath")):
+        mi.render(mi.load_dict(volume_scene(medium(cells), res=4, integrator=integrator, max_depth=4)), spp=1)
+    out = capfd.readouterr()
+    text = out.out + out.err
+    assert text.count("stock volpath is predicted") == 1 and "amrvolpath" in text.split("stock volpath")[1]

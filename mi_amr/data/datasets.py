@@ -23,6 +23,12 @@ box). Simulation codes write *block-structured* data instead, and so does
   without holding per-cell arrays of the whole data (`write_block_dataset`).
   With several sizes (``nxb=(8, 16, 32)``) each leaf is cut into blocks of
   one of them: *mixed* blocks, as codes with per-patch sizes write them.
+* ``cosmo``: a cosmology-like density on Enzo-like 8^3 blocks: a log-normal
+  cosmic web (filaments and voids) with compact halos on its densest
+  parts, values (g/cm^3-like, from about 1e-32) spanning several decades,
+  blocks refined top-down where the density is high. Its domain is a
+  power of two of finest cells per side, so dense resamples at 2^k voxels
+  per side align with the cells (`mi_amr.tools.resample_bench`).
 
 One data set has a single level (`uniform_dataset`; ``levels`` does not
 apply):
@@ -41,7 +47,9 @@ import numpy as np
 from .blocks import block_offsets
 from .cells import AMRCells
 
-NAMES = ("cloud", "shell", "stadium", "blocks")
+NAMES = ("cloud", "shell", "stadium", "blocks", "cosmo")
+#: Block-structured data sets: name -> (field, default cells per block side or None).
+BLOCK_DATASETS = {"blocks": ("cloud", None), "cosmo": ("cosmo", 8)}
 #: Single-level data sets (``levels`` does not apply to them).
 UNIFORM_NAMES = ("sparse",)
 #: Cells per block side of the ``blocks`` data set, by default.
@@ -104,9 +112,27 @@ def _field(name: str, seed: int):
 
         def feature(c, h):
             return np.linalg.norm(c - center, axis=1) < h + 0.05
+    elif name == "cosmo":
+        web = _Noise(rng, modes=48, kmin=1.5, kmax=40.0)
+        # halos on the web's densest parts: the densest of random candidates
+        cand = rng.random((4096, 3))
+        centre = cand[np.argsort(-web(cand))[:HALOS]]
+        radius = np.exp(rng.uniform(np.log(0.002), np.log(0.015), HALOS))
+        peak = 30.0 * (radius / 0.002) ** 1.2       # larger halos are denser on the web's scale
+
+        def f(x):
+            out = np.ones(len(x))
+            for c, r, a in zip(centre, radius, peak):
+                out += a / (1.0 + ((x - c) ** 2).sum(axis=1) / r ** 2) ** 1.5
+            return COSMO_DENSITY * np.exp(1.8 * web(x)) * out
     else:
         raise ValueError(f"unknown data set {name!r} (choose from {', '.join(NAMES)})")
     return f, feature
+
+
+#: Halos of the ``cosmo`` field, and its mean-density scale (g/cm^3-like).
+HALOS = 48
+COSMO_DENSITY = 1e-29
 
 
 def _variation(f, lo, w, base_vals):
@@ -131,21 +157,33 @@ def make_dataset(name: str, cells: int = 20000, levels: int = 4, seed: int = 0) 
         return uniform_dataset(name, cells, seed)
     if name not in NAMES:
         raise ValueError(f"unknown data set {name!r} (choose from {', '.join(NAMES + UNIFORM_NAMES)})")
-    if name == "blocks":
-        leaves = block_leaves(cells, levels, seed)
-        parts = list(block_cells(*leaves))
+    if name in BLOCK_DATASETS:
+        field, nxb = BLOCK_DATASETS[name]
+        leaves = block_leaves(cells, levels, seed, nxb, field=field)
+        parts = list(block_cells(*leaves, field=field))
         return AMRCells(*(np.concatenate([p[i] for p in parts]) for i in range(3)),
-                        source=f"dataset blocks(cells={cells}, levels={levels}, seed={seed})", validate=False)
+                        source=f"dataset {name}(cells={cells}, levels={levels}, seed={seed})", validate=False)
+    return _refined(name, cells, levels, seed)
+
+
+def _refined(name: str, cells: int, levels: int, seed: int) -> AMRCells:
+    """Top-down cell-by-cell refinement of field ``name`` (see `make_dataset`);
+    ``cosmo`` starts from a power-of-two coarse grid."""
     if levels < 2 or levels > 12:
         raise ValueError(f"levels must be in 2..12, got {levels}")
     if cells < 64:
         raise ValueError(f"cells must be >= 64, got {cells}")
     f, feature = _field(name, seed)
-    # Nominal growth with 25% refined per level: c_{L} = 0.75 + 2 c_{L-1}.
-    growth = 1.0
-    for _ in range(levels - 1):
-        growth = 0.75 + 2.0 * growth
+    # Nominal growth with a share p = 25% refined per level: c_{L} = (1 - p) + 8 p c_{L-1}.
+    share = 0.25
+    growth = _growth(share, levels - 1)
     base = max(2, int(round((cells / growth) ** (1 / 3))))
+    if name == "cosmo":             # a power-of-two domain, the refined share to match
+        base = 1 << max(1, int(np.floor(np.log2(base))))
+        lo_p, hi_p = 0.0, 1.0
+        for _ in range(40):
+            share = 0.5 * (lo_p + hi_p)
+            lo_p, hi_p = (share, hi_p) if base ** 3 * _growth(share, levels - 1) < cells else (lo_p, share)
     top = levels - 1
     n_fine = base << top                              # finest cells per axis
     g = np.stack(np.meshgrid(*[np.arange(base)] * 3, indexing="ij"), -1).reshape(-1, 3)
@@ -160,12 +198,12 @@ def make_dataset(name: str, cells: int = 20000, levels: int = 4, seed: int = 0) 
             keep = np.ones(len(pos), dtype=bool)
         else:
             crit = _variation(f, pos / n_fine, w / n_fine, val)
+            if name == "cosmo":                       # in units of the mean density
+                crit = crit / COSMO_DENSITY
             if feature is not None:
                 crit = crit + 10.0 * feature(x, 0.87 * w / n_fine)
             # Refine as many cells as the remaining budget allows at this level.
-            finer_growth = 1.0
-            for _ in range(L - 1):
-                finer_growth = 0.75 + 2.0 * finer_growth
+            finer_growth = _growth(share, L - 1)
             emitted = sum(len(p) for p in out_pos)
             n_ref = int(np.clip((budget - emitted - len(pos)) / (8 * finer_growth - 1), 1, len(pos)))
             n_ref = min(n_ref, int((crit > 1e-6).sum()) or 1)
@@ -184,6 +222,14 @@ def make_dataset(name: str, cells: int = 20000, levels: int = 4, seed: int = 0) 
                     np.concatenate(out_val).astype(np.float32),
                     source=f"dataset {name}(cells={cells}, levels={levels}, seed={seed})",
                     validate=False)
+
+
+def _growth(share: float, steps: int) -> float:
+    """Cells per coarse cell after ``steps`` levels refining ``share`` of the cells."""
+    growth = 1.0
+    for _ in range(steps):
+        growth = (1.0 - share) + 8.0 * share * growth
+    return growth
 
 
 def uniform_dataset(name: str, cells: int = 128 ** 3, seed: int = 0, chunk: int = 1 << 20) -> AMRCells:
@@ -210,15 +256,15 @@ def ensure_dataset(path, name: str, cells: int = 20000, levels: int = 4, seed: i
     already exists; returns the path. Used to generate larger data on first use."""
     from .io import save_cells
     path = Path(path)
-    if not path.exists() and name == "blocks" and path.suffix == ".cells":
-        return write_block_dataset(path, cells, levels, seed)
+    if not path.exists() and name in BLOCK_DATASETS and path.suffix == ".cells":
+        return write_block_dataset(path, cells, levels, seed, name=name)
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         save_cells(make_dataset(name, cells, levels, seed), path)
     return path
 
 
-def block_leaves(cells: int, levels: int = 4, seed: int = 0, nxb=None):
+def block_leaves(cells: int, levels: int = 4, seed: int = 0, nxb=None, field: str = "cloud"):
     """Leaf blocks of the ``blocks`` data set: about ``cells / nxb^3`` blocks
     of ``nxb^3`` cells each, refined top-down like the ``cloud`` data set
     (one block there stands for one cell here). ``nxb`` defaults to
@@ -227,7 +273,7 @@ def block_leaves(cells: int, levels: int = 4, seed: int = 0, nxb=None):
     largest size is cut into same-level blocks of one of the sizes, chosen
     at random by seed. Returns ``(lo (K, 3) int64 finest units, level (K,),
     nxb (an int, or (K,) sizes when mixed), n_fine, seed)``: the argument
-    list of `block_cells`."""
+    list of `block_cells`. ``field``: the field refined (``cloud``, ``cosmo``)."""
     sizes = None
     if nxb is not None and np.ndim(nxb) > 0:
         sizes = np.array(sorted(set(int(s) for s in nxb)), dtype=np.int64)
@@ -240,7 +286,7 @@ def block_leaves(cells: int, levels: int = 4, seed: int = 0, nxb=None):
     for s in ([nxb] if sizes is None else sizes):
         if s < 2 or s & (s - 1):
             raise ValueError(f"nxb must be a power of two >= 2, got {int(s)}")
-    units = make_dataset("cloud", max(64, int(round(cells / nxb ** 3))), levels, seed)
+    units = _refined(field, max(64, int(round(cells / nxb ** 3))), levels, seed)
     lo_units, hi_units = units.bounds
     n_fine = int((hi_units - lo_units).max()) * nxb
     lo, level = units.pos * nxb, units.level
@@ -286,14 +332,15 @@ def _chunk_bounds(size, chunk: int):
     return list(zip(edges[:-1], edges[1:]))
 
 
-def block_cells(lo, level, nxb, n_fine: int, seed: int, chunk: int = 1 << 21, threads: int | None = 1):
+def block_cells(lo, level, nxb, n_fine: int, seed: int, chunk: int = 1 << 21, threads: int | None = 1,
+                field: str = "cloud"):
     """Yield ``(pos int64 (m, 3), level int32 (m,), value float32 (m,))`` of
     the cells of the blocks ``lo``/``level`` of ``nxb`` cells per side (an
     int, or one size per block; see `block_leaves`), about ``chunk`` cells
-    at a time; the values sample the ``cloud`` field at cell centres.
+    at a time; the values sample ``field`` (``cloud``, ``cosmo``) at cell centres.
     ``threads``: chunks computed in that many threads (None: every core)."""
     from ..parallel import ordered_map
-    f, _ = _field("cloud", seed)
+    f, _ = _field(field, seed)
     size = np.broadcast_to(np.asarray(nxb, dtype=np.int64), level.shape)
     if not len(level):
         return
@@ -301,18 +348,23 @@ def block_cells(lo, level, nxb, n_fine: int, seed: int, chunk: int = 1 << 21, th
                            _chunk_bounds(size, chunk), threads=threads)
 
 
-def write_block_dataset(path, cells: int, levels: int = 4, seed: int = 0, nxb=None, progress_bar=None) -> Path:
-    """Write the ``blocks`` data set as an ExaBricks pair ``path`` (``.cells``)
-    + ``.scalars``, streaming block by block on every core (memory: a few
-    chunks); ``nxb``: see `block_leaves`."""
+def write_block_dataset(path, cells: int, levels: int = 4, seed: int = 0, nxb=None, progress_bar=None,
+                        name: str = "blocks") -> Path:
+    """Write the block-structured data set ``name`` (``blocks``, ``cosmo``) as
+    an ExaBricks pair ``path`` (``.cells``) + ``.scalars``, streaming block by
+    block on every core (memory: a few chunks); ``nxb``: see `block_leaves`
+    (default: the data set's own)."""
+    if name not in BLOCK_DATASETS:
+        raise ValueError(f"unknown block-structured data set {name!r} (choose from {', '.join(BLOCK_DATASETS)})")
+    field, default_nxb = BLOCK_DATASETS[name]
     path = Path(path)
     if path.suffix != ".cells":
         raise ValueError(f"{path}: the streaming writer writes .cells files")
     path.parent.mkdir(parents=True, exist_ok=True)
-    args = block_leaves(cells, levels, seed, nxb)
+    args = block_leaves(cells, levels, seed, default_nxb if nxb is None else nxb, field=field)
     tmp_c, tmp_s = path.with_suffix(".cells.part"), path.with_suffix(".scalars.part")
     with open(tmp_c, "wb") as fc, open(tmp_s, "wb") as fs:
-        for pos, lev, val in block_cells(*args, threads=None):
+        for pos, lev, val in block_cells(*args, threads=None, field=field):
             if progress_bar is not None:
                 progress_bar.update(len(lev))
             rec = np.empty((len(lev), 4), dtype="<i4")

@@ -424,8 +424,12 @@ class SpanMajorant:
 
     label = "amr_span_majorant"
 
-    def __init__(self, global_mu):
+    def __init__(self, global_mu, stop_share=None):
         self.global_mu = global_mu
+        #: stop the walk once the largest majorant met reaches this share of
+        #: the global one and answer the global majorant up to ``t_hi``
+        #: (None: walk to the end)
+        self.stop_share = stop_share
 
     def begin(self, ray, active):
         return SpanState(found=mi.Bool(False), t_first=mi.Float(ray.t_hi), t_last=mi.Float(ray.t_lo),
@@ -442,10 +446,16 @@ class SpanMajorant:
 
     def step(self, state, ray, t, seg_end, alive):
         # no collisions: on to the segment's end, the last one at t_hi
-        return state, dr.select(alive, seg_end, t), alive & (seg_end < ray.t_hi)
+        go_on = alive & (seg_end < ray.t_hi)
+        if self.stop_share is not None:
+            go_on &= state.mu_max < self.stop_share * self.global_mu
+        return state, dr.select(alive, seg_end, t), go_on
 
     def result(self, state, ray, end: WalkEnd) -> MajorantSpan:
         cut = end.cut
+        if self.stop_share is not None:
+            # stopped at a majorant near the global one: the global one to t_hi
+            cut |= state.found & (state.mu_max >= self.stop_share * self.global_mu)
         return MajorantSpan(found=state.found | (cut & (self.global_mu > 0.0)),
                             t_first=ray.world_t(dr.select(cut & ~state.found, state.t_seen, state.t_first)),
                             t_last=ray.world_t(dr.select(cut, ray.t_hi, state.t_last)),

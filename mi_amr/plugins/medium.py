@@ -15,6 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..device.grid import DeviceTwoLevelGrid
 from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
 from ..device.tracking import (DecompositionTracking, DeltaTracking, FreeFlight, LocalRay, RatioTracking,
                                ResidualRatioTracking, SpanMajorant, Transmittance, walk_segments)
@@ -104,6 +105,15 @@ def live_media() -> int:
 #: "2026-12-01: timed pass by pass, and the per-medium default").
 MINORANTS_PAY_FRACTION = 0.5
 
+#: Stock volpath restarts its ray at every null collision and asks
+#: `intersect_aabb` for the majorant of the rest of the ray each time. On a
+#: two-level grid (long walks) that walk stops once it has met this share of
+#: the global majorant and answers the global majorant up to the cube's exit:
+#: at most 1/0.9 more null collisions on those rays, for walks of a few
+#: macrocells instead of all of them (docs/performance/protocol.md, "Stock
+#: volpath"). On uniform grids the walk is short and its trailing trim pays.
+SPAN_STOP_SHARE = 0.9
+
 #: Settings that cannot be made as efficient as Mitsuba's own heterogeneous
 #: medium, and why; the medium warns once per process when one is chosen.
 #: The measured efficiencies are in docs/performance/settings.md, which the
@@ -129,6 +139,27 @@ def _warn_slow_settings(options):
         if chosen == value and (name, value) not in _WARNED:
             _WARNED.add((name, value))
             mi.Log(mi.LogLevel.Warn, f"amr: {why}")
+
+
+def _warn_if_volpath_is_slower(medium):
+    """Once per process: warn, naming ``amrvolpath``, when stock ``volpath``
+    (or another integrator that calls ``sample_interaction``) renders a
+    medium whose majorants predict that it will be less efficient than
+    Mitsuba's own ``heterogeneous`` medium on the same field
+    (`volpath_speedup`: where a shell or a fog keeps the majorant of most
+    rays near the global one). Runs when a kernel is traced, not per ray."""
+    if "volpath" in _WARNED or medium.majorant_mode != "ray" or getattr(medium, "_volpath_checked", False):
+        return
+    medium._volpath_checked = True               # with the TF of its first trace
+    from ..structures.cost_model import volpath_speedup
+    speedup = volpath_speedup(medium.majorant_grid)
+    if speedup < 1.0:
+        _WARNED.add("volpath")
+        mi.Log(mi.LogLevel.Warn,
+               f"amr: with this TF most rays keep a majorant near the global one, so stock volpath is "
+               f"predicted to reach only {speedup:.2f}x the efficiency of Mitsuba's heterogeneous medium "
+               f"on the same field; the 'amrvolpath' integrator tracks through local majorants and is "
+               f"faster (<integrator type=\"amrvolpath\"/>; figures: docs/performance/protocol.md)")
 
 
 class AMRMedium(metaclass=VariantPlugin, base="Medium"):
@@ -264,6 +295,9 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
                                      options.world_scale).build()
         self.classification.on_change = self.structures.reclassify
         self._ray_majorant = _RayMajorant()
+        two_level = (options.structures.traversal == "grid"
+                     and isinstance(self.structures.device.get("grid"), DeviceTwoLevelGrid))
+        self._span_stop = SPAN_STOP_SHARE if two_level else None
         self.structures.update_majorants()
         # whether amrvolpath's minorant estimators pay on these data (decided
         # once, with the TF given at load: a later TF change compiles nothing)
@@ -410,6 +444,9 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
 
     # ---- Mitsuba medium interface -------------------------------------------
     def intersect_aabb(self, ray: mi.Ray3f):
+        # only Mitsuba's sample_interaction calls this (amrvolpath tracks by
+        # segments itself): a stock integrator is rendering this medium
+        _warn_if_volpath_is_slower(self)
         key = self._ray_majorant.key_of(ray)
         o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
@@ -419,7 +456,8 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         if self.majorant_mode == "global":
             return hit & (global_mu > 0.0), local.world_t(t0), local.world_t(t1)
         segments = self.structures.segments()
-        span = walk_segments(segments, local, hit, SpanMajorant(global_mu), segments.max_steps())
+        span = walk_segments(segments, local, hit, SpanMajorant(global_mu, self._span_stop),
+                             segments.max_steps())
         self._ray_majorant.store(key, span.mu)
         return span.found, span.t_first, span.t_last
 

@@ -212,3 +212,52 @@ def _pool(a: np.ndarray, f: int, op, fill) -> np.ndarray:
     a = np.pad(a, pad, constant_values=fill)
     z, y, x = (n // f for n in a.shape)
     return op.reduce(op.reduce(op.reduce(a.reshape(z, f, y, f, x, f), axis=5), axis=3), axis=1)
+
+
+#: Stock ``volpath`` with the ``amr`` medium against Mitsuba's own
+#: ``heterogeneous`` medium: the cost of one tentative collision (an AMR
+#: look-up, the TF tables and the walk of `intersect_aabb` that finds the
+#: majorant of the rest of the ray) over one of the reference (a baked
+#: texture fetch): ``1 / (share x efficiency)`` over the benchmark's 256x256
+#: frozen frames ranged 1.44-2.64 (3.4-4.7 on stadium, whose frames are
+#: mostly fixed costs, far from parity); 2.6 is taken, so that the warning
+#: errs towards warning near parity (docs/performance/protocol.md, "Stock
+#: volpath").
+VOLPATH_COLLISION_COST = 2.6
+
+
+def volpath_collision_share(mu: np.ndarray, rays: int = 1024, samples: int = 96, seed: int = 0) -> float:
+    """Tentative collisions of stock ``volpath`` with the ray-wise majorant
+    over those of one global majorant (Mitsuba's ``heterogeneous``), on
+    random chords of the unit cube: volpath restarts at every null collision
+    and takes the largest macrocell majorant of the rest of the ray, so a
+    chord costs ``integral of max_{s >= t} mu(s) dt`` against ``G x length``.
+    ``mu``: macrocell majorants ``[z, y, x]``. 0 for an empty medium."""
+    mu = np.asarray(mu, dtype=np.float64)
+    G = float(mu.max()) if mu.size else 0.0
+    if G <= 0.0:
+        return 0.0
+    rng = np.random.default_rng(seed)
+    x0 = rng.random((rays, 3))
+    d = rng.normal(size=(rays, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a, b = -x0 / d, (1.0 - x0) / d
+    t_in = np.nanmax(np.minimum(a, b), axis=1)
+    t_out = np.nanmin(np.maximum(a, b), axis=1)
+    t = t_in[:, None] + (t_out - t_in)[:, None] * ((np.arange(samples) + 0.5) / samples)[None]
+    p = x0[:, None, :] + t[..., None] * d[:, None, :]
+    shape = np.array(mu.shape[::-1])                       # x, y, z
+    ijk = np.clip((p * shape).astype(np.int64), 0, shape - 1)
+    m = mu[ijk[..., 2], ijk[..., 1], ijk[..., 0]]
+    rest = np.maximum.accumulate(m[:, ::-1], axis=1)[:, ::-1]      # max over [t, exit]
+    length = (t_out - t_in)[:, None]
+    return float((rest * length).sum() / (G * length * samples).sum())
+
+
+def volpath_speedup(mu: np.ndarray) -> float:
+    """Predicted efficiency of stock ``volpath`` with the ``amr`` medium over
+    Mitsuba's ``heterogeneous`` on the same field (`volpath_collision_share`,
+    `VOLPATH_COLLISION_COST`); inf for an empty medium."""
+    share = volpath_collision_share(mu)
+    return float("inf") if share == 0.0 else 1.0 / (share * VOLPATH_COLLISION_COST)

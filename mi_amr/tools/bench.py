@@ -15,7 +15,20 @@ frame time, RMSE against a high-sample reference image, efficiency
 memory and the majorant recompute time of a TF change. Frame times are
 taken pass by pass, alternating the configurations of a data set and TF
 (A B C A B C ..., ``--repeats`` rounds), with one scene alive at a time
-(`alternate_passes`). Reconstruction is
+(`alternate_passes`).
+
+The timing protocol (docs/performance/protocol.md): frames of real size
+(256x256 by default), timed as replays of a ``dr.freeze``-recorded render
+(what an interactive viewer runs; ``--no-frozen`` for plain frames), and in
+the same rounds the *empty-medium frame* of the same scene (the default
+medium at density scale 0: camera rays, the cube's surfaces, the emitters).
+Each row reports its **share of the limit**, ``t_empty / t``: 1 would be a
+medium that costs nothing, and no tracking can beat it. A medium that
+scatters also pays per real collision; the *scattering floor*
+(`scattering_floor`) is a frame that scatters as often as the default with
+tracking that costs nothing, and each row's ``floor_share`` is ``t_floor /
+t``. ``--peers eradiate`` adds rows of Eradiate's Mitsuba fork on the same
+field (`mi_amr.tools.peers`). Reconstruction is
 ``nearest`` by default so that the dense reference renders exactly the same
 field and every configuration converges to the same image.
 """
@@ -29,7 +42,10 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from .._llvm import ensure_llvm_path
+from .peers import run_peers
 
 SCALES = {("cloud", "spiky"): 60.0, ("cloud", "foggy"): 150.0,
           ("shell", "spiky"): 60.0, ("shell", "foggy"): 200.0,
@@ -42,6 +58,71 @@ SCALES = {("cloud", "spiky"): 60.0, ("cloud", "foggy"): 150.0,
 TRACKING_VARIANTS = {"no-rrt": (False, True), "no-dt": (True, False), "plain": (False, False)}
 
 
+#: The limit's configuration: the empty-medium frame of a case (`config_scene`).
+EMPTY = "empty"
+#: The scattering floor's record (`scattering_floor`).
+FLOOR = "scattering floor"
+
+
+def limit_shares(times, empty_times) -> dict:
+    """A row's share of the limit, ``t_empty / t``, from frames timed in the
+    same rounds (`alternate_passes`): the median of the per-round ratios and
+    their range (1 would be a medium that costs nothing)."""
+    ratios = sorted(e / t for e, t in zip(empty_times, times))
+    return {"limit_share": statistics.median(ratios), "limit_share_range": [ratios[0], ratios[-1]],
+            "empty_seconds_per_frame": statistics.median(empty_times)}
+
+
+def scattering_floor(mi, args, real_target: float, albedo) -> dict:
+    """The *scattering floor* of a case: a frame whose tracking costs
+    nothing beyond the physics, for a medium that scatters as often.
+
+    The limit (`EMPTY`) has no scattering at all; a medium that scatters
+    pays per real collision a next-event estimate, a phase sample and a new
+    ray whatever its tracking. This frame renders one uniform cell (grey
+    ``albedo``, the TF's alpha-weighted mean colour) with ``amrvolpath`` in
+    the benchmark's view, its density scale searched (bisection in log
+    scale, 1-spp frames) until its free flights make ``real_target`` real
+    collisions per frame of ``args.spp``: its majorant is exact (no null
+    collision) and its minorant equals it (decomposition tracking samples
+    collisions without a look-up). Returns its frame time (median of
+    ``args.repeats`` frames, timed like the others: frozen, after warm-up,
+    process idle), the density scale and the real collisions reached."""
+    import mi_amr
+    one = mi_amr.dense_to_amr(np.ones((2, 2, 2), np.float32), 0.0, 1, source="scattering floor: one uniform cell")
+    rgb = [float(np.clip(a, 0.0, 1.0)) for a in albedo]
+    tf = mi_amr.TransferFunction([rgb + [1.0], rgb + [1.0]], (0.0, 2.0))
+    scene = mi.load_dict(bench_scene({"type": "amr", "data": one, "transfer_function": tf, "density_scale": 1.0},
+                                     args.res, {"type": "amrvolpath", "max_depth": args.max_depth,
+                                                "counters": True}))
+    integrator = scene.integrator()
+
+    def real_per_frame(scale):
+        mi_amr.set_transfer_function(scene, density_scale=scale)
+        integrator.reset_counters()
+        np.array(mi.render(scene, spp=1, seed=11))
+        return integrator.counters()["real"] * args.spp
+
+    lo, hi = -3.0, 5.0                                   # log10 of the density scale
+    for _ in range(18):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if real_per_frame(10.0 ** mid) < real_target else (lo, mid)
+    scale = 10.0 ** (0.5 * (lo + hi))
+    reached = real_per_frame(scale)
+    frame = frame_function(mi, args.spp, bool(getattr(args, "frozen", False)))
+    for w in range(FROZEN_WARMUP):
+        frame(scene, 60_000 + w)
+    times = []
+    for r in range(args.repeats):
+        wait_idle()
+        t0 = time.perf_counter()
+        frame(scene, r)
+        times.append(time.perf_counter() - t0)
+    del scene, integrator
+    return {"seconds_per_frame": statistics.median(times), "frame_seconds": times, "density_scale": scale,
+            "real_target": real_target, "real_reached": reached, "albedo": rgb}
+
+
 def all_configs():
     """Configuration names: ``amrvolpath/default`` is what a user gets with
     no structure options (its record names what it resolved to)."""
@@ -52,13 +133,33 @@ def all_configs():
     return out
 
 
-def bench_scene(medium, res: int, integrator: dict):
-    """The benchmark view: the volume in the unit cube, sun and sky light."""
+#: The benchmark camera: position, the point it looks at (the volume is the
+#: unit cube) and its field of view in degrees.
+BENCH_ORIGIN, BENCH_TARGET, BENCH_FOV = (1.7, 1.25, 2.4), (0.5, 0.47, 0.5), 38.0
+
+
+def zoom_camera(target, width: float):
+    """``(origin, target, fov)`` of a telephoto view of ``target`` (a point
+    of the unit cube) from the benchmark camera's direction and distance,
+    whose field of view spans ``width`` (unit-cube lengths) at the target:
+    the camera stays outside the volume."""
+    o, t = np.array(BENCH_ORIGIN), np.array(BENCH_TARGET)
+    dist = float(np.linalg.norm(o - t))
+    target = np.asarray(target, dtype=np.float64)
+    return (tuple(target + (o - t)), tuple(target),                 # the same offset as the benchmark's
+            float(np.degrees(2.0 * np.arctan(0.5 * width / dist))))
+
+
+def bench_scene(medium, res: int, integrator: dict, camera=None):
+    """The benchmark view: the volume in the unit cube, sun and sky light.
+    ``camera``: ``(origin, target, fov)`` instead of the benchmark's
+    (`zoom_camera`)."""
     import mitsuba as mi
     T = mi.ScalarTransform4f
+    origin, target, fov = camera or (BENCH_ORIGIN, BENCH_TARGET, BENCH_FOV)
     return {"type": "scene", "integrator": integrator,
-            "sensor": {"type": "perspective", "fov": 38,
-                       "to_world": T().look_at([1.7, 1.25, 2.4], [0.5, 0.47, 0.5], [0, 1, 0]),
+            "sensor": {"type": "perspective", "fov": fov,
+                       "to_world": T().look_at(list(origin), list(target), [0, 1, 0]),
                        "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
             "env": {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.55, 0.65]}},
             "sun": {"type": "directional", "direction": [-0.5, -1.0, -0.35],
@@ -134,6 +235,13 @@ def config_scene(mi, config, cells, tf, scale, args, grid_resolution=None, grid_
     if kind[0] == "reference":
         medium = reference_medium(cells, tf, scale, args.reconstruction,
                                   memory_limit=int(args.memory_limit * 2**30))
+    elif kind[0] == EMPTY:
+        # the limit: the default medium with density scale 0, so that every
+        # path crosses the cube without a collision (camera rays, the cube's
+        # two surfaces, the emitters: what any medium's frame costs)
+        medium = {"type": "amr", "data": cells, "transfer_function": tf, "density_scale": 0.0,
+                  "reconstruction": args.reconstruction}
+        integ = {"type": "amrvolpath", "max_depth": args.max_depth}
     elif kind[0] == "dense16":
         # the dense-grid renderer: the reference's resampled field as one level,
         # a fixed 16^3 majorant grid walked by DDA (pbrt-v4's choice)
@@ -316,13 +424,20 @@ def main(argv=None):
     p.add_argument("--out", required=True, help="results folder")
     p.add_argument("--quick", action="store_true", help="small sizes: minutes on 2 cores")
     p.add_argument("--cells", type=int, default=20000)
-    p.add_argument("--res", type=int, default=128)
+    p.add_argument("--res", type=int, default=256, help="frame width and height (default 256: frames of real size)")
     p.add_argument("--spp", type=int, default=16)
     p.add_argument("--ref-spp", type=int, default=1024)
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--frozen", action="store_true",
+    p.add_argument("--frozen", action=argparse.BooleanOptionalAction, default=True,
                    help="time frames of a dr.freeze-recorded render (as an interactive viewer runs them: "
-                        "no per-frame Python trace), every configuration alike")
+                        "no per-frame Python trace), every configuration alike (default; --no-frozen times "
+                        "plain mi.render frames)")
+    p.add_argument("--limit", action=argparse.BooleanOptionalAction, default=True,
+                   help="time the empty-medium frame of each case with the others (the limit: a medium "
+                        "that costs nothing) and report each row's share of it, t_empty / t (default)")
+    p.add_argument("--sparse-res", type=int, default=128,
+                   help="grid size of the 'sparse' data set (the cloud field on one uniform level; its "
+                        "size does not follow --cells)")
     p.add_argument("--max-depth", type=int, default=64)
     p.add_argument("--datasets", nargs="*", default=["cloud", "shell", "stadium", "blocks"])
     p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
@@ -331,6 +446,9 @@ def main(argv=None):
                         "loads; log10 values and density scale chosen as mi-amr render chooses them)")
     p.add_argument("--field", help="field of --data (e.g. density)")
     p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
+    p.add_argument("--peers", nargs="*", default=[], choices=["eradiate"],
+                   help="also render each case with these peers in their own environments (eradiate: "
+                        "Eradiate's Mitsuba fork, extremum_grid + eovolpath; needs make peers)")
     p.add_argument("--reconstruction", default="nearest", choices=tuple(METHODS))
     p.add_argument("--grid-refinement", type=int, default=None, metavar="F",
                    help="grid_refinement of every amr medium (1: uniform grids only; default: the cost model's)")
@@ -356,6 +474,26 @@ def main(argv=None):
     p.add_argument("--cold-kernels", action="store_true",
                    help="scale benchmark: each process starts with an empty Dr.Jit kernel cache")
     p.add_argument("--data-dir", default="out/data", help="where the scale benchmark keeps its .cells files")
+    p.add_argument("--resample", nargs="*", default=None, metavar="DATA",
+                   help="time against error of the amr medium against dense resamples (see resample_bench): "
+                        "cosmo:CELLS[:LEVELS], enzo or a data file (default enzo cosmo:1e7 cosmo:1e8)")
+    p.add_argument("--truth-spp", type=int, default=2048, help="--resample: samples per pixel of the truth")
+    p.add_argument("--floor-spp", type=int, default=None, help="--resample: spp of a rival's floor (truth/2)")
+    p.add_argument("--max-spp", type=int, default=512, help="--resample: the curves' highest spp")
+    p.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512, 1024],
+                   help="--resample: dense resolutions (voxels along the longest side)")
+    p.add_argument("--resample-methods", nargs="+", default=["box"], help="--resample: box and/or nearest")
+    p.add_argument("--renderers", nargs="+", default=["heterogeneous", "dense16"],
+                   help="--resample: renderers of the dense rivals")
+    p.add_argument("--check-max", type=int, default=512,
+                   help="--resample: check the finest nearest resample against the truth up to this resolution")
+    p.add_argument("--resample-memory", type=float, default=None,
+                   help="--resample: GiB a rival may use (default 80%% of the memory available at start)")
+    p.add_argument("--unfrozen", action="store_true", help="--resample: time plain mi.render frames")
+    p.add_argument("--zoom", type=float, default=None, metavar="WIDTH",
+                   help="--resample: a telephoto view of the densest cell whose field of view spans WIDTH of "
+                        "the domain (e.g. 0.05: what a scientist looking at one halo sees); default the whole "
+                        "domain")
     p.add_argument("--view", metavar="DATA", default=None,
                    help="how interactive mi-amr view is on DATA, measured in the page (chromium): frames/s "
                         "while dragging, change-to-frame and change-to-denoised times (--res, --repeats)")
@@ -370,7 +508,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     if args.view:
         from .view_bench import run
-        run(args.view, args.view_field, 256 if args.res == 128 else args.res, Path(args.out), args.repeats,
+        run(args.view, args.view_field, args.res, Path(args.out), args.repeats,
             preview_scale=args.view_preview_scale)
         print(f"wrote {args.out}/view.json and view.md")
         return 0
@@ -379,22 +517,28 @@ def main(argv=None):
         import mitsuba as mi
         mi.set_variant(args.variant)
         from .dist_bench import run_distributed
-        res = 256 if args.res == 128 else args.res
+        res = args.res
         spp = 256 if args.spp == 16 else args.spp
         run_distributed(args.dist_scene, args.workers, res, spp, args.chunk_spp, args.repeats, Path(args.out))
         print(f"wrote {args.out}/distributed.json and distributed.md")
         return 0
     if args.scale:
         from .scale_bench import DEFAULT_CONFIGS, DEFAULT_KINDS, DEFAULT_SOURCES, run_scale
-        res = 256 if args.res == 128 else args.res          # the first picture: 256x256 at 1 spp
+        res = args.res          # the first picture: 256x256 at 1 spp
         spp = 1 if args.spp == 16 else args.spp
         run_scale([int(n) for n in args.scale], args.scale_kinds or DEFAULT_KINDS,
                   args.scale_configs or DEFAULT_CONFIGS, Path(args.out), Path(args.data_dir), res, spp,
                   args.variant, args.scale_sources or DEFAULT_SOURCES, args.cold_kernels)
         print(f"wrote {args.out}/scale.json, scale.md and scale.png")
         return 0
+    if args.resample is not None:
+        from .resample_bench import main_args
+        main_args(args)
+        print(f"wrote {args.out}/resample.json, resample.md and resample.png")
+        return 0
     if args.quick:
         args.cells, args.res, args.spp, args.ref_spp, args.repeats = 4000, 48, 4, 128, 3
+        args.sparse_res = 32
         args.curve_spp, args.sweep = [1, 2, 4], [8, 16, 32, 64]
 
     ensure_llvm_path()
@@ -423,7 +567,8 @@ def main(argv=None):
         print(f"{name}: {len(cells)} cells, {plan.transform} values, density_scale {plan.density_scale:.3g} "
               f"(as mi-amr render would choose)", flush=True)
     else:
-        data = [(n, make_dataset(n, cells=args.cells, levels=7 if n == "stadium" else 4)) for n in args.datasets]
+        data = [(n, make_dataset(n, cells=args.sparse_res ** 3 if n == "sparse" else args.cells,
+                                 levels=7 if n == "stadium" else 4)) for n in args.datasets]
     data += [(Path(f).stem, load_cells(f)) for f in args.files]
     records, sweeps = [], []
     t_start = time.perf_counter()
@@ -449,6 +594,8 @@ def main(argv=None):
                     continue
                 rec.update(dataset=name, tf=tf_name, cells=len(cells), density_scale=scale, frozen=args.frozen)
                 measured.append(rec)
+            if args.limit and scenes:
+                scenes[EMPTY] = config_scene(mi, EMPTY, cells, tf, scale, args)
             # the frame times, alternating configurations pass by pass
             timing = alternate_passes(mi, scenes, args, ref_img)
             del scenes
@@ -456,18 +603,47 @@ def main(argv=None):
                 if "skipped" not in rec:
                     apply_timing(rec, *timing[rec["config"]])
                     ref_rec = rec if rec["config"] == "reference" else ref_rec
+            if EMPTY in timing:
+                empty_times = timing[EMPTY][0]
+                for rec in measured:
+                    if "skipped" not in rec:
+                        rec.update(limit_shares(rec["frame_seconds"], empty_times))
+                measured.append({"dataset": name, "tf": tf_name, "config": EMPTY, "cells": len(cells),
+                                 "density_scale": 0.0, "frozen": args.frozen, "spp": args.spp,
+                                 "seconds_per_frame": statistics.median(empty_times),
+                                 "seconds_per_spp": statistics.median(empty_times) / args.spp,
+                                 "frame_seconds": list(empty_times), **limit_shares(empty_times, empty_times)})
+                default = next((r for r in measured if r["config"] == "amrvolpath/default" and "counters" in r),
+                               None)
+                if default is not None and default["counters"]["real"] > 0:
+                    weights = tf.rgba[:, 3] + 1e-6                   # the TF's mean colour where it is opaque
+                    floor = scattering_floor(mi, args, default["counters"]["real"],
+                                             (tf.rgba[:, :3] * weights[:, None]).sum(0) / weights.sum())
+                    for rec in measured:
+                        if "skipped" not in rec:
+                            rec["floor_share"] = floor["seconds_per_frame"] / rec["seconds_per_frame"]
+                    measured.append({"dataset": name, "tf": tf_name, "config": FLOOR, "cells": 1, "spp": args.spp,
+                                     "frozen": args.frozen, "seconds_per_spp": floor["seconds_per_frame"] / args.spp,
+                                     "limit_share": statistics.median(empty_times) / floor["seconds_per_frame"],
+                                     "floor_share": 1.0, **floor})
             for rec in measured:
                 records.append(rec)
                 if "skipped" in rec:
+                    continue
+                if rec["config"] in (EMPTY, FLOOR):
+                    print(f"{name:8s} {tf_name:6s} {rec['config']:24s} "
+                          f"{rec['seconds_per_spp'] * 1e3:8.2f} ms/spp", flush=True)
                     continue
                 rec["efficiency_vs_reference"] = (rec["efficiency"] / ref_rec["efficiency"]
                                                   if ref_rec and ref_rec.get("efficiency") else None)
                 config = rec["config"]
                 lpc = rec["lookups_per_collision"]
-                print(f"{name:8s} {tf_name:6s} {config:24s} {rec['seconds_per_spp'] * 1e3:8.2f} ms/spp "
+                share = f" limit {rec['limit_share']:.2f}" if "limit_share" in rec else ""
+                print(f"{name:8s} {tf_name:6s} {config:24s} {rec['seconds_per_spp'] * 1e3:8.2f} ms/spp{share} "
                       f"rmse {rec['rmse']:.4f} eff x{rec['efficiency_vs_reference'] or float('nan'):6.2f} "
                       f"lookups/coll {lpc if lpc is not None else float('nan'):6.2f} "
                       f"build {rec['build_s']:6.2f}s", flush=True)
+            records += run_peers(args.peers, name, tf_name, cells, tf, scale, args, ref_img, measured, out)
             if args.sweep:
                 sweeps.append(grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img))
             (out / "results.json").write_text(json.dumps(records, indent=1, default=float))
@@ -711,43 +887,91 @@ def plot_sweeps(sweeps, out: Path):
     plt.close(fig)
 
 
+def peer_summary(records) -> list[str]:
+    """Markdown lines: per case, ``amrvolpath/default`` against the best
+    grid of a peer (its most efficient row other than its own
+    ``heterogeneous``), both ways: absolute (efficiency over efficiency) and
+    normalised by each side's own ``heterogeneous`` medium (ours: the
+    ``reference`` row; the peer's: its ``heterogeneous`` row)."""
+    peers = [r for r in records if r.get("peer") and "skipped" not in r]
+    if not peers:
+        return []
+    lines = ["## Against a peer: Eradiate's `extremum_grid` + `eovolpath`", "",
+             "Best peer grid = its most efficient `extremum_grid` row. Absolute: efficiency of "
+             "`amrvolpath/default` over the peer's; normalised: each over its own `heterogeneous` medium "
+             "(ours timed in this process, the peer's in its own), then the ratio.", "",
+             "| data / TF | best peer grid | peer eff. vs its heterogeneous | default eff. vs ours | "
+             "default / peer, absolute | default / peer, normalised |", "|---|---|---|---|---|---|"]
+    for key in dict.fromkeys((r["dataset"], r["tf"]) for r in peers):
+        rows = [r for r in peers if (r["dataset"], r["tf"]) == key and r["peer_config"] != "heterogeneous"]
+        ours = next((r for r in records if (r["dataset"], r["tf"]) == key and r["config"] == "amrvolpath/default"
+                     and "skipped" not in r), None)
+        if not rows or ours is None:
+            continue
+        best = max(rows, key=lambda r: r["efficiency"])
+        own, mine = best.get("efficiency_vs_own_heterogeneous"), ours.get("efficiency_vs_reference")
+        norm = f"{mine / own:.2f}x" if own and mine else ""
+        lines.append(f"| {key[0]} / {key[1]} | {best['config'].split('/', 1)[1]} | "
+                     f"{own:.2f}x | {mine:.2f}x | **{ours['efficiency'] / best['efficiency']:.2f}x** | "
+                     f"**{norm}** |" if own and mine else
+                     f"| {key[0]} / {key[1]} | {best['config']} | | | "
+                     f"{ours['efficiency'] / best['efficiency']:.2f}x | |")
+    return lines + [""]
+
+
 def write_tables(records, sweeps, out: Path, tf_timing=None):
     """One Markdown table per data set, laid out like the paper's Table 2,
     and the grid-resolution sweep."""
     lines = ["# mi-amr benchmark", ""]
     if any(r.get("frozen") for r in records):
-        lines += ["Frames timed as `dr.freeze` replays (`--frozen`): no per-frame trace.", ""]
+        lines += ["Frames timed as `dr.freeze` replays (the default; `--no-frozen` times plain frames): "
+                  "no per-frame trace.", ""]
+    if any("limit_share" in r for r in records):
+        lines += ["Limit: t_empty / t, the empty-medium frame of the same scene (density scale 0) over "
+                  "the row's frame, timed in the same rounds; 1 would be a medium that costs nothing.", ""]
+    if any(r["config"] == FLOOR for r in records):
+        lines += ["Scattering floor: a uniform medium with as many real collisions per frame as "
+                  "`amrvolpath/default`, tracked without look-ups (`scattering_floor`); its row's limit "
+                  "column is t_empty / t_floor, the best share any tracking could reach here.", ""]
     for name in dict.fromkeys(r["dataset"] for r in records):
         skipped = [r for r in records if r["dataset"] == name and r.get("skipped")]
         rows = [r for r in records if r["dataset"] == name and not r.get("skipped")]
         tfs = list(dict.fromkeys(r["tf"] for r in rows))
         lines += [f"## {name} ({rows[0]['cells']} cells)", "",
-                  "| configuration | " + " | ".join(f"{t}: ms/spp | {t}: eff. vs ref | {t}: look-ups/coll. | "
+                  "| configuration | " + " | ".join(f"{t}: ms/spp | {t}: limit | {t}: eff. vs ref | "
+                                                     f"{t}: look-ups/coll. | "
                                                      f"{t}: null/coll. | {t}: look-ups/shadow ray"
                                                      for t in tfs) + " | memory MiB |",
-                  "|---|" + "---|---|---|---|---|" * len(tfs) + "---|"]
+                  "|---|" + "---|---|---|---|---|---|" * len(tfs) + "---|"]
         for config in dict.fromkeys(r["config"] for r in rows):
             cells = []
             mem = None
             for t in tfs:
                 r = next((x for x in rows if x["config"] == config and x["tf"] == t), None)
                 if r is None:
-                    cells += ["", "", "", "", ""]
+                    cells += ["", "", "", "", "", ""]
+                    continue
+                share = r.get("limit_share")
+                share = "" if share is None else f"{share:.2f}"
+                if config in (EMPTY, FLOOR):
+                    cells += [f"{r['seconds_per_spp'] * 1e3:.2f}", share, "", "", "", ""]
                     continue
                 mem = r["structure_bytes"] / 2**20
                 eff = r.get("efficiency_vs_reference")
                 lpc = r.get("lookups_per_collision")
                 npc = r.get("null_per_collision")
                 lps = r.get("lookups_per_shadow_ray")
-                cells += [f"{r['seconds_per_spp'] * 1e3:.2f}", f"{eff:.2f}x" if eff else "",
+                cells += [f"{r['seconds_per_spp'] * 1e3:.2f}", share, f"{eff:.2f}x" if eff else "",
                           f"{lpc:.2f}" if lpc else "", f"{npc:.2f}" if npc is not None else "",
                           f"{lps:.2f}" if lps is not None and lps == lps else ""]
             resolved = next((x.get("resolved") for x in rows if x["config"] == config and x.get("resolved")), None)
             name = f"{config} ({resolved})" if config.endswith("/default") and resolved else config
-            lines.append(f"| {name} | " + " | ".join(cells) + f" | {mem:.2f} |")
+            name = {EMPTY: "empty medium (the limit)", FLOOR: "scattering floor"}.get(config, name)
+            lines.append(f"| {name} | " + " | ".join(cells) + (f" | {mem:.2f} |" if mem is not None else " | |"))
         for r in skipped:
             lines.append(f"\n{r['config']} ({r['tf']}) skipped: {r['skipped']}")
         lines.append("")
+    lines += peer_summary(records)
     if sweeps:
         lines += ["## Grid resolution sweep (amrvolpath/grid/hash)", "",
                   "| data set | TF | best uniform R | best efficiency | auto grid | auto / best |",

@@ -361,17 +361,18 @@ def cmd_compare(args):
 # ---- dataset ---------------------------------------------------------------
 def cmd_dataset(args):
     ensure_llvm_path()
-    from ..data.datasets import make_dataset, write_block_dataset
+    from ..data.datasets import BLOCK_DATASETS, make_dataset, write_block_dataset
     from ..data.io import save_cells
-    if args.name == "blocks" and Path(args.output).suffix == ".cells":
+    if args.name in BLOCK_DATASETS and Path(args.output).suffix == ".cells":
         # streamed block by block: no per-cell array of the whole data set
         from ..progress import progress
         with progress(int(args.cells), f"writing {args.output}") as bar:
-            out = write_block_dataset(args.output, int(args.cells), args.levels, args.seed, args.nxb, bar)
+            out = write_block_dataset(args.output, int(args.cells), args.levels, args.seed, args.nxb, bar,
+                                      name=args.name)
         print(f"wrote {out}: {out.stat().st_size // 16} cells in blocks")
         return
     if args.nxb is not None:
-        raise SystemExit("mi-amr dataset: --nxb applies to 'blocks' written as .cells")
+        raise SystemExit("mi-amr dataset: --nxb applies to 'blocks' and 'cosmo' written as .cells")
     cells = make_dataset(args.name, args.cells, args.levels, args.seed)
     out = save_cells(cells, args.output)
     print(f"wrote {out}: {cells}")
@@ -525,9 +526,10 @@ def build_parser():
 
     d = _command(sub, "dataset", "generate a synthetic data set",
                  "mi-amr dataset blocks big.cells --cells 100000000 --levels 5")
-    d.add_argument("name", choices=("cloud", "shell", "stadium", "blocks", "sparse"),
+    d.add_argument("name", choices=("cloud", "shell", "stadium", "blocks", "cosmo", "sparse"),
                    help="octree-like: cloud, shell, stadium; block-structured (FLASH-like nxb^3 blocks): "
-                        "blocks; one uniform level (the cloud field on a grid of about --cells points): sparse")
+                        "blocks, cosmo (a log-normal cosmic web with halos on Enzo-like 8^3 blocks, "
+                        "densities spanning decades); one uniform level (the cloud field on a grid of about --cells points): sparse")
     d.add_argument("output")
     d.add_argument("--cells", type=_count, default=20000, help="about this many cells (1e8 and 1.31e9 are taken)")
     d.add_argument("--levels", type=int, default=4)

@@ -91,9 +91,7 @@ def reference_medium(cells: AMRCells, tf: TransferFunction, density_scale: float
     ``nearest`` uses ``filter_type="nearest"``, ``tent`` uses trilinear.
     """
     method = reconstruction_method(method)
-    value, found = resample_dense(cells, method, resolution, memory_limit)
-    rgba = tf(value)
-    rgba[~found] = 0.0
+    sigma_t, albedo = baked_grids(cells, tf, method, resolution, memory_limit)
     filter_type = method.grid_filter
     from ..plugins.options import as_transform4f
     to_world = as_transform4f(to_world)
@@ -103,9 +101,22 @@ def reference_medium(cells: AMRCells, tf: TransferFunction, density_scale: float
                 "filter_type": filter_type, "to_world": to_world}
 
     return {"type": "heterogeneous",
-            "sigma_t": grid(rgba[..., 3:4]),
-            "albedo": grid(rgba[..., 0:3]),
+            "sigma_t": grid(sigma_t),
+            "albedo": grid(albedo),
             "scale": float(density_scale)}
+
+
+def baked_grids(cells: AMRCells, tf: TransferFunction, method: str | Reconstruction = "tent",
+                resolution=None, memory_limit: int = DEFAULT_MEMORY_LIMIT):
+    """The dense grids of `reference_medium` as numpy arrays, the TF applied
+    per voxel (zero where no cell covers the voxel centre): ``(sigma_t,
+    albedo)``, float32, ``[nz, ny, nx, 1]`` (opacity, before
+    ``density_scale``) and ``[nz, ny, nx, 3]``."""
+    value, found = resample_dense(cells, reconstruction_method(method), resolution, memory_limit)
+    rgba = tf(value)
+    rgba[~found] = 0.0
+    return (np.ascontiguousarray(rgba[..., 3:4], dtype=np.float32),
+            np.ascontiguousarray(rgba[..., 0:3], dtype=np.float32))
 
 
 # ---- Image statistics ----------------------------------------------------
