@@ -148,7 +148,7 @@ def _warn_if_volpath_is_slower(medium):
     Mitsuba's own ``heterogeneous`` medium on the same field
     (`volpath_speedup`: where a shell or a fog keeps the majorant of most
     rays near the global one). Runs when a kernel is traced, not per ray."""
-    if "volpath" in _WARNED or medium.majorant_mode != "ray" or getattr(medium, "_volpath_checked", False):
+    if "volpath" in _WARNED or medium.majorant_mode != "ray" or medium._volpath_checked:
         return
     medium._volpath_checked = True               # with the TF of its first trace
     from ..structures.cost_model import volpath_speedup
@@ -298,6 +298,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         two_level = (options.structures.traversal == "grid"
                      and isinstance(self.structures.device.get("grid"), DeviceTwoLevelGrid))
         self._span_stop = SPAN_STOP_SHARE if two_level else None
+        self._volpath_checked = False            # `_warn_if_volpath_is_slower` ran for this medium
         self.structures.update_majorants()
         # whether amrvolpath's minorant estimators pay on these data (decided
         # once, with the TF given at load: a later TF change compiles nothing)
