@@ -14,6 +14,17 @@ def pytest_addoption(parser):
                      help="size of the stress tests (marker 'stress')")
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Marker ``slow`` for the cases a module names in ``SLOW_CASES`` (test
+    names with their parameters, e.g. ``test02_x[amrex]``): for cases of a
+    module-scoped fixture's parameter, which ``pytest.param`` would mark in
+    every test that uses it."""
+    for item in items:
+        if item.name in getattr(item.module, "SLOW_CASES", ()):
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture
 def stress_size(request):
     return request.config.getoption("--stress-size")

@@ -12,18 +12,18 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
     out = tmp_path / "bench"
     code = main(["--out", str(out), "--cells", "800", "--res", "8", "--spp", "2", "--ref-spp", "16",
                  "--repeats", "2", "--datasets", "cloud", "--tfs", "spiky",
-                 "--configs", "reference", "volpath/ray", "amrvolpath/grid/hash", "amrvolpath/abr/brick",
+                 "--configs", "reference", "volpath/ray", "amrvolpath/grid/hash",
                  "amrvolpath/default", "amrvolpath/default-plain",
                  "--curve-spp", "1", "2", "--sweep", "8", "16"])
     assert code == 0
     records = json.loads((out / "results.json").read_text())
     assert [r["config"] for r in records] == ["reference", "volpath/ray", "amrvolpath/grid/hash",
-                                              "amrvolpath/abr/brick", "amrvolpath/default",
-                                              "amrvolpath/default-plain", "empty", "scattering floor"]
+                                              "amrvolpath/default", "amrvolpath/default-plain", "empty",
+                                              "scattering floor"]
     # the scattering floor: a uniform cell with as many real collisions per
     # frame as the default (bisection on 1-spp counts: Poisson noise allowed)
     floor = records.pop()
-    target = records[4]["counters"]["real"]
+    target = records[3]["counters"]["real"]
     assert floor["real_target"] == target
     assert abs(floor["real_reached"] - target) <= 0.25 * target + 3 * target ** 0.5
     assert floor["seconds_per_frame"] > 0 and floor["floor_share"] == 1.0
@@ -51,11 +51,11 @@ def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
     # each free-flight look-up is a null or a real collision
     assert abs(records[2]["null_per_collision"] - (records[2]["lookups_per_collision"] - 1.0)) < 1e-9
     # the default is exactly what grid/hash builds: same counts with the same seeds
-    assert records[4]["resolved"].startswith("grid/hash")
-    assert records[4]["counters"] == records[2]["counters"]
+    assert records[3]["resolved"].startswith("grid/hash")
+    assert records[3]["counters"] == records[2]["counters"]
     assert "| amrvolpath/default (grid/hash" in (out / "tables.md").read_text()
     # the estimators off: its own row, with look-ups per shadow ray
-    assert records[5]["counters"]["shadow_crossings"] > 0 and records[5]["lookups_per_shadow_ray"] >= 0
+    assert records[4]["counters"]["shadow_crossings"] > 0 and records[4]["lookups_per_shadow_ray"] >= 0
     assert "look-ups/shadow ray" in (out / "tables.md").read_text()
     assert all(r["structure_bytes"] > 0 for r in records)
     sweep = json.loads((out / "sweep.json").read_text())
@@ -104,6 +104,7 @@ def test_curve_styles_tell_every_configuration_apart():
     assert all(s["lw"] < heaviest for c, s in styles.items() if c != "reference")
 
 
+@pytest.mark.slow
 def test04_timing_keeps_one_scene_alive(llvm, tmp_path):
     """The timing loop frees each scene before it loads the next (no amr
     medium is alive after a run), and refuses to time while another scene
@@ -126,6 +127,7 @@ def test04_timing_keeps_one_scene_alive(llvm, tmp_path):
     assert live_media() == 0
 
 
+@pytest.mark.slow
 def test05_bench_on_a_users_data_set(llvm, tmp_path):
     """``--data PATH --field NAME`` runs the time-vs-error comparison on a
     user's data, with the log scale and density ``mi-amr render`` picks."""
@@ -145,6 +147,7 @@ def test05_bench_on_a_users_data_set(llvm, tmp_path):
     assert "## sim.npz" in (out / "tables.md").read_text()
 
 
+@pytest.mark.slow
 def test06_frames_are_timed_alternating_one_scene_at_a_time(llvm, monkeypatch):
     """`alternate_passes` loads the configurations in turn, A B A B ..., with
     no other scene alive at any load, and times one frame per pass."""

@@ -127,6 +127,7 @@ def test08_reference_scene_from_xml_matches_amr(llvm, tmp_path):
         reference_scene(tmp_path / "empty.xml", tmp_path / "w2")
 
 
+@pytest.mark.slow
 def test09_frametime_reports_three_configurations(tmp_path):
     c = random_amr(6, levels=3)
     (tmp_path / "data").mkdir()

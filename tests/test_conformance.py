@@ -56,9 +56,9 @@ def heterogeneous_recordings(integrator):
     return before, render.n_recordings
 
 
-@pytest.mark.parametrize("integrator,majorant,refinement", [("volpath", "ray", 1), ("volpath", "global", 1),
-                                                            ("amrvolpath", "ray", 1), ("amrvolpath", "ray", 4),
-                                                            ("volpath", "ray", 4)])
+@pytest.mark.parametrize("integrator,majorant,refinement", [
+    ("volpath", "ray", 1), pytest.param("volpath", "global", 1, marks=pytest.mark.slow),
+    pytest.param("amrvolpath", "ray", 1, marks=pytest.mark.slow), ("amrvolpath", "ray", 4), ("volpath", "ray", 4)])
 def test01_frozen_render_replays_and_follows_tf_changes(variant, integrator, majorant, refinement):
     scene = amr_scene(integrator, majorant, grid_resolution=16, grid_refinement=refinement)
 
@@ -233,8 +233,9 @@ def test05_plugins_follow_the_variant_active_at_instantiation(tmp_path):
     assert out.stdout.strip().endswith("ok True")
 
 
-@pytest.mark.parametrize("phase", [{"type": "isotropic"}, {"type": "rayleigh"},
-                                   {"type": "tabphase", "values": "0.4, 1.0, 1.8"},
+@pytest.mark.parametrize("phase", [{"type": "isotropic"}, pytest.param({"type": "rayleigh"}, marks=pytest.mark.slow),
+                                   pytest.param({"type": "tabphase", "values": "0.4, 1.0, 1.8"},
+                                                marks=pytest.mark.slow),
                                    {"type": "blendphase", "weight": 0.4, "phase1": {"type": "isotropic"},
                                     "phase2": {"type": "hg", "g": -0.5}}])
 def test06_every_phase_function_agrees_with_volpath(llvm, phase):

@@ -102,6 +102,7 @@ def test05_cluster_equals_local(llvm, client, tmp_path):
     np.testing.assert_allclose(remote, local, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test06_a_killed_worker_loses_nothing(llvm, tmp_path):
     """Kill one of two worker processes (SIGKILL) while it renders a chunk:
     its chunk runs again elsewhere and the image equals the local render."""
@@ -154,6 +155,7 @@ def test08_unpicklable_dict_values_are_named(client):
         D.render(d, 1, client=client)
 
 
+@pytest.mark.slow
 def test09_cli_workers_frames(tmp_path):
     """``mi-amr render --workers 2 --frames -D tf=spiky,foggy``: one EXR and
     PNG per frame, each equal to a plain render of that frame."""

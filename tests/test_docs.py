@@ -44,7 +44,12 @@ for cell in nb["cells"]:
 """
 
 
-@pytest.mark.parametrize("name", sorted(p.name for p in (ROOT / "notebooks").glob("*.ipynb")))
+#: Notebooks run in the default suite; the others run with marker ``slow``.
+FAST_NOTEBOOKS = {"quickstart.ipynb", "view.ipynb"}
+
+
+@pytest.mark.parametrize("name", [n if n in FAST_NOTEBOOKS else pytest.param(n, marks=pytest.mark.slow)
+                                  for n in sorted(p.name for p in (ROOT / "notebooks").glob("*.ipynb"))])
 def test02_notebooks_run_top_to_bottom(name):
     import subprocess
     import sys

@@ -60,7 +60,7 @@ def medium_dict(traversal, sampling, reconstruction, **kw):
 
 
 @pytest.mark.parametrize("traversal,sampling,kw", CONFIGS)
-@pytest.mark.parametrize("reconstruction", ["nearest", "tent"])
+@pytest.mark.parametrize("reconstruction", [pytest.param("nearest", marks=pytest.mark.slow), "tent"])
 @pytest.mark.parametrize("minorants", [False, True])
 def test01_amrvolpath_loops_traced_once(llvm, monkeypatch, traversal, sampling, kw, reconstruction, minorants):
     scene = mi.load_dict(volume_scene(medium_dict(traversal, sampling, reconstruction, **kw),

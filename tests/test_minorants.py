@@ -127,7 +127,7 @@ def grey_tf(cells):
     return mi_amr.TransferFunction([[0.8, 0.8, 0.8, a] for a in (0.3, 0.6, 1.0, 0.5)], (lo, hi))
 
 
-@pytest.mark.parametrize("reconstruction", ["nearest", "tent"])
+@pytest.mark.parametrize("reconstruction", [pytest.param("nearest", marks=pytest.mark.slow), "tent"])
 def test05_decomposition_tracking_agrees_with_stock_volpath(llvm, reconstruction):
     """amrvolpath with both estimators on, against Mitsuba's volpath on the
     same one-colour medium: 32 independent passes each, |z| < 4.5 per 4x4
@@ -173,7 +173,8 @@ def test05b_coloured_tf_keeps_delta_tracking(llvm):
     assert (c["lookups"], c["real"]) == (off["lookups"], off["real"])
 
 
-@pytest.mark.parametrize("traversal,sampling,extra", LEAF_KINDS)
+@pytest.mark.parametrize("traversal,sampling,extra", [k if k[0] != "kdtree" else pytest.param(*k, marks=pytest.mark.slow)
+                                                      for k in LEAF_KINDS])
 def test05c_estimators_are_on_where_minorants_carry_the_majorant(llvm, traversal, sampling, extra):
     """By default amrvolpath uses the minorant estimators on a medium only
     where its minorants carry at least half of its majorants at load: the

@@ -25,6 +25,14 @@ FORMATS = {"amrex": (("boxlib", "density"), [1.0, 0.62, 1.0], [16, 16, 8]),
            "athena_pp": (("athena_pp", "rho"), [2.0, 1.0, 1.0], [16, 16, 16])}
 
 
+#: The renders of the AMReX and Athena++ outputs run with marker ``slow``
+#: (the default suite renders the Enzo output; every format is read and
+#: checked cell by cell in test01).
+SLOW_CASES = {f"{test}[{fmt}]" for fmt in ("amrex", "athena_pp")
+              for test in ("test02_render_matches_the_gridvolume_reference",
+                           "test03_render_an_output_in_one_command")}
+
+
 @pytest.fixture(scope="module", params=sorted(FORMATS))
 def written(request, tmp_path_factory):
     """``(path, levels, format)``: an output written in a code's own format.

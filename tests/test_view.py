@@ -313,6 +313,7 @@ def test07_two_tabs_keep_their_own_views(served, browser):
     _same_picture(root / "snapshots" / "tab-b.exr", root / "snapshots" / "tab-b.xml", spp)
 
 
+@pytest.mark.slow
 def test08_a_yt_data_set_in_the_viewer(tmp_path):
     """An Enzo output through yt (``mi-amr view DIR --field Density``): the
     view renders, and its snapshot writes the data once as .amrb beside an
@@ -373,6 +374,7 @@ def test09_notebook_frame_and_command_line(served, tmp_path, capsys):
     assert np.abs(np.diff(clean, axis=1)).mean() < np.abs(np.diff(noisy[..., :3], axis=1)).mean()
 
 
+@pytest.mark.slow
 def test10_an_xml_scene_in_the_viewer(tmp_path):
     """``mi-amr view scenes/blocks.xml``: the scene's own camera, colours
     and density to start with; after an orbit and a TF change the snapshot
