@@ -40,9 +40,25 @@ FOV = 35.0
 #: Opacity peaks at a few values, like the layered Gaussians of yt's volume
 #: renderings: shells of structure rather than a fog over the whole domain.
 DEFAULT_TF = "spiky"
+#: The extinction TF of glowing gas unless told otherwise: grey (its
+#: albedo would tint the glow, which is emitted in proportion to 1 - albedo)
+#: and opacity rising with the value.
+GLOW_TF = "dust"
 #: Towards the sun: 50 degrees above the horizon, behind the camera's right.
 SUN_DIRECTION = [0.5, 0.6, 0.9]
 HISTOGRAM_BINS = 4096
+
+
+@dataclass
+class EmissionPlan:
+    """The emission of a glowing medium (the ``amr`` medium's ``emission*``
+    parameters): TF preset or .json file over ``field`` (None: the
+    extinction field), its transform, domain and radiance scale."""
+    tf: str
+    field: str | None
+    transform: str
+    tf_range: tuple[float, float]
+    scale: float
 
 
 @dataclass
@@ -59,6 +75,14 @@ class ScenePlan:
     notes: list = dc_field(default_factory=list)
     target: tuple = (0.0, 0.0, 0.0)   # the point the camera looks at
     up: tuple = (0.0, 0.0, 1.0)       # the camera's up direction
+    emission: "EmissionPlan | None" = None   # a glowing medium: no sun, sky or floor
+
+    @property
+    def lit(self) -> bool:
+        """Whether the scene has the sun, sky and floor (not for glowing gas,
+        which is its own light, on black, as emission-absorption renderers
+        show it)."""
+        return self.emission is None
 
     def floor_height(self) -> float:
         """The ground plane, just below the domain (z up)."""
@@ -71,10 +95,11 @@ class ScenePlan:
         return m
 
 
-def open_data(data, field=None):
+def open_data(data, field=None, fields=()):
     """``(volume or cells, physical extent (3,), description)`` of ``data``:
     an `AMRCells`, a `BlockVolume`, a ``.cells``/``.npz``/``.amrb`` file, a loaded yt
-    dataset, or any path yt can load (then ``field`` names the field)."""
+    dataset, or any path yt can load (then ``field`` names the field, and
+    ``fields`` further fields to read onto the same cells)."""
     from .data.io import load_volume
     from .data.metadata import physical_box
     if isinstance(data, (AMRCells, BlockVolume)):
@@ -82,7 +107,7 @@ def open_data(data, field=None):
         box = physical_box(data)
         return data, (hi - lo).astype(np.float64) if box is None else box[1], data.source
     if hasattr(data, "index") and hasattr(data, "domain_left_edge"):
-        return _from_yt(data, field)
+        return _from_yt(data, field, fields)
     path = Path(str(data))
     if path.suffix in (".cells", ".npz", ".amrb"):
         scalars = field_scalars(path, field)
@@ -92,7 +117,7 @@ def open_data(data, field=None):
         return vol, (hi - lo).astype(np.float64) if box is None else box[1], str(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or directory")
-    return _from_yt(_yt_load(path), field)
+    return _from_yt(_yt_load(path), field, fields)
 
 
 def field_scalars(path, field) -> Path | None:
@@ -119,46 +144,58 @@ def _yt_load(path):
                           f"pip install {name} (or pip install 'mi-amr[yt]', which brings h5py)") from e
 
 
-def _from_yt(ds, field):
+def _yt_field(field):
+    return tuple(field.split(",")) if isinstance(field, str) and "," in field else field
+
+
+def _from_yt(ds, field, fields=()):
     from .data.yt_import import from_yt_blocks
     if field is None:
         raise ValueError(f"{ds}: give the field to render (--field NAME), e.g. density")
-    name = tuple(field.split(",")) if isinstance(field, str) and "," in field else field
-    cells = from_yt_blocks(ds, name)
+    cells = from_yt_blocks(ds, _yt_field(field), fields=[_yt_field(f) for f in fields])
     ext = np.asarray((ds.domain_right_edge - ds.domain_left_edge).to("code_length").d, dtype=np.float64)
     return cells, ext, f"{ds} field {field}"
 
 
-def cells_and_weights(data):
+def cells_and_weights(data, field=None):
     """Chunks of ``(values float64, volume weights)`` of the present cells
-    (weights in finest-cell volumes: 8^level)."""
-    if isinstance(data, AMRCells):
-        yield data.value.astype(np.float64), np.exp2(3.0 * data.level)
+    (weights in finest-cell volumes: 8^level); ``field``: a further field
+    of the data (None: the main values). ``data`` may be a list (or any
+    iterable) of data sets: the chunks of all of them."""
+    if not isinstance(data, (AMRCells, BlockVolume)):
+        for d in data:
+            yield from cells_and_weights(d, field)
         return
+    if isinstance(data, AMRCells):
+        values = data.value if field is None else data.fields[field]
+        yield values.astype(np.float64), np.exp2(3.0 * data.level)
+        return
+    values = data.field(field)
     b3 = data.block ** 3
     step = max(1, (1 << 22) // b3)
     for s in range(0, len(data.level), step):
-        v = data.values[s * b3:(s + step) * b3].reshape(-1, b3)
+        v = values[s * b3:(s + step) * b3].reshape(-1, b3)
         w = np.broadcast_to(np.exp2(3.0 * data.level[s:s + step].astype(np.float64))[:, None], v.shape)
         ok = ~np.isnan(v)
         yield v[ok].astype(np.float64), w[ok]
 
 
-def positive_share(data) -> float:
+def positive_share(data, field=None) -> float:
     """Share of the volume whose values are above 0."""
     pos = total = 0.0
-    for v, w in cells_and_weights(data):
+    for v, w in cells_and_weights(data, field):
         pos += float(w[v > 0].sum())
         total += float(w.sum())
     return pos / total if total else 0.0
 
 
-def weighted_percentiles(data, qs, log: bool = False) -> list[float]:
+def weighted_percentiles(data, qs, log: bool = False, field=None) -> list[float]:
     """Volume-weighted percentiles ``qs`` (0-100) of the values (of their
     log10 with ``log``, values <= 0 left out), from a histogram of
-    `HISTOGRAM_BINS` bins: within one bin width."""
+    `HISTOGRAM_BINS` bins: within one bin width. ``data``: one data set or
+    several (a time series: one histogram over all of them)."""
     lo, hi = (np.inf, -np.inf)
-    for v, _ in cells_and_weights(data):
+    for v, _ in cells_and_weights(data, field):
         if log:
             v = v[v > 0]
             if not v.size:
@@ -172,7 +209,7 @@ def weighted_percentiles(data, qs, log: bool = False) -> list[float]:
         return [lo for _ in qs]
     edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
     hist = np.zeros(HISTOGRAM_BINS)
-    for v, w in cells_and_weights(data):
+    for v, w in cells_and_weights(data, field):
         if log:
             keep = v > 0
             v, w = np.log10(v[keep]), w[keep]
@@ -181,48 +218,117 @@ def weighted_percentiles(data, qs, log: bool = False) -> list[float]:
     return [float(edges[min(int(np.searchsorted(cdf, q / 100.0)) + (q > 0), HISTOGRAM_BINS)]) for q in qs]
 
 
-def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = None, value_range=None,
-               density_scale: float | None = None) -> ScenePlan:
-    """Look at the data once and plan a scene (see the module docstring).
-
-    ``log``: None chooses log10 when at least 90% of the volume holds
-    positive values and their 1st and 99.9th volume-weighted percentiles
-    are more than 1000x apart;
-    ``value_range``: the TF domain (in transformed units), else those
-    percentiles; ``tf``: a preset name or a TF .json file."""
-    volume, extent, what = open_data(data, field)
-    notes = [f"data: {what}"]
+def _value_scale(stats, field, log, value_range, what="values"):
+    """``(log, (lo, hi), notes)``: log10 or linear values and the TF domain
+    for ``field`` of ``stats`` (one data set or several), by the rule of
+    `plan_scene`."""
+    notes = []
     log_percentiles = None
     if log is None:
-        share = positive_share(volume)
+        share = positive_share(stats, field)
         if share:
-            log_percentiles = weighted_percentiles(volume, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True)
+            log_percentiles = weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True, field=field)
         p = log_percentiles
         log = bool(share >= MIN_POSITIVE_SHARE and p[1] - p[0] > np.log10(LOG_RATIO))
-        notes.append(f"log10 chosen: values span 10^{p[0]:.3g} to 10^{p[1]:.3g}" if log
-                     else "linear values (positive ones within 1000x, or many values <= 0)")
-    transform = "log10" if log else "none"
+        notes.append(f"log10 chosen for the {what}: they span 10^{p[0]:.3g} to 10^{p[1]:.3g}" if log
+                     else f"linear {what} (positive ones within 1000x, or many values <= 0)")
     if value_range is None:
         # the log percentiles of the choice above are the TF range already
         value_range = tuple(log_percentiles if log and log_percentiles else
-                            weighted_percentiles(volume, [LOW_PERCENTILE, HIGH_PERCENTILE], log=log))
+                            weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=log, field=field))
         if value_range[1] <= value_range[0]:
             pad = max(0.5, 1e-3 * abs(value_range[0]))
             value_range = (value_range[0] - pad, value_range[1] + pad)
     value_range = (float(value_range[0]), float(value_range[1]))
     if not value_range[1] > value_range[0]:
         raise ValueError(f"the TF range must have LO < HI, got {value_range}")
+    return bool(log), value_range, notes
+
+
+def _check_tf_name(tf, flag):
     if tf not in PRESETS and not Path(tf).is_file():
-        raise ValueError(f"--tf: '{tf}' is neither a preset ({', '.join(PRESETS)}) nor a TF .json file")
+        import matplotlib
+        if tf not in matplotlib.colormaps:
+            raise ValueError(f"{flag}: '{tf}' is neither a preset ({', '.join(PRESETS)}), a matplotlib "
+                             f"colormap nor a TF .json file")
+
+
+def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = None, value_range=None,
+               density_scale: float | None = None, emission: str | None = None,
+               emission_field: str | None = None, emission_log: bool | None = None, emission_range=None,
+               emission_scale: float | None = None, stats=None) -> ScenePlan:
+    """Look at the data once and plan a scene (see the module docstring).
+
+    ``log``: None chooses log10 when at least 90% of the volume holds
+    positive values and their 1st and 99.9th volume-weighted percentiles
+    are more than 1000x apart;
+    ``value_range``: the TF domain (in transformed units), else those
+    percentiles; ``tf``: a preset name or a TF .json file.
+    ``emission``: an emission TF (preset such as ``blackbody``, colormap
+    or .json file) makes the gas glow, from ``emission_field`` (a further
+    field, e.g. ``temperature``; None: the extinction field), with its own
+    ``emission_log``/``emission_range`` chosen by the same rule and a
+    radiance scale (``emission_scale``, default: one that makes the mean
+    glow of the absorbing gas 1); the scene then has no other light.
+    ``stats``: the data sets whose values choose the scales and ranges
+    (default: ``data``): all outputs of a time series, so that one TF
+    range serves every frame."""
+    fields = (emission_field,) if emission is not None and emission_field else ()
+    volume, extent, what = open_data(data, field, fields)
+    stats = volume if stats is None else stats
+    notes = [f"data: {what}"]
+    log, value_range, more = _value_scale(stats, None, log, value_range)
+    notes += more
+    transform = "log10" if log else "none"
+    _check_tf_name(tf, "--tf")
     world = extent / extent.max()
     if density_scale is None:
-        density_scale = TARGET_DEPTH / max(_mean_alpha(volume, tf, value_range, log), 1e-6)
+        density_scale = TARGET_DEPTH / max(_mean_alpha(stats, tf, value_range, log), 1e-6)
     notes.append(f"TF '{tf}' over [{value_range[0]:.4g}, {value_range[1]:.4g}]"
                  f"{' (log10 units)' if log else ''}, density_scale {density_scale:.3g}")
+    glow = None
+    if emission is not None:
+        _check_tf_name(emission, "--emission")
+        key = None
+        if emission_field:
+            from .data.yt_import import field_key
+            key = field_key(_yt_field(emission_field))
+        e_log, e_range, more = _value_scale(stats, key, emission_log, emission_range, f"{key or 'extinction'} values")
+        notes += more
+        if key is None and log:               # the extinction field is log10 already in the medium
+            e_log = False
+        if emission_scale is None:
+            emission_scale = 1.0 / max(_mean_glow(stats, key, emission, e_range, e_log, tf, value_range, log), 1e-12)
+        glow = EmissionPlan(emission, key, "log10" if e_log else "none", e_range, float(emission_scale))
+        notes.append(f"emission '{emission}' over {key or 'the extinction field'} in [{e_range[0]:.4g}, "
+                     f"{e_range[1]:.4g}]{' (log10 units)' if e_log else ''}, emission_scale {emission_scale:.3g}")
     radius = 0.5 * float(np.linalg.norm(world))
     direction = np.array([1.5, 1.0, 0.35]) / np.linalg.norm([1.5, 1.0, 0.35])    # just above the horizon
     origin = direction * radius / np.sin(np.radians(FOV / 2)) * 1.1
-    return ScenePlan(volume, transform, tf, value_range, float(density_scale), world, origin, notes=notes)
+    return ScenePlan(volume, transform, tf, value_range, float(density_scale), world, origin, notes=notes,
+                     emission=glow)
+
+
+def _log_or_floor(v):
+    """log10 of values, -inf for those <= 0 (they take the TF's low end)."""
+    return np.log10(np.where(v > 0, v, 1.0)) - np.where(v > 0, 0.0, np.inf)
+
+
+def _mean_glow(stats, key, emission, e_range, e_log, tf, value_range, log) -> float:
+    """Mean brightness ``alpha * max(rgb)`` of the emission TF over the
+    cells, weighted by their volume and extinction opacity (the gas that
+    absorbs is the gas that glows)."""
+    em = TransferFunction.load(emission, e_range)
+    fn = TransferFunction.load(tf, value_range)
+    total = weight = 0.0
+    for (v, w), (g, _) in zip(cells_and_weights(stats), cells_and_weights(stats, key)):
+        a = fn(_log_or_floor(v) if log else v)[:, 3] * w
+        if key is None and log:
+            g = _log_or_floor(g)
+        e = em(_log_or_floor(g) if e_log else g)
+        total += float((e[:, 3] * e[:, :3].max(axis=1) * a).sum())
+        weight += float(a.sum())
+    return total / weight if weight else 0.0
 
 
 def _mean_alpha(volume, tf, value_range, log) -> float:
@@ -231,7 +337,7 @@ def _mean_alpha(volume, tf, value_range, log) -> float:
     total = weight = 0.0
     for v, w in cells_and_weights(volume):
         if log:      # values <= 0 take the floor, below the range: the TF's low end
-            v = np.log10(np.where(v > 0, v, 1.0)) - np.where(v > 0, 0.0, np.inf)
+            v = _log_or_floor(v)
         total += float((fn(v)[:, 3] * w).sum())
         weight += float(w.sum())
     return total / weight if weight else 0.0
@@ -249,21 +355,38 @@ def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: st
               "tf_min": plan.tf_range[0], "tf_max": plan.tf_range[1], "value_transform": plan.transform,
               "density_scale": plan.density_scale,
               "to_world": T(mi.ScalarMatrix4f(plan.to_world_matrix().astype(np.float32)))}
-    return {
+    medium.update(emission_parameters(plan))
+    scene = {
         "type": "scene",
         "integrator": {"type": integrator, "max_depth": 64},
         "sensor": {"type": "perspective", "fov": plan.fov,
                    "to_world": T().look_at(np.asarray(plan.origin, float).tolist(), list(plan.target), list(plan.up)),
                    "sampler": {"type": "independent", "sample_count": spp},
                    "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
-        "sky": {"type": "sunsky", "sun_direction": SUN_DIRECTION, "turbidity": 3.0,
-                "sun_scale": 2.5, "sky_scale": 6.0},
-        "floor": {"type": "rectangle", "to_world": T().translate([0, 0, plan.floor_height()]) @ T().scale(1000),
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.45}}},
         "volume": {"type": "cube", "to_world": T(mi.ScalarMatrix4f(plan.to_world_matrix().astype(np.float32)))
                    @ T().translate([0.5, 0.5, 0.5]) @ T().scale(0.5),
                    "bsdf": {"type": "null"}, "interior": medium},
     }
+    if plan.lit:
+        scene["sky"] = {"type": "sunsky", "sun_direction": SUN_DIRECTION, "turbidity": 3.0,
+                        "sun_scale": 2.5, "sky_scale": 6.0}
+        scene["floor"] = {"type": "rectangle",
+                          "to_world": T().translate([0, 0, plan.floor_height()]) @ T().scale(1000),
+                          "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.45}}}
+    return scene
+
+
+def emission_parameters(plan: ScenePlan) -> dict:
+    """The ``amr`` medium's ``emission*`` parameters of a plan ({} for gas
+    that does not glow)."""
+    e = plan.emission
+    if e is None:
+        return {}
+    out = {"emission": e.tf, "emission_transform": e.transform, "emission_min": e.tf_range[0],
+           "emission_max": e.tf_range[1], "emission_scale": e.scale}
+    if e.field is not None:
+        out["emission_field"] = e.field
+    return out
 
 
 def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int = 64) -> Path:
@@ -276,6 +399,27 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
     cube_matrix = " ".join(f"{x:.9g}" for x in cube.ravel())
     o, t, u = (", ".join(f"{float(x):.9g}" for x in v) for v in (plan.origin, plan.target, plan.up))
     notes = "\n         ".join(plan.notes)
+    glow = "".join(f"\n        <{'float' if isinstance(v, float) else 'string'} name=\"{k}\" value="
+                   f"{quoteattr(format(v, '.9g') if isinstance(v, float) else str(v))}/>"
+                   for k, v in emission_parameters(plan).items())
+    lights = "" if not plan.lit else f"""
+    <emitter type="sunsky">
+        <vector name="sun_direction" value="{', '.join(str(x) for x in SUN_DIRECTION)}"/>
+        <float name="turbidity" value="3"/>
+        <float name="sun_scale" value="2.5"/>
+        <float name="sky_scale" value="6"/>
+    </emitter>
+
+    <shape type="rectangle">  <!-- the ground, just below the domain -->
+        <transform name="to_world">
+            <scale value="1000"/>
+            <translate z="{plan.floor_height():.6g}"/>
+        </transform>
+        <bsdf type="diffuse">
+            <rgb name="reflectance" value="0.45"/>
+        </bsdf>
+    </shape>
+"""
     text = f"""<scene version="3.0.0">
     <!-- made by mi-amr from the data alone; edit and re-render with
          mi-amr render {path.name} -o OUT.exr
@@ -301,35 +445,18 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
             <rfilter type="box"/>
         </film>
     </sensor>
-
-    <emitter type="sunsky">
-        <vector name="sun_direction" value="{', '.join(str(x) for x in SUN_DIRECTION)}"/>
-        <float name="turbidity" value="3"/>
-        <float name="sun_scale" value="2.5"/>
-        <float name="sky_scale" value="6"/>
-    </emitter>
-
+{lights}
     <medium type="amr" id="volume">
         <string name="filename" value={quoteattr(str(data_file))}/>
         <string name="transfer_function" value={quoteattr(str(plan.tf))}/>
         <float name="tf_min" value="{plan.tf_range[0]:.9g}"/>
         <float name="tf_max" value="{plan.tf_range[1]:.9g}"/>
         <string name="value_transform" value="{plan.transform}"/>
-        <float name="density_scale" value="{plan.density_scale:.9g}"/>
+        <float name="density_scale" value="{plan.density_scale:.9g}"/>{glow}
         <transform name="to_world">
             <matrix value="{matrix}"/>
         </transform>
     </medium>
-
-    <shape type="rectangle">  <!-- the ground, just below the domain -->
-        <transform name="to_world">
-            <scale value="1000"/>
-            <translate z="{plan.floor_height():.6g}"/>
-        </transform>
-        <bsdf type="diffuse">
-            <rgb name="reflectance" value="0.45"/>
-        </bsdf>
-    </shape>
 
     <shape type="cube">
         <transform name="to_world">

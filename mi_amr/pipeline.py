@@ -62,7 +62,7 @@ class StructureOptions:
         return self.value_masks and self.method.value_masks_tighten
 
 
-@jit_struct(offset="Vector3f", extent="Vector3f", global_majorant="Float", device=dict)
+@jit_struct(offset="Vector3f", extent="Vector3f", global_majorant="Float", device=dict, field_tables=dict)
 class Structures:
     """Device structures of one medium, and the host structures behind them.
 
@@ -91,6 +91,7 @@ class Structures:
             self._given_cells = None
         self.volume = data
         self.device = {}                # device structs (seen by dr.freeze)
+        self.field_tables = {}          # hash tables over further fields (`field_sampler`)
         self.host = {}                  # host-only structures (bricks)
         self.build_seconds = {}
         lo, hi = data.bounds
@@ -163,6 +164,23 @@ class Structures:
         for name in self.sampling.needs(self):
             self._built(name)
         return self.sampling.sampler(self)
+
+    def field_sampler(self, name: str | None, transform: str = "none"):
+        """A point sampler (``eval(u, active) -> (value, found)``) of a
+        further field of the data (`BlockVolume.field`; None: the main
+        values) through the point-location hash, which is built if the
+        chosen sampling did not need it: the field has the main values'
+        cells, so it shares their hash and layout."""
+        import copy
+        from .device.hash_sampler import HashSampler
+        from .device.values import device_field
+        key = f"{name}:{transform}"              # a struct field, so that dr.freeze sees the values
+        if key not in self.field_tables:
+            table = copy.copy(self.require("hash"))
+            table.values = device_field(self.volume, name, transform)
+            table.shares_values = True           # counted with the volume's fields
+            self.field_tables[key] = table
+        return HashSampler(self.field_tables[key], self.require("grid"), self.offset, self.extent)
 
     # ---- Classification changes ----------------------------------------------
     def reclassify(self, classification: Classification | None = None):

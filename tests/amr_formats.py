@@ -75,12 +75,15 @@ def _write_level(level_dir, boxes, box):
     (level_dir / "Cell_H").write_text("\n".join(head) + "\n")
 
 
-def write_enzo(directory, name, root, children, field="Density"):
+def write_enzo(directory, name, root, children, field="Density", extra=None):
     """Write an Enzo output ``directory/name`` (parameter file, ``.hierarchy``
     and one packed-HDF5 ``.cpu0000`` file) as Enzo 2 writes it: one root
     grid ``root`` (values indexed ``[i, j, k]``) over the unit cube and
     level-1 grids ``children``: ``(start, data)`` with ``start`` the first
-    level-1 cell index. Returns the parameter file's path."""
+    level-1 cell index. ``extra``: further fields, ``{name: f}`` with ``f``
+    mapping a grid's ``field`` values to that field's (e.g. a temperature
+    from the density). Returns the parameter file's path."""
+    extra = dict(extra or {})
     import h5py
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -99,12 +102,16 @@ def write_enzo(directory, name, root, children, field="Density"):
             n = np.asarray(data.shape)
             cell = 1.0 / (dims * 2 ** level)
             left, right = start * cell, (start + n) * cell
-            h5.create_group(f"Grid{gid:08d}").create_dataset(field, data=np.asarray(data, "<f8").transpose(2, 1, 0))
+            group = h5.create_group(f"Grid{gid:08d}")
+            group.create_dataset(field, data=np.asarray(data, "<f8").transpose(2, 1, 0))
+            for other, f in extra.items():
+                group.create_dataset(other, data=np.asarray(f(data), "<f8").transpose(2, 1, 0))
             lines += [f"Grid = {gid}", "GridRank = 3", f"GridDimension = {n[0]} {n[1]} {n[2]}",
                       "GridStartIndex = 0 0 0", f"GridEndIndex = {n[0] - 1} {n[1] - 1} {n[2] - 1}",
                       "GridLeftEdge = " + " ".join(f"{x:.17g}" for x in left),
                       "GridRightEdge = " + " ".join(f"{x:.17g}" for x in right),
-                      "Time = 0", "SubgridsAreStatic = 0", "NumberOfBaryonFields = 1", "FieldType = 0",
+                      "Time = 0", "SubgridsAreStatic = 0", f"NumberOfBaryonFields = {1 + len(extra)}",
+                      "FieldType = " + " ".join(str(t) for t in range(1 + len(extra))),
                       f"BaryonFileName = {data_file}", "NumberOfParticles = 0"]
             # root: first child below; children: the next sibling on level 1
             this = gid + 1 if level == 1 and gid < len(grids) else 0

@@ -1,7 +1,8 @@
 """Write a synthetic density field in Enzo's own output format, for the
 README's one-command example (no real Enzo output is bundled: they are
 hundreds of MB). A log-normal "cosmic web" on a 64^3 root grid, with level-1
-grids of 16^3 over its densest regions, written by tests/amr_formats.py.
+grids of 16^3 over its densest regions, and a gas temperature that rises
+with density, written by tests/amr_formats.py.
 
     python tools/make_enzo_example.py out/enzo     # -> out/enzo/DD0018/DD0018
     mi-amr render out/enzo/DD0018/DD0018 --field density -o out/enzo.exr
@@ -27,6 +28,12 @@ def cosmic_web(n, rng):
     return 1e-29 * np.exp(2.3 * g)
 
 
+def temperature(density):
+    """A synthetic gas temperature (K): shock-heated where the gas is dense,
+    ``1e4 K (rho / 1e-29)^0.7``, from about 1e3 K in voids to 1e6 K in knots."""
+    return 1e4 * (np.asarray(density) / 1e-29) ** 0.7
+
+
 def main(out):
     rng = np.random.default_rng(18)
     fine = cosmic_web(128, rng)                      # the field at level-1 resolution
@@ -39,8 +46,9 @@ def main(out):
         i, j, k = np.unravel_index(b, blocks.shape)
         start = np.array([i, j, k]) * 16
         children.append((start, fine[start[0]:start[0] + 16, start[1]:start[1] + 16, start[2]:start[2] + 16]))
-    path = write_enzo(Path(out) / "DD0018", "DD0018", root, children)
-    print(f"wrote {path} (+ .hierarchy, .cpu0000): 64^3 root cells, {len(children)} level-1 grids of 16^3")
+    path = write_enzo(Path(out) / "DD0018", "DD0018", root, children, extra={"Temperature": temperature})
+    print(f"wrote {path} (+ .hierarchy, .cpu0000): 64^3 root cells, {len(children)} level-1 grids of 16^3, "
+          f"fields Density and Temperature")
 
 
 if __name__ == "__main__":

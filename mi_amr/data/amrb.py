@@ -15,7 +15,9 @@ layout, for other tools). Little-endian throughout:
   each `CHUNK_BYTES` chunk);
 * the sections, each at a 64-byte aligned offset: ``level`` (uint8, one per
   block), ``coord`` (int32, 3 per block), ``values`` (float32, B^3 per
-  block, NaN where a level has no cell); then (version 2, optional) the
+  block, NaN where a level has no cell); then ``field.NAME`` for every
+  further field the header's ``fields`` names (float32, laid out as
+  ``values``); then (version 2, optional) the
   macrocell grids that a medium would build first, one per reconstruction
   method named in the header's ``grids``: ``grid.M.vmin``, ``grid.M.vmax``
   (float32), ``grid.M.bits`` (uint32 level masks) and ``grid.M.masks``
@@ -89,6 +91,9 @@ def write_amrb(volume: BlockVolume, path, grids: dict | None = None) -> Path:
               "coord": np.ascontiguousarray(volume.coord, dtype="<i4"),
               "values": np.ascontiguousarray(volume.values, dtype="<f4")}
     order = list(SECTIONS)
+    for name, a in volume.fields.items():            # further fields, laid out as the values
+        arrays[f"field.{name}"] = np.ascontiguousarray(a, dtype="<f4")
+        order.append((f"field.{name}", "<f4"))
     stored = []
     for method, g in (grids or {}).items():
         res = [int(r) for r in g["res"]]
@@ -114,7 +119,7 @@ def write_amrb(volume: BlockVolume, path, grids: dict | None = None) -> Path:
               "hi": [int(x) for x in volume.hi], "value_range": list(map(float, volume.value_range)),
               "covers_bounds": bool(covers), "partial_block_cells": int(partial),
               "source": str(volume.source), "meta": volume.meta, "chunk_bytes": CHUNK_BYTES,
-              "grids": stored}
+              "fields": list(volume.fields), "grids": stored}
     # the checksums go into the header, so they are computed first (one pass
     # over memory, in parallel: zlib releases the GIL), then the bytes written
     for s in sections:
@@ -186,6 +191,12 @@ def read_header(path) -> dict:
         header = json.loads(text)
         sections = {s["name"]: s for s in header["sections"]}
         expected = list(SECTIONS)
+        for name in header.setdefault("fields", []):
+            if not isinstance(name, str) or not name:
+                _fail(path, f"field name {name!r} is not a name")
+            expected.append((f"field.{name}", "<f4"))
+            if sections[f"field.{name}"]["shape"] != sections["values"]["shape"]:
+                _fail(path, f"field {name!r} does not hold one value per value slot")
         grid_dtypes = dict(GRID_ARRAYS)
         for g in header.setdefault("grids", []):
             n_cells = int(np.prod([int(r) for r in g["res"]]))
@@ -266,7 +277,8 @@ def read_amrb(path) -> BlockVolume:
                          np.array(header["origin"], np.int64), np.array(header["lo"], np.int64),
                          np.array(header["hi"], np.int64), header["n_cells"], header.get("source") or str(path),
                          header.get("meta") or {}, value_range=tuple(header["value_range"]),
-                         cell_counts=(bool(header["covers_bounds"]), int(header["partial_block_cells"])))
+                         cell_counts=(bool(header["covers_bounds"]), int(header["partial_block_cells"])),
+                         fields={name: arrays[f"field.{name}"] for name in header["fields"]})
     for g in header["grids"]:
         grid = {field: arrays.get(f"grid.{g['method']}.{field}") for field, _ in GRID_ARRAYS}
         volume.stored_grids[g["method"]] = dict(grid, res=np.array(g["res"], np.int64),

@@ -68,10 +68,12 @@ class BlockVolume(mi.Object):
     """
 
     def __init__(self, block, level, coord, values, origin, lo, hi, n_cells, source, meta=None,
-                 value_range=None, cell_counts=None):
+                 value_range=None, cell_counts=None, fields=None):
         """``value_range`` and ``cell_counts`` (``(covers_bounds,
         partial_block_cells)``): known already (a native file stores them);
-        else computed here (value range) or on first use (cell counts)."""
+        else computed here (value range) or on first use (cell counts).
+        ``fields``: further named fields on the same cells, each laid out
+        as ``values`` (`add_field`)."""
         super().__init__()
         self.block = int(block)
         self.log2_block = int(self.block).bit_length() - 1
@@ -85,6 +87,15 @@ class BlockVolume(mi.Object):
         # macrocell grids read from a native file, by reconstruction method
         # (`mi_amr.data.amrb`), used by `MacrocellGrid` instead of a build
         self.stored_grids = {}
+        #: further named fields on the same cells (float32, laid out as
+        #: ``values``, NaN where no cell): e.g. a temperature beside the
+        #: density that ``values`` holds (`add_field`)
+        self.fields = {}
+        for name, a in (fields or {}).items():
+            a = np.asarray(a, dtype=np.float32)
+            if a.shape != self.values.shape:
+                raise ValueError(f"{source}: field {name!r} has {a.size} values for {self.values.size}")
+            self.fields[str(name)] = a
         self._covers = None if cell_counts is None else tuple(cell_counts)
         if value_range is None:
             self._update_range()
@@ -93,7 +104,7 @@ class BlockVolume(mi.Object):
 
     def __reduce__(self):
         return (BlockVolume, (self.block, self.level, self.coord, self.values, self.origin, self.lo,
-                              self.hi, self.n_cells, self.source, self.meta))
+                              self.hi, self.n_cells, self.source, self.meta, None, None, self.fields))
 
     def _update_range(self):
         self._range = scan_values(self.values, self.level, self.block)[1]
@@ -133,6 +144,9 @@ class BlockVolume(mi.Object):
                      lambda: sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)),
                      method)
         vol.meta = dict(getattr(cells, "meta", {}))
+        for name, f in getattr(cells, "fields", {}).items():
+            vol.add_field(name, lambda f=f: ((cells.pos[s:s + CHUNK], cells.level[s:s + CHUNK], f[s:s + CHUNK])
+                                             for s in range(0, len(cells), CHUNK)))
         return vol
 
     @classmethod
@@ -222,8 +236,69 @@ class BlockVolume(mi.Object):
 
     @property
     def nbytes(self) -> int:
-        """Resident host bytes: values and per-block headers."""
-        return self.values.nbytes + self.level.nbytes + self.coord.nbytes
+        """Resident host bytes: values, further fields and per-block headers."""
+        return (self.values.nbytes + sum(a.nbytes for a in self.fields.values())
+                + self.level.nbytes + self.coord.nbytes)
+
+    # ---- Further fields on the same cells ---------------------------------
+    def field(self, name: str | None) -> np.ndarray:
+        """The values of field ``name`` in block layout: ``values`` for None,
+        else `fields` (a ValueError naming the fields there are otherwise)."""
+        if name is None:
+            return self.values
+        if name not in self.fields:
+            have = ", ".join(repr(n) for n in sorted(self.fields)) or "none"
+            raise ValueError(f"{self.source}: no field {name!r} (further fields: {have})")
+        return self.fields[name]
+
+    def field_range(self, name: str | None) -> tuple[float, float]:
+        """``(min, max)`` of field ``name`` over the cells."""
+        if name is None:
+            return self.value_range
+        return scan_values(self.field(name), self.level, self.block)[1]
+
+    def add_field(self, name: str, chunks, skip_missing: bool = False) -> np.ndarray:
+        """Place a further per-cell field ``name`` on this volume's cells, laid
+        out as ``values``: ``chunks()`` yields ``(pos (m, 3), level (m,),
+        value (m,))`` of exactly this volume's cells, in any order and
+        chunking. A cell that is not one of the volume's, a cell given twice
+        or left out, or a value that is not finite is a ValueError naming
+        the field; memory grows by the field alone. ``skip_missing``: cells
+        the volume does not have are passed over (data loaded with
+        ``overlap='finest'``, which dropped covered cells)."""
+        name = str(name)
+        if not name or name in self.fields:
+            raise ValueError(f"{self.source}: field name {name!r} is empty or used already")
+        out = np.full(self.values.shape, np.nan, dtype=np.float32)
+        packed = _fits_packed(self.coord)
+        keys = _block_keys(self.coord, self.level, packed)
+        order = np.argsort(keys)
+        placed = 0
+        for pos, level, value in chunks():
+            pos, level = np.asarray(pos), np.asarray(level)
+            value = np.asarray(value, dtype=np.float32)
+            if not np.all(np.isfinite(value)):
+                raise ValueError(f"{self.source}: field {name!r} has NaN or Inf values")
+            q = np.stack(_level_coords(pos, level, self.origin), axis=1).astype(np.int64)
+            k = _block_keys(q >> self.log2_block, level, packed)
+            i = np.minimum(np.searchsorted(keys, k, sorter=order), len(keys) - 1)
+            hit = (keys[order[i]] == k) & np.all(q >= 0, axis=1)
+            slot = _slot(order[i], q, self.block)
+            hit[hit] &= ~np.isnan(self.values[slot[hit]])
+            if skip_missing:
+                slot, value = slot[hit], value[hit]
+            elif not hit.all():
+                j = int(np.argmin(hit))
+                raise ValueError(f"{self.source}: field {name!r} has a value for a cell the data do not have "
+                                 f"(position {np.asarray(pos[j]).tolist()}, level {int(level[j])})")
+            out[slot] = value
+            placed += len(value)
+        filled = int(np.count_nonzero(~np.isnan(out)))
+        if placed != self.n_cells or filled != self.n_cells:
+            raise ValueError(f"{self.source}: field {name!r} gives {placed} values for {filled} of the "
+                             f"{self.n_cells} cells (each cell needs exactly one)")
+        self.fields[name] = out
+        return out
 
     def __repr__(self):
         return (f"BlockVolume[{self.n_cells} cells in {len(self.level)} blocks of {self.block}^3, "
@@ -258,8 +333,10 @@ class BlockVolume(mi.Object):
         """All cells as an `AMRCells` (per-cell records: for small data and for
         builders that still need them)."""
         parts = list(self.cell_chunks())
+        present = ~np.isnan(self.values)          # the cells in the order cell_chunks gives them
         cells = AMRCells(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
-                         np.concatenate([p[2] for p in parts]), source=self.source, validate=False)
+                         np.concatenate([p[2] for p in parts]), source=self.source, validate=False,
+                         fields={n: a[present] for n, a in self.fields.items()})
         cells.meta = dict(self.meta)
         return cells
 

@@ -33,10 +33,13 @@ class AMRCells(mi.Object):
         (default) or keep the finer cells and drop the coarser ones.
     source : str
         Name used in error messages (e.g. the file the data came from).
+    fields : dict of name -> float array (N,), optional
+        Further fields on the same cells (one finite value per cell each),
+        e.g. a temperature beside the density in ``value``.
     """
 
     def __init__(self, pos, level, value, *, overlap: str = "error",
-                 source: str = "AMR data", validate: bool = True):
+                 source: str = "AMR data", validate: bool = True, fields=None):
         super().__init__()
         pos = np.asarray(pos)
         level = np.asarray(level)
@@ -58,12 +61,21 @@ class AMRCells(mi.Object):
         self.value = np.ascontiguousarray(value, dtype=np.float32)
         #: physical metadata (`mi_amr.data.metadata`): domain, field, units, code
         self.meta = {}
+        #: further named fields, one value per cell each
+        self.fields = {}
+        for name, f in (fields or {}).items():
+            f = np.ascontiguousarray(f, dtype=np.float32)
+            if f.shape != (n,):
+                raise ValueError(f"{source}: field {name!r} has shape {f.shape}, the cells {n}")
+            if validate and not np.all(np.isfinite(f)):
+                raise ValueError(f"{source}: field {name!r} has NaN or Inf values")
+            self.fields[str(name)] = f
         if validate:
             self._validate(overlap)
 
     def __reduce__(self):
         """Pickled as its arrays (for Dask workers), not validated again."""
-        return (_cells_from_arrays, (self.pos, self.level, self.value, self.source, self.meta))
+        return (_cells_from_arrays, (self.pos, self.level, self.value, self.source, self.meta, self.fields))
 
     # ---- Validation ----------------------------------------------------
     def _validate(self, overlap: str):
@@ -84,6 +96,7 @@ class AMRCells(mi.Object):
                     f"cells (first: cell {i} at {self.pos[i].tolist()}, level "
                     f"{self.level[i]}); pass overlap='finest' to keep the finer ones")
             self.pos, self.level, self.value = self.pos[keep], self.level[keep], self.value[keep]
+            self.fields = {name: f[keep] for name, f in self.fields.items()}
 
     # ---- Properties ----------------------------------------------------
     def __len__(self):
@@ -210,8 +223,8 @@ def cell_keys(q: np.ndarray) -> np.ndarray:
     return q.view(np.dtype((np.void, 24))).ravel()
 
 
-def _cells_from_arrays(pos, level, value, source, meta=None):
+def _cells_from_arrays(pos, level, value, source, meta=None, fields=None):
     """`AMRCells` from arrays that were valid when pickled."""
-    cells = AMRCells(pos, level, value, source=source, validate=False)
+    cells = AMRCells(pos, level, value, source=source, validate=False, fields=fields)
     cells.meta = dict(meta or {})
     return cells

@@ -125,8 +125,14 @@ def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Pat
     return cells_path, scalars_path
 
 
+#: Prefix of the ``.npz`` members that hold further fields on the cells
+#: (``field_temperature``: the field ``temperature``).
+FIELD_PREFIX = "field_"
+
+
 def read_npz(path, *, overlap: str = "error") -> AMRCells:
-    """Read an ``.npz`` archive with ``pos``, ``level`` and ``value`` arrays."""
+    """Read an ``.npz`` archive with ``pos``, ``level`` and ``value`` arrays
+    (and further fields as ``field_<name>`` arrays, one value per cell)."""
     path = Path(path)
     with _npz_errors(path), np.load(path, allow_pickle=False) as z:
         missing = {"pos", "level", "value"} - set(z.files)
@@ -136,11 +142,12 @@ def read_npz(path, *, overlap: str = "error") -> AMRCells:
         require(structure_bytes("cells", n), f"{path} ({n} values per array)",
                 hint="raise the limit to load it")
         pos, level, value = z["pos"], z["level"], z["value"]
+        fields = {name.removeprefix(FIELD_PREFIX): z[name] for name in z.files if name.startswith(FIELD_PREFIX)}
         meta = _npz_meta(z, path)
     for name, arr in (("pos", pos), ("level", level)):
         if not np.issubdtype(arr.dtype, np.integer):
             raise ValueError(f"{path}: array '{name}' must be integer, got {arr.dtype}")
-    cells = AMRCells(pos, level, value, overlap=overlap, source=str(path))
+    cells = AMRCells(pos, level, value, overlap=overlap, source=str(path), fields=fields)
     cells.meta = meta
     return cells
 
@@ -185,15 +192,22 @@ def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
         raise ValueError(f"{path}: contains no cells")
     require(load_bytes(n, chunk), f"{path} ({n} cells)", hint="raise the limit to load it")
 
-    def chunks():
+    field_names = sorted(name for name in names if name.startswith(FIELD_PREFIX))
+    for name in field_names:
+        with _npz_errors(path), zipfile.ZipFile(path) as z, z.open(f"{name}.npy") as f:
+            fs, ffo, fdt = _npy_header(f)
+        if fs != (n,) or ffo or _has_objects(fdt):
+            raise ValueError(f"{path}: field array {name!r} must hold one number per cell ({n}), got {fs} {fdt}")
+
+    def chunks(value_member="value", value_dtype=vdt):
         with _npz_errors(path), zipfile.ZipFile(path) as z:
-            members = [z.open(f"{name}.npy") for name in ("pos", "level", "value")]
+            members = [z.open(f"{name}.npy") for name in ("pos", "level", value_member)]
             for f in members:                     # skip the headers
                 _npy_header(f)
             for s in range(0, n, chunk):
                 m = min(chunk, n - s)
                 out = []
-                for f, dt, shape in zip(members, (pdt, ldt, vdt), ((m, 3), (m,), (m,))):
+                for f, dt, shape in zip(members, (pdt, ldt, value_dtype), ((m, 3), (m,), (m,))):
                     nbytes = int(np.prod(shape)) * dt.itemsize
                     buf = f.read(nbytes)
                     if len(buf) != nbytes:
@@ -206,6 +220,12 @@ def read_npz_blocks(path, *, overlap: str = "error", method: str = "tent",
         meta = _npz_meta(z, path)
     vol = BlockVolume.from_chunks(chunks, str(path), overlap=overlap, method=method, total=n)
     vol.meta = meta
+    for name in field_names:                      # streamed too, onto the blocks just built
+        with _npz_errors(path), zipfile.ZipFile(path) as z, z.open(f"{name}.npy") as f:
+            fdt = _npy_header(f)[2]
+        with _npz_errors(path):
+            vol.add_field(name.removeprefix(FIELD_PREFIX), lambda name=name, fdt=fdt: chunks(name, fdt),
+                          skip_missing=overlap == "finest")
     return vol
 
 
@@ -245,6 +265,7 @@ def _npy_header(f) -> tuple:
 def write_npz(cells: AMRCells, path) -> Path:
     path = Path(path)
     extra = {"meta": np.array(json.dumps(cells.meta))} if getattr(cells, "meta", None) else {}
+    extra.update({f"{FIELD_PREFIX}{name}": f for name, f in getattr(cells, "fields", {}).items()})
     np.savez_compressed(path, pos=cells.pos.astype(np.int32 if np.abs(cells.pos).max() < 2**31 else np.int64),
                         level=cells.level, value=cells.value, **extra)
     return path

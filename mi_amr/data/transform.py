@@ -58,10 +58,11 @@ def apply_value_transform(data: AMRCells | BlockVolume, kind: str, inplace: bool
     if isinstance(data, AMRCells):
         floor = positive_floor(data.value, data.source)
         out = AMRCells(data.pos, data.level, log10_values(data.value, floor), validate=False,
-                       source=f"log10 of {data.source}")
+                       source=f"log10 of {data.source}", fields=data.fields)
         out.meta = dict(meta, log_floor=floor)
         return out, floor
     floor = positive_floor(data.values, data.source)
     values = log10_values(data.values, floor, out=data.values if inplace else None)
     return BlockVolume(data.block, data.level, data.coord, values, data.origin, data.lo, data.hi,
-                       data.n_cells, f"log10 of {data.source}", dict(meta, log_floor=floor)), floor
+                       data.n_cells, f"log10 of {data.source}", dict(meta, log_floor=floor),
+                       fields=data.fields), floor

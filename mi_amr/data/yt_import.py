@@ -31,16 +31,27 @@ def from_yt(ds, field, *, overlap: str = "error") -> AMRCells:
     return cells
 
 
-def from_yt_blocks(ds, field, *, overlap: str = "error", method: str = "tent"):
+def from_yt_blocks(ds, field, *, overlap: str = "error", method: str = "tent", fields=()):
     """`from_yt` straight into a `BlockVolume`: each grid's uncovered cells
     (``child_mask``, vectorised over the grid) stream into the blocks, with
-    the same validation and no per-cell array of the whole data set."""
+    the same validation and no per-cell array of the whole data set.
+    ``fields``: further fields to read onto the same cells (names or
+    ``(type, name)`` tuples; stored under their last name, e.g.
+    ``temperature``, `BlockVolume.add_field`)."""
     from .blocks import BlockVolume
     layout = _layout(ds)
     vol = BlockVolume.from_chunks(lambda: _grid_cells(ds, field, layout), f"yt dataset {ds} field {field}",
                                   overlap=overlap, method=method)
     vol.meta = _metadata(ds, field, layout)
+    for extra in fields:
+        vol.add_field(field_key(extra), lambda extra=extra: _grid_cells(ds, extra, layout))
     return vol
+
+
+def field_key(field) -> str:
+    """The name a yt field is stored under beside the main one: its last
+    part (``("gas", "temperature")`` -> ``temperature``)."""
+    return str(field[-1] if isinstance(field, tuple) else field).split(",")[-1].strip()
 
 
 def _layout(ds):

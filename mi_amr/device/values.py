@@ -25,3 +25,29 @@ def device_values(volume) -> mi.Float:
 def shares_host_values(values: mi.Float) -> bool:
     """Whether ``values`` are the volume's host values too (CPU backend)."""
     return dr.backend_v(values) == dr.JitBackend.LLVM
+
+
+def device_field(volume, name: str | None, transform: str = "none") -> mi.Float:
+    """A field of ``volume`` as an opaque device array laid out as its values
+    (`BlockVolume.field`; None: the values themselves, `device_values`),
+    with ``transform`` (``none`` or ``log10``, `mi_amr.data.transform`)
+    applied; made once per (field, transform) and variant. On the CPU
+    backend an untransformed field becomes a view of the device array, as
+    the values do, so it is kept once."""
+    if name is None and transform == "none":
+        return device_values(volume)
+    cache = volume.__dict__.setdefault("_device_fields", {})
+    values = cache.get((name, transform))
+    if not isinstance(values, mi.Float):
+        host = volume.field(name)
+        if transform == "log10":
+            from ..data.transform import log10_values, positive_floor
+            host = log10_values(host, positive_floor(host, f"{volume.source} field {name or 'value'}"))
+        elif transform != "none":
+            raise ValueError(f"unknown field transform {transform!r}")
+        values = mi.Float(host)
+        dr.make_opaque(values)
+        cache[(name, transform)] = values
+        if transform == "none" and dr.backend_v(values) == dr.JitBackend.LLVM:
+            volume.fields[name] = values.numpy()
+    return values

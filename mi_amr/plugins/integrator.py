@@ -9,6 +9,10 @@ free flights (delta tracking) and shadow rays (ratio tracking) run segment
 by segment through the medium's traversal structure, each segment with its
 own majorant, without restarting at null collisions. Every other medium goes
 through ``Medium.sample_interaction`` exactly as in volpath.
+
+``amr`` media that glow (an ``emission`` TF) add their emission ``sigma_a
+L_e`` along every path segment through them, estimated at the segment's
+real collision; stock volpath has no medium emission.
 """
 
 from __future__ import annotations
@@ -199,6 +203,12 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 counts = counts + flight.counts
                 real = is_k & flight.collided
                 mei[real] = self._medium_interaction(ray, flight, amr_ptrs[k])
+                if dr.hint(amr_media[k].glows, mode="scalar"):
+                    # emission, collision estimator: a real collision falls at
+                    # t with density T(t) sigma_t(t), so adding sigma_a/sigma_t
+                    # L_e = (1 - albedo) L_e there estimates the integral of
+                    # T sigma_a L_e along the segment (docs/design.md section 12)
+                    L[real] += throughput * (1.0 - flight.albedo) * amr_media[k].emitted_radiance(mei.p, real)
                 throughput[real] *= flight.albedo        # sigma_s / sigma_t
                 act_scatter |= real
 

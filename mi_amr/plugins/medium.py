@@ -162,6 +162,19 @@ def _warn_if_volpath_is_slower(medium):
                f"faster (<integrator type=\"amrvolpath\"/>; figures: docs/performance/protocol.md)")
 
 
+def _warn_if_emission_is_ignored(medium):
+    """Once per process: stock ``volpath`` (any integrator that calls
+    ``sample_interaction``) has no medium emission, so a medium that glows
+    renders dark there; say so, naming ``amrvolpath``."""
+    if "emission" in _WARNED or not medium.glows:
+        return
+    _WARNED.add("emission")
+    mi.Log(mi.LogLevel.Warn,
+           "amr: this medium emits light (an 'emission' TF), but Mitsuba's stock volpath has no medium "
+           "emission and renders it as if it did not glow; the 'amrvolpath' integrator adds the emission "
+           "(<integrator type=\"amrvolpath\"/>)")
+
+
 class AMRMedium(metaclass=VariantPlugin, base="Medium"):
     r"""
     AMR medium (:monosp:`amr`)
@@ -247,6 +260,28 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
        - |string|
        - ``error`` (default) rejects overlapping cells; ``finest`` keeps the
          finer ones.
+     * - emission
+       - |string| or ``TransferFunction``
+       - Makes the medium glow (``amrvolpath`` only): an emission TF over
+         the emission field, a preset (``blackbody``), a matplotlib colormap
+         name or a ``.json`` file. The gas emits ``sigma_a L_e`` per unit
+         length with ``L_e = emission_scale * rgb * alpha`` of this TF and
+         ``sigma_a = sigma_t (1 - albedo)``. Default: none (no emission).
+     * - emission_field
+       - |string|
+       - The field the emission TF reads: a further field of the data (e.g.
+         ``temperature``). Default: the extinction field.
+     * - emission_scale
+       - |float|
+       - Radiance of TF colour 1 at intensity 1. Default: 1.
+     * - emission_min, emission_max
+       - |float|
+       - Value domain of a preset emission TF. Default: the emission
+         field's range (after ``emission_transform``).
+     * - emission_transform
+       - |string|
+       - ``none`` (default) or ``log10``, applied to the emission field as
+         ``value_transform`` is to the extinction field.
      * - to_world
        - |transform|
        - Placement of the unit cube in the scene.
@@ -290,9 +325,16 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         dr.make_opaque(self._to_local, self._max_iterations)
         # the one owner of the TF and the density scale: every change goes
         # through it and then reclassifies the structures
-        self.classification = Classification(options.tf, options.density_scale)
+        emission = options.emission
+        self.classification = Classification(options.tf, options.density_scale,
+                                             emission=None if emission is None else emission.tf,
+                                             emission_scale=1.0 if emission is None else emission.scale)
         self.structures = Structures(options.data, options.structures, self.classification,
                                      options.world_scale).build()
+        # a medium that glows: the emission field's look-ups go through the
+        # point-location hash (whatever the sampling) with that field's values
+        if emission is not None:
+            self.structures.field_sampler(emission.field, emission.transform)
         self.classification.on_change = self.structures.reclassify
         self._ray_majorant = _RayMajorant()
         two_level = (options.structures.traversal == "grid"
@@ -399,6 +441,34 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         """The TF's colour (the albedo) at ``value``."""
         return self.classification.device.eval_rgb(value, active)
 
+    # ---- Emission ---------------------------------------------------------------
+    @property
+    def glows(self) -> bool:
+        """Whether the medium emits (an ``emission`` TF was given at load)."""
+        return self.classification.glows
+
+    @property
+    def emission_tf(self) -> TransferFunction | None:
+        """The emission TF (host form; `classification` owns it), or None."""
+        return self.classification.emission
+
+    def emitted_radiance(self, p: mi.Point3f, active=True):
+        """``L_e`` at world points ``p`` (the radiance of the absorbing gas:
+        its emission per unit length is ``sigma_a L_e``); 0 outside the data
+        and for a medium that does not glow."""
+        emission = self.options.emission
+        if emission is None:
+            return mi.Color3f(0.0)
+        sampler = self.structures.field_sampler(emission.field, emission.transform)
+        value, found = sampler.eval(self._to_local @ p, active)
+        return self.classification.emitted_radiance(value, found)
+
+    def set_emission(self, emission: TransferFunction | None = None, emission_scale: float | None = None):
+        """A new emission TF and/or scale (None keeps the current one): the
+        same path as ``params.update()`` (`Classification.set`); no majorant
+        moves and no kernel is recompiled."""
+        self.classification.set(emission=emission, emission_scale=emission_scale)
+
     # ---- Local-majorant tracking (used by the amrvolpath integrator) ---------
     def local_ray(self, ray: mi.Ray3f):
         """``(o, d, s)``: the ray in the unit cube with a unit direction ``d``
@@ -448,6 +518,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         # only Mitsuba's sample_interaction calls this (amrvolpath tracks by
         # segments itself): a stock integrator is rendering this medium
         _warn_if_volpath_is_slower(self)
+        _warn_if_emission_is_ignored(self)
         key = self._ray_majorant.key_of(ray)
         o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
@@ -484,9 +555,11 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
     # ---- Scene parameters (mi.traverse) ------------------------------------------
     def traverse(self, callback):
         """Expose ``density_scale``, the TF table ``tf_rgba`` (flat float
-        array, N x 4, row major), ``tf_domain`` ([lo, hi]) and the nested
-        phase function; ``params.update()`` then reclassifies the medium
-        exactly as `set_transfer_function` does."""
+        array, N x 4, row major), ``tf_domain`` ([lo, hi]), for a medium
+        that glows ``emission_scale``, ``emission_rgba`` and
+        ``emission_domain``, and the nested phase function;
+        ``params.update()`` then reclassifies the medium exactly as
+        `set_transfer_function` (`set_emission`) does."""
         self.classification.traverse(callback)
         callback.put("phase_function", self.phase_function(), mi.ParamFlags.Differentiable)
 

@@ -38,7 +38,20 @@ MAX_CONDITION = 1e7
 KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
          "density_scale", "reconstruction", "majorant", "grid_resolution", "grid_refinement",
          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
-         "kdtree_leaves", "max_iterations", "memory_limit", "value_masks", "value_transform"}
+         "kdtree_leaves", "max_iterations", "memory_limit", "value_masks", "value_transform",
+         "emission", "emission_field", "emission_scale", "emission_min", "emission_max", "emission_transform"}
+
+
+@dataclass(frozen=True)
+class Emission:
+    """What makes a medium glow: the emission TF over its (transformed)
+    emission field, the field's name (None: the extinction field, as the
+    extinction TF sees it, after ``value_transform``), the transform of its values and the radiance
+    scale (docs/design.md section 12)."""
+    tf: TransferFunction
+    field: str | None
+    transform: str
+    scale: float
 
 
 @dataclass(frozen=True)
@@ -52,6 +65,7 @@ class MediumOptions:
     max_iterations: int
     to_world: "mi.ScalarTransform4f"
     structures: StructureOptions
+    emission: "Emission | None" = None
 
     @property
     def world_scale(self) -> float:
@@ -69,6 +83,7 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
     # once, at load; the TF domain is in transformed units (a file's volume is
     # this medium's own, so it is transformed in place)
     data, _ = apply_value_transform(data, transform, inplace="filename" in props.keys())
+    emission = _emission(props, data)
     structures = StructureOptions(
         reconstruction=reconstruction,
         traversal=get_string(props, "amr", "traversal", "grid", TRAVERSALS),
@@ -87,7 +102,8 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
         max_iterations=get_int(props, "amr", "max_iterations", MAX_TRACKING_ITERATIONS,
                                minimum=1, maximum=2**31),
         to_world=_to_world(props, data),
-        structures=structures)
+        structures=structures,
+        emission=emission)
 
 
 def check_density_scale(v) -> float:
@@ -157,6 +173,56 @@ def _transfer_function(props, cells: AMRCells | BlockVolume) -> TransferFunction
         return TransferFunction.load(tf_path, domain)
     raise ParameterError(f"amr: transfer_function must be a preset name, a .json path "
                          f"or a TransferFunction, got {type(tf).__name__}")
+
+
+def _emission(props, data) -> Emission | None:
+    """The ``emission*`` parameters, checked against the data (None without
+    ``emission``): the field exists, the emission TF's domain defaults to
+    the (transformed) field's range."""
+    given = [k for k in props.keys() if k.startswith("emission")]
+    if "emission" not in props.keys():
+        if given:
+            raise ParameterError(f"amr: {', '.join(sorted(given))} given without 'emission' (the emission TF)")
+        return None
+    from ..data.transform import positive_floor
+    from ..transfer.classification import check_emission_scale
+    field = get_string(props, "amr", "emission_field", None)
+    transform = get_string(props, "amr", "emission_transform", "none", VALUE_TRANSFORMS)
+    values = _field_values(data, field)
+    lo, hi = (data.field_range(field) if isinstance(data, BlockVolume)
+              else (float(values.min()), float(values.max())))
+    if transform == "log10":
+        floor = positive_floor(values, f"{data.source} field {field or 'value'}")
+        lo, hi = float(np.log10(max(lo, floor))), float(np.log10(max(hi, floor)))
+    if hi <= lo:
+        pad = max(0.5, 1e-3 * abs(lo))
+        lo, hi = lo - pad, hi + pad
+    domain = (get_float(props, "amr", "emission_min", lo), get_float(props, "amr", "emission_max", hi))
+    if domain[1] <= domain[0]:
+        raise ParameterError(f"amr: emission_min must be below emission_max, got {domain[0]} and {domain[1]}")
+    spec = props["emission"]
+    if isinstance(spec, str) and spec.endswith(".json"):
+        spec = str(mi.file_resolver().resolve(spec))
+    if not isinstance(spec, (str, TransferFunction)):
+        raise ParameterError(f"amr: emission must be a preset name, a colormap name, a .json path or a "
+                             f"TransferFunction, got {type(spec).__name__}")
+    try:
+        tf = TransferFunction.load(spec, domain)
+    except ValueError as e:
+        raise ParameterError(f"amr: emission: {e}") from e
+    scale = check_emission_scale(get_float(props, "amr", "emission_scale", 1.0))
+    return Emission(tf=tf, field=field, transform=transform, scale=scale)
+
+
+def _field_values(data, field: str | None) -> np.ndarray:
+    """The values of ``field`` of the data (None: the main field), or a
+    `ParameterError` naming the fields there are."""
+    if field is None:
+        return data.values if isinstance(data, BlockVolume) else data.value
+    if field not in data.fields:
+        have = ", ".join(repr(n) for n in sorted(data.fields)) or "none besides the main one"
+        raise ParameterError(f"amr: emission_field {field!r} is not a field of {data.source} (fields: {have})")
+    return data.fields[field]
 
 
 def _to_world(props, data=None) -> "mi.ScalarTransform4f":

@@ -4,6 +4,7 @@ compare, dataset."""
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import os
 import sys
@@ -39,22 +40,103 @@ def _scene_from_data(args):
     from ..data.io import save_cells
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    log = {"log": True, "linear": False}.get(args.scale)
-    plan = plan_scene(args.scene, args.field, tf=args.tf or DEFAULT_TF, log=log,
-                      value_range=tuple(args.range) if args.range else None)
+    plan = plan_scene(args.scene, args.field, **_plan_options(args))
     data = Path(args.scene)
     if data.suffix in (".cells", ".npz", ".amrb") and data.is_file():
         data_file = data.resolve()
         if field_scalars(data, args.field) is not None:     # the XML names .cells + scalars: convert to one file
             data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
-    else:
-        data_file = save_cells(plan.data, out.with_suffix(".cells")).resolve()
+    else:      # a native file: it holds further fields (emission) and reopens at disk speed
+        data_file = save_cells(plan.data, out.with_suffix(".amrb" if plan.data.fields else ".cells")).resolve()
     xml = write_scene_xml(plan, data_file, out.with_suffix(".xml"), res=args.res, spp=args.spp)
     if not args.quiet:
         for note in plan.notes:
             print(note)
         print(f"wrote {xml} (edit it and run: mi-amr render {xml} -o {out})")
     return xml
+
+
+def _plan_options(args) -> dict:
+    """`mi_amr.autoscene.plan_scene` options from the data flags."""
+    from ..autoscene import DEFAULT_TF, GLOW_TF
+    return dict(tf=args.tf or (GLOW_TF if args.emission else DEFAULT_TF), log={"log": True, "linear": False}.get(args.scale),
+                value_range=tuple(args.range) if args.range else None,
+                emission=args.emission, emission_field=args.emission_field,
+                emission_range=tuple(args.emission_range) if args.emission_range else None,
+                emission_scale=args.emission_scale)
+
+
+def _render_series(args):
+    """Data outputs named by a pattern (or ``--movie``): one plan for all
+    (`mi_amr.series`), a frame per output, numbered EXR/PNG frames and/or a
+    movie. Outputs that cannot be read are named and left out; the exit
+    status is 1 when any was."""
+    import numpy as np
+
+    from .. import series
+    from .images import write_exr, write_png
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    outputs = series.expand_outputs(args.scene)
+    folder = out.with_name(f"{out.stem}_outputs")
+    say = (lambda *a: None) if args.quiet else print
+    extra = (args.emission_field,) if args.emission and args.emission_field else ()
+    stored, failed = series.store_outputs(outputs, args.field, folder, extra,
+                                          log=lambda m: print(m, file=sys.stderr))
+    if not stored:
+        raise SystemExit(f"mi-amr: none of the {len(outputs)} outputs could be read")
+    plan = series.plan_series(stored, **_plan_options(args))
+    for note in plan.notes:
+        say(note)
+    scenes = series.frame_scenes(plan, stored, folder, args.res, args.spp, args.orbit)
+    t0 = time.perf_counter()
+    images = _render_all(args, [(str(s), {}) for s in scenes])
+    seconds = time.perf_counter() - t0
+    images = [np.array(im, dtype=np.float32) for im in images]
+    for (src, _), img in zip(stored, images):
+        if not np.all(np.isfinite(img)):
+            raise SystemExit(f"mi-amr: the frame of {src} contains {int((~np.isfinite(img)).sum())} non-finite values")
+    if args.movie:
+        movie = series.encode_movie(images, args.movie, args.fps)
+        say(f"wrote {movie} ({len(images)} frames at {args.fps} fps)")
+    if args.frames or not args.movie:
+        for k, img in enumerate(images):
+            path = out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
+            write_exr(path, img)
+            write_png(path.with_suffix(".png"), img)
+        say(f"wrote {out.stem}_000{out.suffix} ... {out.stem}_{len(images) - 1:03d}{out.suffix} (+ .png)")
+    say(f"{len(images)} frame(s) of {len(outputs)} outputs in {seconds:.2f} s; scenes and data in {folder}")
+    series.report_failed(failed)
+    return 1 if failed else 0
+
+
+def _render_all(args, jobs):
+    """Render ``(XML scene, -D parameters)`` jobs: on a Dask cluster with
+    ``--workers``/``--scheduler`` (frame-parallel), else one after the other
+    here. Returns the images."""
+    from .. import distributed
+    spp = args.spp
+    workers = args.workers
+    chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
+    name = Path(jobs[0][0]).name
+    if workers or args.scheduler:
+        client = None
+        if args.scheduler:
+            from dask.distributed import Client
+            client = Client(args.scheduler)
+        elif workers:
+            client = distributed.local_cluster(workers)
+        try:
+            threads = max(1, (os.cpu_count() or 1) // workers) if workers and not args.scheduler else None
+            return distributed.render_frames(jobs, spp, client, chunk_spp, args.seed, progress=not args.quiet,
+                                             desc=name, drjit_threads=threads)
+        finally:
+            cluster = getattr(client, "cluster", None)
+            client.close()
+            if cluster is not None and not args.scheduler:
+                cluster.close()
+    return [distributed.render_local(scene, spp, chunk_spp, args.seed, params=p, progress=not args.quiet,
+                                     desc=Path(scene).name) for scene, p in jobs]
 
 
 def cmd_render(args):
@@ -66,39 +148,29 @@ def cmd_render(args):
     import drjit as dr
     import numpy as np
 
-    from .. import distributed
     from .images import write_exr, write_png
-    if Path(args.scene).suffix.lower() != ".xml":
-        args.scene = str(_scene_from_data(args))
-    elif args.field or args.tf or args.range or args.scale:
-        raise SystemExit("mi-amr: --field, --tf, --range, --log and --linear are for data files, "
+    is_xml = Path(args.scene).suffix.lower() == ".xml"
+    data_flags = (args.field or args.tf or args.range or args.scale or args.emission or args.emission_field
+                  or args.emission_range or args.emission_scale is not None)
+    if is_xml and data_flags:
+        raise SystemExit("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
                          "not XML scenes (set those in the scene)")
+    if is_xml and args.movie:
+        raise SystemExit("mi-amr: --movie renders a run's outputs (a data pattern such as 'DD00??/DD00??'), "
+                         "not an XML scene; for -D variations use --frames")
+    if (args.emission_field or args.emission_range or args.emission_scale is not None) and not args.emission:
+        raise SystemExit("mi-amr: --emission-field, --emission-range and --emission-scale need --emission "
+                         "(an emission TF such as blackbody)")
+    if not is_xml and (args.movie or glob.has_magic(args.scene)):
+        return _render_series(args)
+    if args.orbit:
+        raise SystemExit("mi-amr: --orbit turns the camera over a run's outputs (with --movie or a pattern)")
+    if not is_xml:
+        args.scene = str(_scene_from_data(args))
     frames, varying = _frames(args)
     spp = args.spp
-    workers = args.workers
-    chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
-    name = Path(args.scene).name
     t0 = time.perf_counter()
-    if workers or args.scheduler:
-        client = None
-        if args.scheduler:
-            from dask.distributed import Client
-            client = Client(args.scheduler)
-        elif workers:
-            client = distributed.local_cluster(workers)
-        try:
-            threads = max(1, (os.cpu_count() or 1) // workers) if workers and not args.scheduler else None
-            images = distributed.render_frames([(args.scene, p) for p in frames], spp, client, chunk_spp,
-                                               args.seed, progress=not args.quiet, desc=name,
-                                               drjit_threads=threads)
-        finally:
-            cluster = getattr(client, "cluster", None)
-            client.close()
-            if cluster is not None and not args.scheduler:
-                cluster.close()
-    else:
-        images = [distributed.render_local(args.scene, spp, chunk_spp, args.seed, params=p,
-                                           progress=not args.quiet, desc=name) for p in frames]
+    images = _render_all(args, [(args.scene, p) for p in frames])
     seconds = time.perf_counter() - t0
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -439,6 +511,22 @@ def build_parser():
     r.add_argument("--range", type=float, nargs=2, metavar=("LO", "HI"),
                    help="data: TF domain (in log10 units with --log; default: 1st-99.9th volume percentiles)")
     r.add_argument("--tf", help="data: TF preset (spiky, foggy, ramp, constant) or .json file (default spiky)")
+    r.add_argument("--emission", metavar="TF",
+                   help="data: make the gas glow with this emission TF (preset blackbody, a matplotlib "
+                        "colormap or .json file); the scene then has no other light")
+    r.add_argument("--emission-field", metavar="NAME",
+                   help="data: the field the emission reads (e.g. temperature; default: --field)")
+    r.add_argument("--emission-range", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="data: emission TF domain (default: 1st-99.9th volume percentiles, log10 chosen "
+                        "as for --field)")
+    r.add_argument("--emission-scale", type=float, default=None,
+                   help="data: radiance of emission TF colour 1 (default: the mean glow of the gas is 1)")
+    r.add_argument("--movie", metavar="OUT.mp4",
+                   help="data: render every output the pattern names (e.g. 'DD00??/DD00??') with one TF "
+                        "range over all of them, and encode the frames as an H.264 movie")
+    r.add_argument("--fps", type=int, default=10, help="frames per second of --movie (default 10)")
+    r.add_argument("--orbit", type=float, default=0.0, metavar="DEGREES",
+                   help="turn the camera by this much about the up axis over a run's outputs (default 0)")
     r.add_argument("--res", type=int, default=400, help="data: image width and height (default 400)")
     r.add_argument("-o", "--output", required=True, help="output .exr path")
     r.add_argument("--denoise", action="store_true",
@@ -452,7 +540,8 @@ def build_parser():
                    help="render on the Dask cluster of this scheduler, e.g. tcp://host:8786")
     r.add_argument("--frames", action="store_true",
                    help="one frame per combination of comma-separated -D values (e.g. -D tf=spiky,foggy), "
-                        "written as OUTPUT_000.exr, ...; rendered frame-parallel on a cluster")
+                        "or per output of a data pattern, written as OUTPUT_000.exr, ...; rendered "
+                        "frame-parallel on a cluster")
     r.set_defaults(func=cmd_render)
 
     v = _command(sub, "view", "explore data (or an XML scene with an amr medium) in the browser: "
@@ -547,7 +636,7 @@ def main(argv=None):
         return bench_main(argv[1:])
     args = build_parser().parse_args(argv)
     try:
-        args.func(args)
+        code = args.func(args)
     except (ValueError, FileNotFoundError, MemoryError) as e:
         print(f"mi-amr {args.command}: error: {e}", file=sys.stderr)
         return 2
@@ -562,7 +651,7 @@ def main(argv=None):
     except KeyboardInterrupt:                 # Ctrl-C: writers have removed what they had begun
         print(f"mi-amr {args.command}: interrupted", file=sys.stderr)
         return 130
-    return 0
+    return code if isinstance(code, int) else 0
 
 
 def _plugin_error(message: str) -> str:

@@ -11,6 +11,16 @@ scale. `Classification` holds both, in every form the code needs:
 * scene parameters: ``tf_rgba``, ``tf_domain`` and ``density_scale``,
   exposed to ``mi.traverse`` (`traverse`).
 
+A medium that glows also has an *emission* TF over its emission field
+(the same field or another one on the same cells) and an emission scale:
+the radiance of the absorbing gas is ``L_e(g) = emission_scale *
+rgb(g) * alpha(g)`` (``alpha`` an intensity in [0, 1]), emitted per unit
+length as ``sigma_a L_e`` with ``sigma_a = sigma_t (1 - albedo)``
+(docs/design.md section 12). Whether a medium glows is fixed at load (it
+decides the kernel); the emission TF and scale change like the others
+(``emission_rgba``, ``emission_domain``, ``emission_scale``) and move no
+majorant.
+
 Every change goes through `set` (a direct call) or `apply_parameters`
 (after ``params.update()`` wrote new values into the traversed variables),
 which validate and then call `set`: one update path. Whoever depends on the
@@ -38,19 +48,29 @@ from .function import TransferFunction, range_majorants_host
 
 #: The scene parameters a classification exposes.
 PARAMETERS = ("density_scale", "tf_rgba", "tf_domain")
+#: ... and those of a medium that glows.
+EMISSION_PARAMETERS = ("emission_scale", "emission_rgba", "emission_domain")
+#: The emission table of a medium that does not glow (never read).
+_DARK = TransferFunction(np.zeros((2, 4)), (0.0, 1.0))
 
 
-@jit_struct(scale="Float", tf_rgba="Float", tf_domain="Float", device=DeviceTransferFunction)
+@jit_struct(scale="Float", tf_rgba="Float", tf_domain="Float", device=DeviceTransferFunction,
+            emission_scale="Float", emission_rgba="Float", emission_domain="Float",
+            emission_device=DeviceTransferFunction)
 class Classification:
-    """TF and density scale of one medium (see the module docstring).
+    """TF and density scale of one medium, and its emission TF and scale
+    (see the module docstring).
 
     Dr.Jit state: ``scale`` (density scale), ``tf_rgba`` (the table, N x 4
     row major) and ``tf_domain`` ([lo, hi]) as traversed scene parameters,
-    and ``device``, the tables the kernels read.
+    and ``device``, the tables the kernels read; the same for emission
+    (``emission_scale``, ``emission_rgba``, ``emission_domain``,
+    ``emission_device``).
     """
 
     def __init__(self, tf: TransferFunction, density_scale: float,
-                 on_change: Callable[["Classification"], None] | None = None):
+                 on_change: Callable[["Classification"], None] | None = None,
+                 emission: TransferFunction | None = None, emission_scale: float = 1.0):
         self.on_change = on_change
         self.tf = _check_tf(tf)
         self.density_scale = check_density_scale(density_scale)
@@ -59,14 +79,32 @@ class Classification:
         self.tf_domain = mi.Float(self.tf.domain)
         self.device = DeviceTransferFunction(self.tf)
         dr.make_opaque(self.scale, self.tf_rgba, self.tf_domain)
+        #: whether the medium glows (fixed at load: it shapes the kernel)
+        self.glows = emission is not None
+        self.emission = _check_tf(emission) if self.glows else None
+        self.emission_scale_value = check_emission_scale(emission_scale)
+        self.emission_scale = mi.Float(self.emission_scale_value)
+        table = self.emission if self.glows else _DARK
+        self.emission_rgba = owned(mi.Float, table.rgba)
+        self.emission_domain = mi.Float(table.domain)
+        self.emission_device = DeviceTransferFunction(table)
+        dr.make_opaque(self.emission_scale, self.emission_rgba, self.emission_domain)
 
     # ---- The one update path --------------------------------------------------
-    def set(self, tf: TransferFunction | None = None, density_scale: float | None = None):
-        """Use a new TF and/or density scale (None keeps the current one):
-        validated first (a bad value raises and changes nothing), then
-        uploaded, then the listener is told."""
+    def set(self, tf: TransferFunction | None = None, density_scale: float | None = None,
+            emission: TransferFunction | None = None, emission_scale: float | None = None):
+        """Use a new TF and/or density scale, emission TF and/or emission
+        scale (None keeps the current one): validated first (a bad value
+        raises and changes nothing), then uploaded, then the listener is
+        told (when extinction changed: emission moves no majorant)."""
+        only_emission = tf is None and density_scale is None and (emission is not None or emission_scale is not None)
         tf = self.tf if tf is None else _check_tf(tf)
         scale = self.density_scale if density_scale is None else check_density_scale(density_scale)
+        if (emission is not None or emission_scale is not None) and not self.glows:
+            raise ParameterError("amr: this medium was loaded without emission; give it an 'emission' TF "
+                                 "at load to change its emission later")
+        emission = self.emission if emission is None else _check_tf(emission)
+        e_scale = self.emission_scale_value if emission_scale is None else check_emission_scale(emission_scale)
         self.tf, self.density_scale = tf, scale
         self.device.set(tf)
         # the traversed variables are updated in place (SceneParameters hold them)
@@ -74,8 +112,15 @@ class Classification:
         mi.set_property(self.tf_domain, mi.Float(tf.domain))
         mi.set_property(self.scale, mi.Float(scale))
         dr.make_opaque(self.scale, self.tf_rgba, self.tf_domain)
+        if self.glows:
+            self.emission, self.emission_scale_value = emission, e_scale
+            self.emission_device.set(emission)
+            mi.set_property(self.emission_rgba, owned(mi.Float, emission.rgba))
+            mi.set_property(self.emission_domain, mi.Float(emission.domain))
+            mi.set_property(self.emission_scale, mi.Float(e_scale))
+            dr.make_opaque(self.emission_scale, self.emission_rgba, self.emission_domain)
         listener = self._listener() if self._listener is not None else None
-        if listener is not None:
+        if listener is not None and not only_emission:
             listener(self)
 
     @property
@@ -99,34 +144,51 @@ class Classification:
         variables (``keys``: the names that changed; None: all) through
         `set`. A bad value raises a `ParameterError`, and the last valid
         state is put back into the variables."""
-        keys = set(PARAMETERS if keys is None else keys) & set(PARAMETERS)
+        names = self.parameter_names
+        keys = set(names if keys is None else keys) & set(names)
         if not keys:
             return
         try:
-            tf = self._tf_from_parameters() if keys & {"tf_rgba", "tf_domain"} else None
+            tf = self._tf_from(self.tf_rgba, self.tf_domain, "tf") if keys & {"tf_rgba", "tf_domain"} else None
             scale = float(self.scale.numpy()[0]) if "density_scale" in keys else None
             if scale is not None:
                 check_density_scale(scale)
+            emission = (self._tf_from(self.emission_rgba, self.emission_domain, "emission")
+                        if keys & {"emission_rgba", "emission_domain"} else None)
+            e_scale = float(self.emission_scale.numpy()[0]) if "emission_scale" in keys else None
+            if e_scale is not None:
+                check_emission_scale(e_scale)
         except ValueError:
             self.set()                      # the last valid state, back into the variables
             raise
-        self.set(tf, scale)
+        self.set(tf, scale, emission, e_scale)
 
-    def _tf_from_parameters(self) -> TransferFunction:
-        rgba = np.asarray(self.tf_rgba.numpy(), dtype=np.float64)
-        dom = self.tf_domain.numpy()
+    @property
+    def parameter_names(self) -> tuple:
+        """The scene parameters of this classification (`traverse`)."""
+        return PARAMETERS + (EMISSION_PARAMETERS if self.glows else ())
+
+    @staticmethod
+    def _tf_from(rgba_var, domain_var, prefix: str) -> TransferFunction:
+        rgba = np.asarray(rgba_var.numpy(), dtype=np.float64)
+        dom = domain_var.numpy()
         if rgba.size % 4 or dom.size != 2:
-            raise ParameterError(f"amr: tf_rgba must hold N x 4 values and tf_domain 2, "
+            raise ParameterError(f"amr: {prefix}_rgba must hold N x 4 values and {prefix}_domain 2, "
                                  f"got {rgba.size} and {dom.size}")
         return TransferFunction(rgba.reshape(-1, 4), (float(dom[0]), float(dom[1])))
 
     # ---- Views ----------------------------------------------------------------
     def traverse(self, callback):
         """Expose ``density_scale``, ``tf_rgba`` and ``tf_domain`` (not
-        differentiable) to ``mi.traverse``."""
+        differentiable) to ``mi.traverse``; for a medium that glows also
+        ``emission_scale``, ``emission_rgba`` and ``emission_domain``."""
         callback.put("density_scale", self.scale, mi.ParamFlags.NonDifferentiable)
         callback.put("tf_rgba", self.tf_rgba, mi.ParamFlags.NonDifferentiable)
         callback.put("tf_domain", self.tf_domain, mi.ParamFlags.NonDifferentiable)
+        if self.glows:
+            callback.put("emission_scale", self.emission_scale, mi.ParamFlags.NonDifferentiable)
+            callback.put("emission_rgba", self.emission_rgba, mi.ParamFlags.NonDifferentiable)
+            callback.put("emission_domain", self.emission_domain, mi.ParamFlags.NonDifferentiable)
 
     def host_majorants(self, vmin, vmax) -> np.ndarray:
         """``density_scale * max alpha`` over each value range (numpy, inverse
@@ -138,6 +200,12 @@ class Classification:
         no value was found)."""
         return dr.select(found, self.scale * self.device.eval_alpha(value, found), 0.0)
 
+    def emitted_radiance(self, value, found):
+        """``L_e`` at emission-field values: ``emission_scale * rgb *
+        alpha`` of the emission TF (radiance; 0 where no value was found)."""
+        rgb, alpha = self.emission_device.eval(value, found)
+        return dr.select(found, self.emission_scale * alpha * rgb, 0.0)
+
     def albedo_and_sigma_t(self, value, found):
         """``(albedo, sigma_t)`` at reconstructed values."""
         rgb, alpha = self.device.eval(value, found)
@@ -148,6 +216,15 @@ def _check_tf(tf) -> TransferFunction:
     if not isinstance(tf, TransferFunction):
         raise ParameterError(f"amr: expected a TransferFunction, got {type(tf).__name__}")
     return tf
+
+
+def check_emission_scale(v) -> float:
+    """``v`` as a valid emission scale (a radiance: finite, >= 0), or a
+    `ParameterError`."""
+    v = float(v)
+    if not (np.isfinite(v) and 0 <= v <= 1e30):
+        raise ParameterError(f"amr: emission_scale must be a finite number in [0, 1e30], got {v:g}")
+    return v
 
 
 def check_density_scale(v) -> float:

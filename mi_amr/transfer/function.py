@@ -131,6 +131,13 @@ class TransferFunction(mi.Object):
         * ``foggy``: low, broad opacity (translucent).
         * ``ramp``: opacity linear in value (alpha = u), viridis colour.
         * ``constant``: opacity 1 everywhere, white.
+        * ``dust``: grey, mostly absorbing (albedo 0.25), opacity ``u^3``
+          (the dense gas absorbs, the thin gas lets the glow behind it
+          through): the extinction of glowing gas, which then keeps the
+          emission's colours.
+        * ``blackbody``: for emission (the ``amr`` medium's ``emission``):
+          matplotlib's ``inferno`` (black through red and orange to pale
+          yellow, as a heated body), intensity ``alpha = u^2``.
         """
         if name == "spiky":
             peaks = [(0.25, 0.55), (0.5, 0.8), (0.8, 1.0)]
@@ -146,6 +153,12 @@ class TransferFunction(mi.Object):
             tf = cls.from_colormap("viridis", [(0.0, 0.0), (1.0, 1.0)], domain, n)
         elif name == "constant":
             tf = cls(np.ones((n, 4)), domain)
+        elif name == "dust":
+            u = np.linspace(0, 1, n)
+            tf = cls(np.column_stack([np.full((n, 3), 0.25), u ** 3]), domain)
+        elif name == "blackbody":
+            u = np.linspace(0, 1, n)
+            tf = cls.from_colormap("inferno", list(zip(u, u * u)), domain, n)
         else:
             raise ValueError(f"unknown transfer function preset {name!r} "
                              f"(choose from {', '.join(PRESETS)}, a matplotlib colormap name, "
@@ -253,7 +266,7 @@ class TransferFunction(mi.Object):
         return cls.preset(spec, domain)
 
 
-PRESETS = ("spiky", "foggy", "ramp", "constant")
+PRESETS = ("spiky", "foggy", "ramp", "constant", "dust", "blackbody")
 
 
 def range_majorants_host(tf, vmin, vmax, density_scale: float) -> np.ndarray:
