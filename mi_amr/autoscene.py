@@ -293,6 +293,9 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
         if emission_field:
             from .data.yt_import import field_key
             key = field_key(_yt_field(emission_field))
+            if key not in volume.fields:
+                have = ", ".join(repr(n) for n in sorted(volume.fields)) or "none besides the main one"
+                raise ValueError(f"{what}: no field {key!r} for the emission (further fields: {have})")
         e_log, e_range, more = _value_scale(stats, key, emission_log, emission_range, f"{key or 'extinction'} values")
         notes += more
         if key is None and log:               # the extinction field is log10 already in the medium

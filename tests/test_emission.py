@@ -248,6 +248,8 @@ def test07_a_second_field_survives_npz_and_amrb_and_is_checked(tmp_path):
         ref = np.lexsort(cells.pos.T)
         np.testing.assert_array_equal(back.fields["temperature"][order], cells.fields["temperature"][ref])
     vol = BlockVolume.from_cells(cells)
+    plain = BlockVolume.from_cells(AMRCells(cells.pos, cells.level, cells.value))
+    assert vol.nbytes - plain.nbytes == vol.values.nbytes             # memory grows by the field alone
     with pytest.raises(ValueError, match="no field 'pressure'"):
         vol.field("pressure")
     pos, level = cells.pos, cells.level
@@ -262,28 +264,32 @@ def test07_a_second_field_survives_npz_and_amrb_and_is_checked(tmp_path):
         AMRCells(pos, level, cells.value, fields={"temperature": np.full(len(pos), np.inf)})
 
 
-def _enzo_two_fields(directory):
-    """A small Enzo output with Density and Temperature (16^3 root cells,
-    one 8^3 level-1 grid): tests/amr_formats.py."""
-    from amr_formats import write_enzo
-    rng = np.random.default_rng(4)
-    root = 10.0 ** rng.uniform(-30, -27, (16, 16, 16))
-    child = 10.0 ** rng.uniform(-28, -26, (8, 8, 8))
-    return write_enzo(directory, "DD0001", root, [(np.array([8, 8, 8]), child)],
-                      extra={"Temperature": lambda d: 1e4 * (d / 1e-29) ** 0.7})
+def _enzo_example(directory):
+    """The README's Enzo-format example (tools/make_enzo_example.py: Density
+    and Temperature, 64^3 root cells and 24 level-1 grids of 16^3)."""
+    import importlib.util
+    from pathlib import Path
+    script = Path(__file__).resolve().parents[1] / "tools" / "make_enzo_example.py"
+    spec = importlib.util.spec_from_file_location("make_enzo_example", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(str(directory))
+    return Path(directory) / "DD0018" / "DD0018"
 
 
-def test08_two_fields_of_an_enzo_output_in_one_command(tmp_path, capsys):
+def test08_two_fields_of_the_enzo_example_in_one_command(tmp_path, capsys):
     """``mi-amr render OUTPUT --field density --emission blackbody
-    --emission-field temperature``: extinction from the density, glow from
-    the temperature, on black (no other light); the scene written beside
-    the image names both, and its data file (.amrb) holds the second field."""
+    --emission-field temperature`` on the Enzo-format example: extinction
+    from the density, glow from the temperature, on black (no other light);
+    the scene written beside the image names both, and its data file
+    (.amrb) holds the second field."""
     pytest.importorskip("yt")
     from mi_amr.data.amrb import read_amrb
     from mi_amr.tools.cli import main
     from mi_amr.tools.images import read_exr
     out = tmp_path / "glow.exr"
-    code = main(["render", str(_enzo_two_fields(tmp_path / "enzo")), "--field", "density", "--emission", "blackbody",
+    output = _enzo_example(tmp_path / "enzo")
+    code = main(["render", str(output), "--field", "density", "--emission", "blackbody",
                  "--emission-field", "temperature", "-o", str(out), "--res", "24", "--spp", "8", "-q"])
     assert code == 0
     img = read_exr(out)
@@ -293,7 +299,7 @@ def test08_two_fields_of_an_enzo_output_in_one_command(tmp_path, capsys):
     vol = read_amrb(out.with_suffix(".amrb"))
     assert "temperature" in vol.fields
     # no emission: the same data lit by the sun and sky, as before
-    assert main(["render", str(tmp_path / "enzo" / "DD0001"), "--field", "density", "-o",
+    assert main(["render", str(output), "--field", "density", "-o",
                  str(tmp_path / "lit.exr"), "--res", "8", "--spp", "1", "-q"]) == 0
     assert "sunsky" in (tmp_path / "lit.xml").read_text()
     with pytest.raises(SystemExit, match="--emission"):
@@ -350,3 +356,20 @@ def test09_a_runs_outputs_as_a_movie_in_one_command(tmp_path, capsys):
     assert main(["render", str(tmp_path / "none_*.npz"), "--movie", str(tmp_path / "x.mp4"),
                  "-o", str(tmp_path / "x.exr")]) == 2
     assert "no output matches" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test10_a_movie_on_dask_workers_equals_the_local_one(tmp_path):
+    """``--workers 2``: the frames of a run rendered frame-parallel on a
+    local Dask cluster equal those rendered here (same seeds)."""
+    pytest.importorskip("dask.distributed")
+    from mi_amr.tools.cli import main
+    from mi_amr.tools.images import read_exr
+    run = _series(tmp_path / "run", n=2)
+    args = ["render", str(run / "t_*.npz"), "--emission", "blackbody", "--emission-field", "temperature",
+            "--frames", "--res", "12", "--spp", "4", "-q"]
+    assert main(args + ["-o", str(tmp_path / "here.exr")]) == 0
+    assert main(args + ["-o", str(tmp_path / "dask.exr"), "--workers", "2"]) == 0
+    for k in range(2):
+        np.testing.assert_allclose(read_exr(tmp_path / f"dask_{k:03d}.exr"), read_exr(tmp_path / f"here_{k:03d}.exr"),
+                                   rtol=1e-5, atol=1e-6)
