@@ -107,18 +107,11 @@ class Classification:
         e_scale = self.emission_scale_value if emission_scale is None else check_emission_scale(emission_scale)
         self.tf, self.density_scale = tf, scale
         self.device.set(tf)
-        # the traversed variables are updated in place (SceneParameters hold them)
-        mi.set_property(self.tf_rgba, owned(mi.Float, tf.rgba))
-        mi.set_property(self.tf_domain, mi.Float(tf.domain))
-        mi.set_property(self.scale, mi.Float(scale))
-        dr.make_opaque(self.scale, self.tf_rgba, self.tf_domain)
+        _upload(self.tf_rgba, self.tf_domain, self.scale, tf, scale)
         if self.glows:
             self.emission, self.emission_scale_value = emission, e_scale
             self.emission_device.set(emission)
-            mi.set_property(self.emission_rgba, owned(mi.Float, emission.rgba))
-            mi.set_property(self.emission_domain, mi.Float(emission.domain))
-            mi.set_property(self.emission_scale, mi.Float(e_scale))
-            dr.make_opaque(self.emission_scale, self.emission_rgba, self.emission_domain)
+            _upload(self.emission_rgba, self.emission_domain, self.emission_scale, emission, e_scale)
         listener = self._listener() if self._listener is not None else None
         if listener is not None and not only_emission:
             listener(self)
@@ -232,3 +225,13 @@ def check_density_scale(v) -> float:
     `mi_amr.plugins.options.MAX_DENSITY_SCALE`)."""
     from ..plugins.options import check_density_scale as check
     return check(v)
+
+
+def _upload(rgba, domain, scale, tf: TransferFunction, value: float) -> None:
+    """Write ``tf``'s table and domain and the scale ``value`` into the
+    traversed variables in place (SceneParameters hold them), opaque so that
+    a new value never recompiles a kernel."""
+    mi.set_property(rgba, owned(mi.Float, tf.rgba))
+    mi.set_property(domain, mi.Float(tf.domain))
+    mi.set_property(scale, mi.Float(value))
+    dr.make_opaque(scale, rgba, domain)
