@@ -61,6 +61,9 @@ CHUNK_SPP = 64
 #: Rivals of this many voxels or more are timed as plain frames: Dr.Jit's
 #: frozen replay failed on a 1024^3 grid (see `study_one`).
 FREEZE_MAX_VOXELS = 1 << 29
+#: A floor is resolved where its square exceeds this many standard errors
+#: of its estimate (`bias_floor`).
+RESOLVED_SE = 4.0
 #: Cosmo levels unless the spec gives them.
 COSMO_LEVELS = 7
 #: Estimated peak bytes per voxel of building each renderer, the resampled
@@ -261,10 +264,26 @@ def render_mean(mi, scene, spp: int, seed: int, frozen: bool = True) -> np.ndarr
 
 
 def halves(mi, scene, spp: int, seed: int, frozen: bool = True):
-    """``(mean image, its noise MSE)`` from two independent halves of ``spp``."""
+    """``(mean image, its noise MSE, its noise map)`` from two independent
+    halves of ``spp``: the map ``(h1 - h2)^2 / 4`` estimates, per pixel and
+    channel, the variance of the mean image, and the MSE is its mean."""
     h1 = render_mean(mi, scene, max(1, spp // 2), seed, frozen)
     h2 = render_mean(mi, scene, max(1, spp // 2), seed + 1_000_003, frozen)
-    return 0.5 * (h1 + h2), float(np.mean((h1 - h2) ** 2)) / 4.0
+    noise_map = (h1 - h2) ** 2 / 4.0
+    return 0.5 * (h1 + h2), float(np.mean(noise_map)), noise_map
+
+
+def bias_floor(img, img_noise_map, truth, truth_noise_map):
+    """``(floor, standard error of floor^2)`` of an image against the truth
+    (both (H, W, C) means with their `halves` noise maps): per pixel,
+    ``(img - truth)^2`` less both noise maps is an unbiased estimate of the
+    squared bias, whose mean over the image is ``floor^2``; the standard
+    error is measured from those per-pixel estimates themselves (Monte Carlo
+    noise is heavy-tailed, so a Gaussian model of the noise estimate would
+    understate it). Channels of a pixel are averaged first (they share
+    paths, so they are not independent)."""
+    d = ((img - truth) ** 2 - img_noise_map - truth_noise_map).reshape(img.shape[0] * img.shape[1], -1).mean(axis=1)
+    return math.sqrt(max(float(d.mean()), 0.0)), float(d.std(ddof=1) / math.sqrt(d.size))
 
 
 def curve(mi, scene, truth, truth_noise, args, floor=None, frozen=None):
@@ -379,7 +398,7 @@ def study_one(mi, spec: str, args) -> dict:
     rec["amr_bytes"] = int(med.resident_bytes)
     del med
     t0 = time.perf_counter()
-    truth, noise = halves(mi, scene, args.truth_spp, seed=1, frozen=args.frozen)
+    truth, noise, truth_noise_map = halves(mi, scene, args.truth_spp, seed=1, frozen=args.frozen)
     rec["truth_s"] = time.perf_counter() - t0
     rec["truth_noise_rmse"] = math.sqrt(noise)
     rec["truth_mean"] = float(truth.mean())
@@ -432,17 +451,17 @@ def study_one(mi, spec: str, args) -> dict:
             # Dr.Jit 1.5's frozen replay fails on a grid of 2^30 float values ("determining size of
             # variable ... dsize=0", seen with the 1024^3 dense16 rival): such rivals run plain frames
             frozen = args.frozen and voxels < FREEZE_MAX_VOXELS
-            img, img_noise = halves(mi, scene, args.floor_spp, seed=7, frozen=frozen)
+            img, img_noise, img_noise_map = halves(mi, scene, args.floor_spp, seed=7, frozen=frozen)
             mse = float(np.mean((img - truth) ** 2))
-            floor = math.sqrt(max(mse - noise - img_noise, 0.0))
+            floor, floor_se = bias_floor(img, img_noise_map, truth, truth_noise_map)
             row = {"resolution": res, "method": method, "renderer": renderer, "check": check, "frozen": frozen,
                    "resample_s": resample_s, "build_s": build_s, "bytes": mem, "floor": floor,
-                   "floor_raw": math.sqrt(mse), "floor_noise_rmse": math.sqrt(noise + img_noise),
+                   "floor_sq_se": floor_se, "floor_raw": math.sqrt(mse),
+                   "floor_noise_rmse": math.sqrt(noise + img_noise),
                    "check_ratio": mse / (noise + img_noise) if noise + img_noise > 0 else None}
-            # a floor under the uncertainty of its estimate (the noise MSE's standard error over
-            # the pixels, x4) is not resolved: no times to it
-            pixels = img.shape[0] * img.shape[1]
-            row["resolved"] = floor ** 2 > 4.0 * math.sqrt(2.0 / pixels) * (noise + img_noise)
+            # a floor whose square is under 4 standard errors of its estimate is not resolved:
+            # no times to it
+            row["resolved"] = floor ** 2 > RESOLVED_SE * floor_se
             if not check:
                 row["curve"] = curve(mi, scene, truth, noise, args, floor if row["resolved"] else None, frozen)
                 row["seconds_within_10pct"], row["rival_extrapolated"] = (
