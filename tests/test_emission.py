@@ -358,6 +358,29 @@ def test09_a_runs_outputs_as_a_movie_in_one_command(tmp_path, capsys):
     assert "no output matches" in capsys.readouterr().err
 
 
+def test09b_denoise_applies_to_a_runs_frames_and_movie(tmp_path):
+    """``--denoise`` with a run's outputs is not ignored: each numbered frame
+    gets its ``-denoised`` copy (finite, and what the denoiser makes of
+    that very frame, within 1e-4); the movie is written (from those
+    frames, `_render_series`)."""
+    pytest.importorskip("imageio_ffmpeg")
+    from mi_amr.tools.cli import main
+    from mi_amr.tools.images import read_exr as read_image
+    from mi_amr.view.engine import denoiser
+    if denoiser()[0] is None:
+        pytest.skip(denoiser()[1])
+    run = _series(tmp_path / "run", n=2)
+    code = main(["render", str(run / "t_*.npz"), "--emission", "blackbody", "--emission-field", "temperature",
+                 "--movie", str(tmp_path / "run.mp4"), "--frames", "--denoise", "-o", str(tmp_path / "run.exr"),
+                 "--res", "16", "--spp", "2", "-q"])
+    assert code == 0 and (tmp_path / "run.mp4").stat().st_size > 0
+    for k in range(2):
+        noisy = read_image(tmp_path / f"run_{k:03d}.exr")[..., :3]
+        clean = read_image(tmp_path / f"run_{k:03d}-denoised.exr")[..., :3]
+        assert clean.shape == noisy.shape and np.all(np.isfinite(clean))
+        assert np.allclose(clean, denoiser()[0](noisy), atol=1e-4) and not np.allclose(clean, noisy, atol=1e-4)
+
+
 @pytest.mark.slow
 def test10_a_movie_on_dask_workers_equals_the_local_one(tmp_path):
     """``--workers 2``: the frames of a run rendered frame-parallel on a

@@ -96,15 +96,22 @@ def _render_series(args):
     for (src, _), img in zip(stored, images):
         if not np.all(np.isfinite(img)):
             raise SystemExit(f"mi-amr: the frame of {src} contains {int((~np.isfinite(img)).sum())} non-finite values")
+    clean = None
+    if args.denoise:                          # the movie shows the denoised frames
+        from ..view.engine import denoiser
+        clean = [denoiser()[0](img[..., :3]) for img in images]
     if args.movie:
-        movie = series.encode_movie(images, args.movie, args.fps)
-        say(f"wrote {movie} ({len(images)} frames at {args.fps} fps)")
+        movie = series.encode_movie(clean or images, args.movie, args.fps)
+        say(f"wrote {movie} ({len(images)} {'denoised ' if clean else ''}frames at {args.fps} fps)")
     if args.frames or not args.movie:
         for k, img in enumerate(images):
             path = out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
-            write_exr(path, img)
-            write_png(path.with_suffix(".png"), img)
-        say(f"wrote {out.stem}_000{out.suffix} ... {out.stem}_{len(images) - 1:03d}{out.suffix} (+ .png)")
+            for p, im in [(path, img)] + ([(path.with_name(f"{path.stem}-denoised{path.suffix}"), clean[k])]
+                                          if clean else []):
+                write_exr(p, im)
+                write_png(p.with_suffix(".png"), im)
+        say(f"wrote {out.stem}_000{out.suffix} ... {out.stem}_{len(images) - 1:03d}{out.suffix} (+ .png"
+            f"{', -denoised' if clean else ''})")
     say(f"{len(images)} frame(s) of {len(outputs)} outputs in {seconds:.2f} s; scenes and data in {folder}")
     series.report_failed(failed)
     return 1 if failed else 0
