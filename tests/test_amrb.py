@@ -240,8 +240,11 @@ def _interrupt_while_reading(argv, files, timeout=60):
     import sys
     import time
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    # SIGINT as a terminal delivers it: a runner that starts the suite in the
+    # background (``cmd &``) passes SIGINT on ignored, and Python then keeps ignoring it
     proc = subprocess.Popen([sys.executable, "-m", "mi_amr.tools.cli", *argv],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     files = {str(f) for f in files}
     try:
         deadline = time.monotonic() + timeout

@@ -212,13 +212,17 @@ def wait_idle(slice_s: float = 0.02, busy_share: float = 0.25, limit_s: float = 
     ``slice_s`` seconds until one uses less than ``busy_share`` of a core
     (a thread left spinning, e.g. OpenBLAS's workers after a BLAS call, takes
     a core from the render and slows the timed frame:
-    docs/performance/frame-cost.md section 3), at most ``limit_s``. Returns
-    the seconds waited; warns when the limit is hit."""
+    docs/performance/frame-cost.md section 3), at most ``limit_s``. Idle
+    means two slices in a row (on a loaded machine a spinning thread can
+    miss one slice for want of a core). Returns the seconds waited; warns
+    when the limit is hit."""
     t_start = time.perf_counter()
+    idle = 0
     while True:
         c0, t0 = process_cpu_seconds(), time.perf_counter()
         time.sleep(slice_s)
-        if process_cpu_seconds() - c0 < busy_share * (time.perf_counter() - t0):
+        idle = idle + 1 if process_cpu_seconds() - c0 < busy_share * (time.perf_counter() - t0) else 0
+        if idle == 2:
             return time.perf_counter() - t_start
         if time.perf_counter() - t_start > limit_s:
             print(f"benchmark: the process stayed busy for {limit_s:.1f} s before a timed frame "
