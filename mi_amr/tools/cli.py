@@ -96,20 +96,17 @@ def _render_series(args):
     for (src, _), img in zip(stored, images):
         if not np.all(np.isfinite(img)):
             raise SystemExit(f"mi-amr: the frame of {src} contains {int((~np.isfinite(img)).sum())} non-finite values")
-    clean = None
-    if args.denoise:                          # the movie shows the denoised frames
-        from ..view.engine import denoiser
-        clean = [denoiser()[0](img[..., :3]) for img in images]
+    clean = _denoised(images) if args.denoise else None       # the movie shows the denoised frames
     if args.movie:
         movie = series.encode_movie(clean or images, args.movie, args.fps)
         say(f"wrote {movie} ({len(images)} {'denoised ' if clean else ''}frames at {args.fps} fps)")
     if args.frames or not args.movie:
         for k, img in enumerate(images):
             path = out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
-            for p, im in [(path, img)] + ([(path.with_name(f"{path.stem}-denoised{path.suffix}"), clean[k])]
-                                          if clean else []):
-                write_exr(p, im)
-                write_png(p.with_suffix(".png"), im)
+            write_exr(path, img)
+            write_png(path.with_suffix(".png"), img)
+            if clean:
+                _write_denoised(path, clean[k])
         say(f"wrote {out.stem}_000{out.suffix} ... {out.stem}_{len(images) - 1:03d}{out.suffix} (+ .png"
             f"{', -denoised' if clean else ''})")
     say(f"{len(images)} frame(s) of {len(outputs)} outputs in {seconds:.2f} s; scenes and data in {folder}")
@@ -202,22 +199,31 @@ def cmd_render(args):
 
 def _denoise_images(args, frames, images):
     """``--denoise``: OUT-denoised.exr/.png beside each image."""
+    out = Path(args.output)
+    for k, clean in enumerate(_denoised(images)):
+        path = _write_denoised(out if len(frames) == 1 else out.with_name(f"{out.stem}_{k:03d}{out.suffix}"), clean)
+        if not args.quiet:
+            print(f"wrote {path} and {path.with_suffix('.png')} (denoised)")
+
+
+def _denoised(images) -> list:
+    """The images (linear RGB) through Intel Open Image Denoise."""
     import numpy as np
 
     from ..view.engine import denoiser
-    from .images import write_exr, write_png
     denoise, missing = denoiser()
     if denoise is None:
         raise ValueError(f"--denoise: {missing}")
-    out = Path(args.output)
-    for k, image in enumerate(images):
-        path = out if len(frames) == 1 else out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
-        path = path.with_name(f"{path.stem}-denoised{path.suffix}")
-        clean = denoise(np.asarray(image, dtype=np.float32)[..., :3])
-        write_exr(path, clean)
-        write_png(path.with_suffix(".png"), clean)
-        if not args.quiet:
-            print(f"wrote {path} and {path.with_suffix('.png')} (denoised)")
+    return [denoise(np.asarray(image, dtype=np.float32)[..., :3]) for image in images]
+
+
+def _write_denoised(path: Path, clean) -> Path:
+    """``clean`` as PATH-denoised.exr and .png beside ``path``; the EXR's path."""
+    from .images import write_exr, write_png
+    path = path.with_name(f"{path.stem}-denoised{path.suffix}")
+    write_exr(path, clean)
+    write_png(path.with_suffix(".png"), clean)
+    return path
 
 
 def cmd_view(args):
