@@ -36,6 +36,16 @@ LOG_RATIO = 1e3
 MIN_POSITIVE_SHARE = 0.9
 #: Optical depth of the mean extinction across the domain's longest side.
 TARGET_DEPTH = 1.5
+#: Largest optical depth across the domain's longest side at the TF's highest
+#: opacity over the data's values: the planned density scale is at most
+#: ``MAX_DEPTH / that opacity``. It bounds the global majorant, so the cost of
+#: a render (null collisions per unit length), where a tiny mean opacity
+#: would otherwise ask for a huge scale (the bundled data plan 20-480).
+MAX_DEPTH = 500.0
+#: The TF range is at least this share of the span of the (transformed)
+#: values: a field that is mostly one value would otherwise get percentiles
+#: a hair apart and its tail all at the TF's top.
+MIN_RANGE_SHARE = 0.1
 FOV = 35.0
 #: Opacity peaks at a few values, like the layered Gaussians of yt's volume
 #: renderings: shells of structure rather than a fog over the whole domain.
@@ -76,6 +86,8 @@ class ScenePlan:
     target: tuple = (0.0, 0.0, 0.0)   # the point the camera looks at
     up: tuple = (0.0, 0.0, 1.0)       # the camera's up direction
     emission: "EmissionPlan | None" = None   # a glowing medium: no sun, sky or floor
+    optical_depth: float | None = None       # of the mean opacity across the longest side (planned scale)
+    peak_depth: float | None = None          # at the TF's highest opacity over the values, same length
 
     @property
     def lit(self) -> bool:
@@ -180,13 +192,72 @@ def cells_and_weights(data, field=None):
         yield v[ok].astype(np.float64), w[ok]
 
 
+@dataclass
+class ValueStats:
+    """What the values of a field are, counted per cell and weighted by cell
+    volume (in finest-cell volumes, 8^level): extremes, and how many are 0 or
+    negative (those have no log10)."""
+    cells: int = 0
+    volume: float = 0.0
+    zero_cells: int = 0
+    zero_volume: float = 0.0
+    negative_cells: int = 0
+    negative_volume: float = 0.0
+    min: float = np.inf
+    max: float = -np.inf
+    positive_min: float = np.inf      # smallest value above 0 (inf: none)
+    positive_max: float = -np.inf
+
+    @property
+    def positive_volume_share(self) -> float:
+        """Share of the volume whose values are above 0."""
+        return 1.0 - (self.zero_volume + self.negative_volume) / self.volume if self.volume else 0.0
+
+    @property
+    def has_positive(self) -> bool:
+        return bool(np.isfinite(self.positive_min))
+
+    def span(self, log: bool) -> tuple[float, float]:
+        """``(lo, hi)`` of the values, or of the log10 of the positive ones."""
+        if log:
+            return float(np.log10(self.positive_min)), float(np.log10(self.positive_max))
+        return float(self.min), float(self.max)
+
+    def shares(self, what: str = "values") -> str | None:
+        """A note naming the shares of zeros and negatives (None: all positive)."""
+        if not self.zero_cells and not self.negative_cells:
+            return None
+        parts = [f"{100 * v / self.volume:.3g}% of the volume ({100 * n / self.cells:.3g}% of the cells) {name}"
+                 for v, n, name in ((self.zero_volume, self.zero_cells, "is 0"),
+                                    (self.negative_volume, self.negative_cells, "is negative")) if n]
+        return f"{what}: {' and '.join(parts)}"
+
+
+def value_stats(data, field=None) -> ValueStats:
+    """`ValueStats` of ``field`` (None: the main values) of one data set or
+    several (see `cells_and_weights`), in one pass."""
+    s = ValueStats()
+    for v, w in cells_and_weights(data, field):
+        if not v.size:
+            continue
+        zero, neg = v == 0, v < 0
+        s.cells += v.size
+        s.volume += float(w.sum())
+        s.zero_cells += int(zero.sum())
+        s.zero_volume += float(w[zero].sum())
+        s.negative_cells += int(neg.sum())
+        s.negative_volume += float(w[neg].sum())
+        s.min, s.max = min(s.min, float(v.min())), max(s.max, float(v.max()))
+        pos = v[v > 0]
+        if pos.size:
+            s.positive_min = min(s.positive_min, float(pos.min()))
+            s.positive_max = max(s.positive_max, float(pos.max()))
+    return s
+
+
 def positive_share(data, field=None) -> float:
     """Share of the volume whose values are above 0."""
-    pos = total = 0.0
-    for v, w in cells_and_weights(data, field):
-        pos += float(w[v > 0].sum())
-        total += float(w.sum())
-    return pos / total if total else 0.0
+    return value_stats(data, field).positive_volume_share
 
 
 def weighted_percentiles(data, qs, log: bool = False, field=None) -> list[float]:
@@ -218,31 +289,73 @@ def weighted_percentiles(data, qs, log: bool = False, field=None) -> list[float]
     return [float(edges[min(int(np.searchsorted(cdf, q / 100.0)) + (q > 0), HISTOGRAM_BINS)]) for q in qs]
 
 
-def _value_scale(stats, field, log, value_range, what="values"):
-    """``(log, (lo, hi), notes)``: log10 or linear values and the TF domain
-    for ``field`` of ``stats`` (one data set or several), by the rule of
-    `plan_scene`."""
+def _value_scale(stats, field, log, value_range, what="values", source="the data"):
+    """``(log, (lo, hi), notes, ValueStats)``: log10 or linear values and the
+    TF domain for ``field`` of ``stats`` (one data set or several), by the
+    rule of `plan_scene`. With log10 the range comes from the positive
+    values alone; zeros and negatives take the TF's bottom (the medium
+    raises them to the smallest positive value, at or below the range).
+    A range narrower than `MIN_RANGE_SHARE` of the values' span is widened
+    within that span, with a note."""
+    vs = value_stats(stats, field)
     notes = []
+    if not vs.cells:
+        raise ValueError(f"{source}: no values to place a transfer function over")
+    share_note = vs.shares(what)
     log_percentiles = None
     if log is None:
-        share = positive_share(stats, field)
-        if share:
+        share = vs.positive_volume_share
+        if vs.has_positive:
             log_percentiles = weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True, field=field)
         p = log_percentiles
         log = bool(share >= MIN_POSITIVE_SHARE and p[1] - p[0] > np.log10(LOG_RATIO))
-        notes.append(f"log10 chosen for the {what}: they span 10^{p[0]:.3g} to 10^{p[1]:.3g}" if log
-                     else f"linear {what} (positive ones within 1000x, or many values <= 0)")
+        if log:
+            notes.append(f"log10 chosen for the {what}: they span 10^{p[0]:.3g} to 10^{p[1]:.3g}")
+        elif share < MIN_POSITIVE_SHARE:
+            notes.append(f"linear {what}: only {100 * share:.3g}% of the volume holds positive ones "
+                         f"(log10 needs {100 * MIN_POSITIVE_SHARE:.0f}%; --log to force it)")
+        else:
+            notes.append(f"linear {what}: the positive ones are within {LOG_RATIO:g}x")
+    if log and not vs.has_positive:
+        raise ValueError(f"{source}: log10 of the {what} needs positive values, but none is above 0 "
+                         f"(min {vs.min:.6g}, max {vs.max:.6g}); use --linear")
+    if share_note:
+        notes.append(share_note + ("; the log10 range is of the positive ones, zeros and negatives take the "
+                                   f"TF's bottom (raised to the smallest positive value, {vs.positive_min:.4g})"
+                                   if log else ""))
     if value_range is None:
         # the log percentiles of the choice above are the TF range already
         value_range = tuple(log_percentiles if log and log_percentiles else
                             weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=log, field=field))
-        if value_range[1] <= value_range[0]:
-            pad = max(0.5, 1e-3 * abs(value_range[0]))
-            value_range = (value_range[0] - pad, value_range[1] + pad)
+        value_range, note = _widened(value_range, vs.span(log), what, log)
+        if note:
+            notes.append(note)
     value_range = (float(value_range[0]), float(value_range[1]))
     if not value_range[1] > value_range[0]:
         raise ValueError(f"the TF range must have LO < HI, got {value_range}")
-    return bool(log), value_range, notes
+    return bool(log), value_range, notes, vs
+
+
+def _widened(value_range, span, what, log):
+    """``(range, note or None)``: the percentile range, at least
+    `MIN_RANGE_SHARE` of the values' ``span`` (lo, hi) wide, kept within it
+    (so that no value lies below the TF's bottom); constant values get a
+    range centred on them."""
+    lo, hi = float(value_range[0]), float(value_range[1])
+    dlo, dhi = span
+    width = MIN_RANGE_SHARE * (dhi - dlo)
+    if hi - lo >= width and hi > lo:
+        return (lo, hi), None
+    if not dhi > dlo:                        # one value: centre it
+        pad = max(0.5, 1e-3 * abs(lo))
+        return (lo - pad, hi + pad), None
+    mid = 0.5 * (lo + hi)
+    new_lo = min(max(mid - 0.5 * width, dlo), dhi - width)
+    units = " (log10 units)" if log else ""
+    note = (f"TF range [{lo:.6g}, {hi:.6g}]{units} of the {LOW_PERCENTILE:g}-{HIGH_PERCENTILE:g}th percentiles is "
+            f"{hi - lo:.3g} wide, under {100 * MIN_RANGE_SHARE:g}% of the {what}' span [{dlo:.6g}, {dhi:.6g}]: "
+            f"widened to [{new_lo:.6g}, {new_lo + width:.6g}]")
+    return (new_lo, new_lo + width), note
 
 
 def _check_tf_name(tf, flag):
@@ -263,7 +376,11 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
     positive values and their 1st and 99.9th volume-weighted percentiles
     are more than 1000x apart;
     ``value_range``: the TF domain (in transformed units), else those
-    percentiles; ``tf``: a preset name or a TF .json file.
+    percentiles (of the positive values under log10; at least
+    `MIN_RANGE_SHARE` of the values' span wide); ``tf``: a preset name or a
+    TF .json file; ``density_scale`` (inverse world units, the longest side
+    1): else `TARGET_DEPTH` over the mean opacity, at most `MAX_DEPTH` over
+    the TF's highest opacity over the values (`_planned_density_scale`).
     ``emission``: an emission TF (preset such as ``blackbody``, colormap
     or .json file) makes the gas glow, from ``emission_field`` (a further
     field, e.g. ``temperature``; None: the extinction field), with its own
@@ -277,15 +394,21 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
     volume, extent, what = open_data(data, field, fields)
     stats = volume if stats is None else stats
     notes = [f"data: {what}"]
-    log, value_range, more = _value_scale(stats, None, log, value_range)
+    log, value_range, more, vs = _value_scale(stats, None, log, value_range, source=what)
     notes += more
     transform = "log10" if log else "none"
     _check_tf_name(tf, "--tf")
     world = extent / extent.max()
+    mean = _mean_alpha(stats, tf, value_range, log)
+    peak = _peak_alpha(tf, value_range, log, vs)
+    depth_note = ""
     if density_scale is None:
-        density_scale = TARGET_DEPTH / max(_mean_alpha(stats, tf, value_range, log), 1e-6)
+        density_scale, depth_note = _planned_density_scale(mean, peak)
+    depth, peak_depth = density_scale * mean, density_scale * peak
     notes.append(f"TF '{tf}' over [{value_range[0]:.4g}, {value_range[1]:.4g}]"
-                 f"{' (log10 units)' if log else ''}, density_scale {density_scale:.3g}")
+                 f"{' (log10 units)' if log else ''}, density_scale {density_scale:.3g}: optical depth "
+                 f"{depth:.3g} across the longest side at the mean opacity {mean:.3g}, {peak_depth:.3g} at the "
+                 f"TF's highest opacity over the values ({peak:.3g}){depth_note}")
     glow = None
     if emission is not None:
         _check_tf_name(emission, "--emission")
@@ -296,7 +419,8 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
             if key not in volume.fields:
                 have = ", ".join(repr(n) for n in sorted(volume.fields)) or "none besides the main one"
                 raise ValueError(f"{what}: no field {key!r} for the emission (further fields: {have})")
-        e_log, e_range, more = _value_scale(stats, key, emission_log, emission_range, f"{key or 'extinction'} values")
+        e_log, e_range, more, _ = _value_scale(stats, key, emission_log, emission_range,
+                                               f"{key or 'extinction'} values", source=what)
         notes += more
         if key is None and log:               # the extinction field is log10 already in the medium
             e_log = False
@@ -309,7 +433,30 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
     direction = np.array([1.5, 1.0, 0.35]) / np.linalg.norm([1.5, 1.0, 0.35])    # just above the horizon
     origin = direction * radius / np.sin(np.radians(FOV / 2)) * 1.1
     return ScenePlan(volume, transform, tf, value_range, float(density_scale), world, origin, notes=notes,
-                     emission=glow)
+                     emission=glow, optical_depth=float(depth), peak_depth=float(peak_depth))
+
+
+def _planned_density_scale(mean, peak) -> tuple[float, str]:
+    """``(density_scale, note)``: `TARGET_DEPTH` across the longest side (1
+    world unit) at the ``mean`` opacity, but at most `MAX_DEPTH` at the
+    ``peak`` opacity (the global majorant's bound), with a note when that
+    cap applies."""
+    scale = TARGET_DEPTH / max(mean, 1e-6)
+    if peak > 0 and scale * peak > MAX_DEPTH:
+        return MAX_DEPTH / peak, (f"; capped (the mean opacity asked for {scale:.3g}, optical depth {scale * peak:.3g} "
+                                  f"at the highest opacity, over the bound {MAX_DEPTH:g}: a render's cost)")
+    return scale, f" (bound {MAX_DEPTH:g})"
+
+
+def _peak_alpha(tf, value_range, log, vs: ValueStats) -> float:
+    """The TF's highest opacity over the values the data can take (between
+    their extremes, interpolation included; with log10, zeros and negatives
+    at the TF's bottom): density_scale times it is the global majorant."""
+    fn = TransferFunction.load(tf, value_range)
+    lo, hi = vs.span(log)
+    if log and (vs.zero_cells or vs.negative_cells):
+        lo = min(lo, value_range[0])
+    return float(fn.max_alpha(lo, hi)[0])
 
 
 def _log_or_floor(v):

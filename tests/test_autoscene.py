@@ -211,3 +211,130 @@ def test10_bad_metadata_is_refused_by_name(llvm, tmp_path):
     side.write_text('{"domain_left_edge": [0, 0, 0], "domain_right_edge": [1, 1, 0], "domain_cells": [8, 8, 8]}')
     with pytest.raises(ValueError, match="left < right"):
         mi_amr.load_cells(path)
+
+
+# ---- Fields that are not positive, narrow ranges, bounded density scales --------
+def signed_field(n=32, seed=4):
+    """``n^3`` values: 0 where x < 20 (62.5% of the volume, merged into
+    coarse cells), negative in a corner column (3.1%), a log-normal tail
+    (10^-3 to 10^3) elsewhere."""
+    rng = np.random.default_rng(seed)
+    z, y, x = np.meshgrid(*[np.arange(n)] * 3, indexing="ij")
+    v = 10.0 ** rng.normal(0.0, 1.0, (n, n, n))
+    v[x < 20] = 0.0
+    v[(x >= 28) & (y < 8)] = -0.5
+    return mi_amr.dense_to_amr(v.astype(np.float32), 0.0, 2, source="signed")
+
+
+def nearly_constant(n=32, seed=5):
+    """1.0 in all but 16 of the ``n^3`` cells, those log-uniform in 1..10."""
+    rng = np.random.default_rng(seed)
+    v = np.ones(n ** 3)
+    v[rng.choice(n ** 3, 16, replace=False)] = 10.0 ** rng.uniform(0, 1, 16)
+    return mi_amr.dense_to_amr(v.reshape(n, n, n).astype(np.float32), 0.0, 2, source="nearly-constant")
+
+
+def dense_values(cells):
+    """The cells as a dense ``[z, y, x]`` array of the finest level (host)."""
+    lo, hi = cells.bounds
+    assert not lo.any()
+    out = np.full(tuple(int(n) for n in hi[::-1]), np.nan)
+    for (x, y, z), level, v in zip(cells.pos, cells.level, cells.value):
+        w = 1 << int(level)
+        out[z:z + w, y:y + w, x:x + w] = v
+    assert not np.isnan(out).any()
+    return out
+
+
+def column_depths(plan, cells):
+    """Optical depths along x (the longest side, world length 1) through
+    every finest column of the data, by the plan's TF, range and scale,
+    computed from the cells with numpy: log10 of values <= 0 raised to the
+    smallest positive value, as the medium does."""
+    from mi_amr.transfer.function import TransferFunction
+    v = dense_values(cells)
+    if plan.transform == "log10":
+        v = np.log10(np.maximum(v, v[v > 0].min()))
+    alpha = TransferFunction.load(plan.tf, plan.tf_range)(v)[..., 3].astype(np.float64)
+    return plan.density_scale * alpha.sum(axis=2) / v.shape[2]
+
+
+def test11_zeros_and_negatives_under_log10(llvm):
+    """--log on a field 62.5% zero and 3.1% negative by volume: the notes
+    name both shares (as numpy counts them), the TF range is the 1st-99.9th
+    volume percentiles of the positive values' log10, zeros and negatives
+    sit at the TF's bottom in the medium, and a render has no NaN, with a
+    finite majorant within the bound. Without --log the values stay linear
+    and the note says why."""
+    from mi_amr.autoscene import MAX_DEPTH
+    cells = signed_field()
+    w = np.exp2(3.0 * cells.level)
+    zero, neg = (w[cells.value == 0].sum() / w.sum(), w[cells.value < 0].sum() / w.sum())
+    assert 0.6 < zero < 0.65 and 0.02 < neg < 0.04
+    plan = plan_scene(cells, log=True)
+    notes = "\n".join(plan.notes)
+    assert f"{100 * zero:.3g}% of the volume" in notes and f"{100 * neg:.3g}% of the volume" in notes, notes
+    assert "zeros and negatives take the TF's bottom" in notes
+    pos = cells.value > 0
+    lv, pw = np.log10(cells.value[pos].astype(np.float64)), w[pos]
+    order = np.argsort(lv)
+    cdf = np.cumsum(pw[order]) / pw.sum()
+    bin_width = (lv.max() - lv.min()) / 4096
+    for q, got in zip((1.0, 99.9), plan.tf_range):
+        assert abs(got - lv[order][np.searchsorted(cdf, q / 100)]) <= 1.01 * bin_width + 1e-9
+    scene = mi.load_dict(scene_for(plan, res=16, spp=4))
+    med = mi_amr.amr_media(scene)[0]
+    assert med.volume.meta["log_floor"] == pytest.approx(cells.value[pos].min())
+    assert np.log10(med.volume.meta["log_floor"]) <= plan.tf_range[0]          # zeros: the TF's bottom
+    assert np.isfinite(med.global_majorant) and med.global_majorant <= MAX_DEPTH * (1 + 1e-5)
+    assert np.isfinite(np.array(mi.render(scene, spp=4))).all()
+    linear = plan_scene(cells)
+    assert linear.transform == "none"
+    assert any("only" in n and "positive" in n for n in linear.notes), linear.notes
+    with pytest.raises(ValueError, match="needs positive values"):
+        plan_scene(mi_amr.AMRCells(cells.pos, cells.level, -np.abs(cells.value) - 1, source="neg"), log=True)
+
+
+def test12_a_nearly_constant_field_gets_a_range_of_minimum_width(llvm):
+    """A field that is 1.0 but for 16 cells: its percentiles are a bin
+    apart; the TF range is widened to MIN_RANGE_SHARE of the values' span,
+    within it, with a note."""
+    from mi_amr.autoscene import MIN_RANGE_SHARE
+    cells = nearly_constant()
+    plan = plan_scene(cells)
+    lo, hi = plan.tf_range
+    span = float(cells.value.max() - cells.value.min())
+    assert hi - lo == pytest.approx(MIN_RANGE_SHARE * span, rel=1e-6)
+    assert lo >= cells.value.min() and hi <= cells.value.max()
+    assert any("widened" in n for n in plan.notes), plan.notes
+
+
+@pytest.mark.parametrize("make,capped", [(nearly_constant, True), (signed_field, True), (cosmology_like, False)])
+def test13_density_scale_is_bounded(llvm, make, capped):
+    """density_scale = TARGET_DEPTH / mean opacity, but at most MAX_DEPTH /
+    the TF's highest opacity over the values (it binds where the mean
+    opacity is tiny: the nearly constant field, and the signed one with
+    its linear TF over a log-normal tail). From the cells, with numpy:
+    the mean optical depth along an axis is the plan's (at most
+    TARGET_DEPTH), no column exceeds MAX_DEPTH, and the medium's global
+    majorant keeps within it; a tiny render is finite."""
+    from mi_amr.autoscene import MAX_DEPTH, TARGET_DEPTH
+    from mi_amr.transfer.function import TransferFunction
+    cells = make()
+    plan = plan_scene(cells)
+    tau = column_depths(plan, cells)
+    assert tau.mean() == pytest.approx(plan.optical_depth, rel=1e-4, abs=1e-9)
+    assert tau.mean() <= TARGET_DEPTH * (1 + 1e-6) and tau.max() <= MAX_DEPTH * (1 + 1e-6)
+    v = cells.value.astype(np.float64)
+    if plan.transform == "log10":
+        v = np.log10(np.maximum(v, v[v > 0].min()))
+    peak = TransferFunction.load(plan.tf, plan.tf_range).max_alpha(v.min(), v.max())[0]
+    assert plan.density_scale * peak <= MAX_DEPTH * (1 + 1e-6)
+    assert (TARGET_DEPTH / (tau.mean() / plan.density_scale) * peak > MAX_DEPTH) == capped
+    if capped:
+        assert plan.density_scale == pytest.approx(MAX_DEPTH / peak) and "capped" in plan.notes[-1]
+    else:
+        assert plan.optical_depth == pytest.approx(TARGET_DEPTH, rel=1e-6)
+    scene = mi.load_dict(scene_for(plan, res=12, spp=2))
+    assert mi_amr.amr_media(scene)[0].global_majorant <= MAX_DEPTH * (1 + 1e-5)
+    assert np.isfinite(np.array(mi.render(scene, spp=2))).all()
