@@ -166,3 +166,86 @@ def test11_a_scene_that_fails_to_load_gives_one_error_line(tmp_path):
     r = _render_cli(xml, tmp_path / "o.exr", "--spp", "1", "-D", "res=8")
     assert r.returncode == 2, r.stderr
     assert "missing.cells: no such file" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def _expected_info(value, level):
+    """What ``mi-amr info --json`` should say of cells with these values
+    and levels, counted with numpy."""
+    value, level = np.asarray(value, np.float32).astype(np.float64), np.asarray(level)
+    w = np.exp2(3.0 * level)
+    return {"levels": {str(L): int((level == L).sum()) for L in np.unique(level)},
+            "min": value.min(), "max": value.max(),
+            "zero_share_cells": np.mean(value == 0), "negative_share_cells": np.mean(value < 0),
+            "zero_share_volume": w[value == 0].sum() / w.sum(), "negative_share_volume": w[value < 0].sum() / w.sum()}
+
+
+def _check_info(info, expected, field):
+    assert info["levels"] == expected["levels"]
+    assert sum(r["cells"] for r in info["level_table"]) == info["cells"] == sum(expected["levels"].values())
+    stats = info["fields"][field]
+    for key in ("min", "max", "zero_share_cells", "negative_share_cells", "zero_share_volume",
+                "negative_share_volume"):
+        assert stats[key] == pytest.approx(expected[key], rel=1e-9, abs=1e-12), key
+    assert info["value_range"] == pytest.approx([expected["min"], expected["max"]])
+
+
+def test12_info_on_a_cells_file_counts_levels_zeros_and_negatives(llvm, tmp_path, capsys):
+    """``mi-amr info DATA.cells --json``: one JSON object whose cells per
+    level, range and shares of zeros and negatives (per cell and by volume)
+    are numpy's; the medium's memory: data and point-location hash as a
+    medium over the file holds them, its total within the stated range.
+    The text form keeps the summary lines and adds the shares."""
+    c = random_amr(3, levels=3)
+    v = c.value.astype(np.float64).copy()
+    v[::7] = -0.25
+    c = mi_amr.AMRCells(c.pos, c.level, v)
+    assert (v == 0).any() and (v < 0).any()
+    path = tmp_path / "s.cells"
+    write_exabricks(c, path)
+    assert main(["info", str(path), "--json"]) == 0
+    out = capsys.readouterr().out.strip()
+    assert len(out.splitlines()) == 1
+    info = json.loads(out)
+    _check_info(info, _expected_info(v, c.level), "value")
+    assert info["domain"] is None and info["bounds"] == [[0, 0, 0], [16, 16, 16]]
+    med = mi.load_dict({"type": "amr", "filename": str(path)})
+    m = info["medium_bytes"]
+    assert m["data"] == med.volume.nbytes and m["hash"] == med.structures.device["hash"].nbytes
+    assert m["total"][0] <= med.resident_bytes <= m["total"][1]
+    assert main(["info", str(path)]) == 0
+    text = capsys.readouterr().out
+    for line in ("source       :", "cells        : " + str(len(c)), "value range  :", "cells per level:",
+                 "zeros", "negatives", "amr medium   :"):
+        assert line in text, line
+
+
+def test13_info_on_an_enzo_output(llvm, tmp_path, capsys):
+    """``mi-amr info OUTPUT --field density --json`` on an Enzo output
+    (tests/amr_formats.py) with zeros and negatives: levels, counts, range
+    and shares as numpy counts them from the written grids, the domain and
+    cell sizes from the metadata, the field's units and the fields on disk;
+    without --field the error names the fields there are."""
+    pytest.importorskip("yt")
+    pytest.importorskip("h5py")
+    from amr_formats import write_enzo
+    rng = np.random.default_rng(7)
+    root = rng.lognormal(0.0, 1.0, (16, 16, 16))
+    root[:4] = 0.0
+    root[12:, :2] = -1.0
+    child = rng.lognormal(1.0, 0.5, (8, 8, 8))
+    path = write_enzo(tmp_path / "DD0003", "DD0003", root, [((8, 8, 8), child)])
+    covered = np.zeros(root.shape, bool)
+    covered[4:8, 4:8, 4:8] = True
+    values = np.concatenate([root[~covered], child.ravel()])
+    levels = np.r_[np.ones((~covered).sum(), int), np.zeros(child.size, int)]
+    assert main(["info", str(path), "--field", "density", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    _check_info(info, _expected_info(values, levels), "density")
+    assert info["domain"]["left"] == [0, 0, 0] and info["domain"]["right"] == [1, 1, 1]
+    sizes = {r["level"]: r["cell_size"] for r in info["level_table"]}
+    assert sizes == {0: [1 / 32] * 3, 1: [1 / 16] * 3}
+    assert info["fields"]["density"]["units"] and "enzo,Density" in info["fields_on_disk"]
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "--field" in err and "enzo,Density" in err
+

@@ -353,15 +353,16 @@ def cmd_frametime(args):
 
 # ---- info ------------------------------------------------------------------
 def cmd_info(args):
+    """Levels, cells, domain, fields (ranges, shares of zeros and negatives)
+    and the memory of an ``amr`` medium over the data (`mi_amr.tools.info`);
+    with ``--json`` one JSON object on one line."""
     ensure_llvm_path()
-    from ..data.io import load_cells
-    cells = load_cells(args.file, args.scalars)
-    print(cells.summary())
+    from .info import describe, format_info
+    info = describe(args.file, args.field, args.scalars)
     if args.json:
-        lo, hi = cells.bounds
-        print(json.dumps({"cells": len(cells), "levels": {int(L): int((cells.level == L).sum()) for L in cells.levels},
-                          "bounds": [lo.tolist(), hi.tolist()], "value_range": list(cells.value_range),
-                          "bytes": cells.nbytes}))
+        print(json.dumps(info))
+    else:
+        print(format_info(info))
 
 
 # ---- convert ---------------------------------------------------------------
@@ -593,10 +594,14 @@ def build_parser():
     t.add_argument("--json", help="also write the numbers to this file")
     t.set_defaults(func=cmd_frametime)
 
-    i = _command(sub, "info", "summarise an AMR file", "mi-amr info scenes/data/cloud.cells --json")
-    i.add_argument("file")
-    i.add_argument("--scalars")
-    i.add_argument("--json", action="store_true")
+    i = _command(sub, "info", "summarise AMR data, opened as render opens them: levels, cells per level and "
+                 "their sizes, the domain, each field's range with its shares of zeros and negatives, the memory "
+                 "of an amr medium over them",
+                 "mi-amr info DD0018/DD0018 --field density --json")
+    i.add_argument("file", help="a .cells/.npz/.amrb file or anything yt can load")
+    i.add_argument("--field", help="the field (yt data: needed; .cells: reads NAME-FIELD.scalars when there)")
+    i.add_argument("--scalars", help="a .cells file's scalars file (default NAME.scalars)")
+    i.add_argument("--json", action="store_true", help="print the same as one JSON object (one line)")
     i.set_defaults(func=cmd_info)
 
     c = _command(sub, "convert", "convert between .npz, .cells and .amrb (the native file that opens at "

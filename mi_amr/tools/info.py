@@ -1,0 +1,183 @@
+"""``mi-amr info DATA [--field F]``: what a data set holds, opened the way
+``mi-amr render DATA --field F`` opens it (`mi_amr.autoscene.open_data`:
+``.cells``/``.npz``/``.amrb`` files, or anything yt loads).
+
+`describe` gathers levels, cells per level and their physical sizes, the
+domain, each field's range with its shares of zeros and negatives (per cell
+and volume-weighted) and the memory of an ``amr`` medium with the default
+structures (`mi_amr.memory.medium_bytes`); `format_info` prints it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+DATA_SUFFIXES = (".cells", ".npz", ".amrb")
+
+
+def describe(data, field: str | None = None, scalars: str | None = None) -> dict:
+    """Everything `format_info` prints about ``data`` (a path), as plain
+    JSON types. ``field``: the yt field, or for a ``.cells`` file the
+    ``NAME-FIELD.scalars`` beside it; ``scalars``: a ``.cells`` file's
+    scalars file, named."""
+    from ..autoscene import _yt_load, open_data
+    from ..data.io import load_volume
+    from ..data.metadata import cell_size
+    from ..memory import medium_bytes
+    path = Path(str(data))
+    ds = None
+    if scalars is not None:
+        if path.suffix != ".cells":
+            raise ValueError(f"{path}: --scalars is for .cells files")
+        volume = load_volume(path, scalars)
+    elif path.suffix in DATA_SUFFIXES:
+        volume, _, _ = open_data(path, field)
+    else:
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such file or directory")
+        ds = _yt_load(path)
+        if field is None:
+            raise ValueError(f"{path}: give the field to describe (--field NAME); its fields: "
+                             f"{', '.join(_field_name(f) for f in ds.field_list)}")
+        volume, _, _ = open_data(ds, field)
+    meta = dict(getattr(volume, "meta", {}) or {})
+    lo, hi = volume.bounds
+    levels = [int(L) for L in volume.levels]
+    counts = _level_counts(volume)
+    dx = cell_size(meta)
+    total_volume = sum(counts[L] * 8.0 ** L for L in levels)
+    main_units = _units(ds, field) if ds is not None else meta.get("units", "")
+    info = {
+        "source": str(volume.source), "data": str(path), "field": field, "code": meta.get("code"),
+        "cells": int(len(volume)),
+        "levels": {L: counts[L] for L in levels},
+        "level_table": [{"level": L, "width": 1 << L, "cells": counts[L], "refinement": levels[-1] - L,
+                         "volume_share": counts[L] * 8.0 ** L / total_volume,
+                         "cell_size": None if dx is None else (dx * (1 << L)).tolist()} for L in levels],
+        "bounds": [lo.tolist(), hi.tolist()],
+        "extent": (hi - lo).tolist(),
+        "domain": _domain(meta, ds),
+        "value_range": [float(x) for x in volume.value_range],
+        "bytes": int(volume.nbytes),
+        "fields": {_main_name(field, meta): dict(_field_stats(volume, None), units=main_units)},
+        "medium_bytes": medium_bytes(volume),
+    }
+    for name in sorted(getattr(volume, "fields", {}) or {}):
+        info["fields"][name] = dict(_field_stats(volume, name), units="")
+    if ds is not None:
+        info["fields_on_disk"] = {_field_name(f): _units(ds, f) for f in ds.field_list}
+    if meta.get("value_transform"):
+        info["value_transform"] = meta["value_transform"]
+    return info
+
+
+def _field_name(f) -> str:
+    return ",".join(f) if isinstance(f, tuple) else str(f)
+
+
+def _main_name(field, meta) -> str:
+    return str(field or meta.get("field") or "value")
+
+
+def _units(ds, field) -> str:
+    """The units yt gives ``field`` ('' when it cannot say)."""
+    from ..autoscene import _yt_field
+    try:
+        return str(ds._get_field_info(_yt_field(field)).units)
+    except Exception:           # yt's field lookup varies by frontend: units are informative only
+        return ""
+
+
+def _level_counts(volume) -> dict:
+    """Cells per level (finest = 0): the present cells of each block."""
+    if hasattr(volume, "block"):
+        b3 = volume.block ** 3
+        step = max(1, (1 << 22) // b3)
+        present = np.zeros(len(volume.level), np.int64)
+        for s in range(0, len(volume.level), step):
+            present[s:s + step] = (~np.isnan(volume.values[s * b3:(s + step) * b3].reshape(-1, b3))).sum(axis=1)
+        return {int(L): int(present[volume.level == L].sum()) for L in volume.levels}
+    return {int(L): int((volume.level == L).sum()) for L in volume.levels}
+
+
+def _field_stats(volume, name) -> dict:
+    """Range and shares of zeros and negatives of one field (None: the
+    main values): per cell and weighted by cell volume."""
+    from ..autoscene import value_stats
+    s = value_stats(volume, name)
+    return {"min": s.min, "max": s.max,
+            "positive_min": s.positive_min if s.has_positive else None,
+            "positive_max": s.positive_max if s.has_positive else None,
+            "zero_cells": s.zero_cells, "negative_cells": s.negative_cells,
+            "zero_share_cells": s.zero_cells / s.cells, "negative_share_cells": s.negative_cells / s.cells,
+            "zero_share_volume": s.zero_volume / s.volume, "negative_share_volume": s.negative_volume / s.volume}
+
+
+def _domain(meta, ds) -> dict | None:
+    """The physical domain: edges in the data's length unit (and in cm from
+    yt), or None when the data carry no domain."""
+    if "domain_left_edge" not in meta:
+        return None
+    out = {"left": [float(x) for x in meta["domain_left_edge"]],
+           "right": [float(x) for x in meta["domain_right_edge"]],
+           "unit": meta.get("length_unit", ""), "finest_cells": [int(n) for n in meta["domain_cells"]]}
+    if ds is not None:
+        try:
+            out["cm_per_unit"] = float(ds.length_unit.in_cgs().d)
+        except Exception:       # a frontend without a length unit
+            pass
+    return out
+
+
+def _mib(n) -> str:
+    from ..memory import format_bytes
+    return format_bytes(float(n))
+
+
+def format_info(info: dict) -> str:
+    """The text ``mi-amr info`` prints: the summary `AMRCells.summary`
+    always printed (source, cells, box, extent, value range, memory, cells
+    per level; level 0 the finest, refinement 0 the coarsest), then the
+    domain, the fields and the medium's memory."""
+    lo, hi = info["bounds"]
+    unit = (info["domain"] or {}).get("unit", "")
+    lines = [f"source       : {info['source']}",
+             f"cells        : {info['cells']}",
+             f"bounding box : {lo} .. {hi} (finest-cell units)",
+             f"extent       : {info['extent']}",
+             f"value range  : [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}]",
+             f"memory       : {info['bytes'] / 2**20:.2f} MiB (blocks: values, further fields, block headers)",
+             "cells per level:"]
+    for row in info["level_table"]:
+        size = "" if row["cell_size"] is None else \
+            " cells of " + " x ".join(f"{x:.4g}" for x in row["cell_size"]) + f" {unit}"
+        lines.append(f"  level {row['level']:2d} (width {row['width']:>6d}): {row['cells']}"
+                     f" (refinement {row['refinement']}; {100 * row['volume_share']:.3g}% of the volume){size}")
+    d = info["domain"]
+    if d is None:
+        lines.append("domain       : none in the metadata (cells are unit cubes)")
+    else:
+        cm = f" (1 {d['unit']} = {d['cm_per_unit']:.6g} cm)" if "cm_per_unit" in d else ""
+        lines.append(f"domain       : {d['left']} .. {d['right']} {d['unit']}{cm}, "
+                     f"{' x '.join(str(n) for n in d['finest_cells'])} finest cells")
+    if info.get("value_transform"):
+        lines.append(f"values are   : {info['value_transform']} (metadata)")
+    lines.append("fields (zeros and negatives: share of the cells / share of the volume):")
+    for name, f in info["fields"].items():
+        units = f" [{f['units']}]" if f["units"] else ""
+        pos = (f", positive {f['positive_min']:.6g} .. {f['positive_max']:.6g}" if f["positive_min"] is not None
+               else ", none positive")
+        lines.append(f"  {name}{units}: [{f['min']:.6g}, {f['max']:.6g}]{pos}; zeros "
+                     f"{100 * f['zero_share_cells']:.3g}% / {100 * f['zero_share_volume']:.3g}%, negatives "
+                     f"{100 * f['negative_share_cells']:.3g}% / {100 * f['negative_share_volume']:.3g}%")
+    if info.get("fields_on_disk"):
+        lines.append("on disk      : " + ", ".join(f"{k} [{u}]" if u else k for k, u in info["fields_on_disk"].items()))
+    m = info["medium_bytes"]
+    r = m["grid_resolution"]
+    lines.append(f"amr medium   : {_mib(m['total'][0])} to {_mib(m['total'][1])} with the default structures "
+                 f"({m['reconstruction']}): data {_mib(m['data'])} + point-location hash {_mib(m['hash'])} "
+                 f"+ macrocell grid {_mib(m['grid'][0])} ({r[0]} per axis) to {_mib(m['grid'][1])} ({r[1]} per "
+                 f"axis), as the cost model chooses (an estimate); building the hash peaks at {_mib(m['build_peak'])}")
+    return "\n".join(lines)
