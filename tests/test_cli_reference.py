@@ -249,3 +249,16 @@ def test13_info_on_an_enzo_output(llvm, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--field" in err and "enzo,Density" in err
 
+
+def test14_refusals_through_the_cli_are_one_line(tmp_path):
+    """A refusal of ``mi-amr render`` (no -o and no --movie; --log on data
+    with no positive value) is one line on stderr, exit status 2, no
+    traceback."""
+    data = tmp_path / "neg.npz"
+    c = random_amr(0, 8, 2)
+    mi_amr.save_cells(mi_amr.AMRCells(c.pos, c.level, -1.0 - c.value), data)
+    for argv, words in [([data], "-o/--output is needed"),
+                        ([data, "--log", "-o", tmp_path / "o.exr", "--res", "8", "--spp", "1"], "needs positive values")]:
+        r = render_cli(argv)
+        assert r.returncode == 2 and words in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr

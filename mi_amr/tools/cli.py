@@ -144,6 +144,10 @@ def _render_all(args, jobs):
 
 
 def cmd_render(args):
+    if args.output is None:
+        if not args.movie:
+            raise ValueError("-o/--output is needed (the .exr to write; with --movie OUT.mp4 it may be left out)")
+        args.output = str(Path(args.movie).with_suffix(".exr"))      # frames and scenes beside the movie
     if args.denoise:                          # before any work: is the denoiser there?
         from ..view.engine import denoiser
         if denoiser()[0] is None:
@@ -537,12 +541,15 @@ def build_parser():
                    help="data: radiance of emission TF colour 1 (default: the mean glow of the gas is 1)")
     r.add_argument("--movie", metavar="OUT.mp4",
                    help="data: render every output the pattern names (e.g. 'DD00??/DD00??') with one TF "
-                        "range over all of them, and encode the frames as an H.264 movie")
+                        "range over all of them, and encode the frames as an H.264 movie (without -o, the "
+                        "frames and scenes go beside it: see -o)")
     r.add_argument("--fps", type=int, default=10, help="frames per second of --movie (default 10)")
     r.add_argument("--orbit", type=float, default=0.0, metavar="DEGREES",
                    help="turn the camera by this much about the up axis over a run's outputs (default 0)")
     r.add_argument("--res", type=int, default=400, help="data: image width and height (default 400)")
-    r.add_argument("-o", "--output", required=True, help="output .exr path")
+    r.add_argument("-o", "--output", help="output .exr path; with --movie OUT.mp4 it may be left out: then "
+                                          "OUT.exr beside the movie (--frames writes OUT_000.exr, ...; the "
+                                          "scenes and data go to OUT_outputs/)")
     r.add_argument("--denoise", action="store_true",
                    help="also write OUT-denoised.exr/.png: Intel Open Image Denoise (mi-amr[view] extra)")
     _render_flags(r, 64)
