@@ -143,17 +143,8 @@ def field_scalars(path, field) -> Path | None:
 
 
 def _yt_load(path):
-    try:
-        import yt
-    except ImportError as e:
-        raise ImportError(f"{path}: reading this data needs yt: pip install 'mi-amr[yt]' ({e})") from e
-    try:
-        return yt.load(str(path))
-    except ImportError as e:
-        # yt's readers import their own dependencies lazily (h5py for Enzo, FLASH, Athena++)
-        name = getattr(e, "name", None) or "a missing package"
-        raise ImportError(f"{path}: yt's reader for this format needs '{name}': "
-                          f"pip install {name} (or pip install 'mi-amr[yt]', which brings h5py)") from e
+    from .data.yt_import import load_dataset       # one line for what yt lacks (yt_import.MissingDependency)
+    return load_dataset(path)
 
 
 def _yt_field(field):

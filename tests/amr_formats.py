@@ -13,6 +13,9 @@ grid, values stored z slowest).
 
 `write_athena_pp`: an Athena++ ``.athdf`` file (leaf mesh blocks of one size,
 face coordinates per block, ``prim`` stored [variable, block, k, j, i]).
+
+`octree`: an octree as ``yt.load_octree`` takes it (a depth-first refinement
+mask) with its leaf cells in the same order, built level by level.
 """
 
 from __future__ import annotations
@@ -157,3 +160,35 @@ def write_athena_pp(path, levels, root_cells, box=(1.0, 1.0, 1.0), field="rho"):
         h5["LogicalLocations"] = np.array([lo // np.asarray(size) for _, lo, _ in blocks], np.int64)
         h5["prim"] = np.stack([d.transpose(2, 1, 0) for _, _, d in blocks])[None].astype("<f4")
     return Path(path)
+
+
+def octree(max_depth, refine):
+    """An octree over the domain (one root oct, ``num_zones=1``), refined
+    level by level: ``refine(coords (m, 3), depth)`` says which nodes of a
+    depth (integer coordinates at that depth) have children; nothing is
+    refined below ``max_depth``. Returns ``(mask uint8, pos (n, 3), level
+    (n,))``: the depth-first mask ``yt.load_octree`` reads (8 for a refined
+    node, 0 for a leaf; children in yt's order, x slowest) and the leaves in
+    that order, in mi-amr's units (finest-level cells, level 0 = finest)."""
+    coords, depths, inner = [], [], []
+    c = np.zeros((1, 3), np.int64)
+    for d in range(max_depth + 1):
+        r = np.asarray(refine(c, d), bool) if d < max_depth else np.zeros(len(c), bool)
+        coords.append(c)
+        depths.append(np.full(len(c), d))
+        inner.append(r)
+        child = np.array([(i >> 2 & 1, i >> 1 & 1, i & 1) for i in range(8)], np.int64)
+        c = ((2 * c[r])[:, None, :] + child[None]).reshape(-1, 3)
+        if not len(c):
+            break
+    coords, depths, inner = np.concatenate(coords), np.concatenate(depths), np.concatenate(inner)
+    deepest = int(depths[~inner].max())
+    corner = coords << (deepest - depths)[:, None]
+    key = np.zeros(len(corner), np.int64)
+    for b in range(deepest):                    # Morton order, x the slowest of each bit triple
+        for a in range(3):
+            key |= ((corner[:, a] >> b) & 1) << (3 * b + 2 - a)
+    order = np.lexsort((depths, key))           # depth first: a node before its children
+    inner, corner, depths = inner[order], corner[order], depths[order]
+    leaf = ~inner
+    return np.where(inner, 8, 0).astype(np.uint8), corner[leaf], (deepest - depths[leaf]).astype(np.int32)
