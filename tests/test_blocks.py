@@ -306,3 +306,69 @@ def test12_mixed_block_sizes_tile_the_domain(tmp_path):
     wc = (np.int64(1) << cells.level[pick].astype(np.int64))[:, None]
     expected = f((cells.pos[pick] + 0.5 * wc) / n_fine).astype(np.float32)
     np.testing.assert_array_equal(cells.value[pick], expected)
+
+
+@pytest.mark.parametrize("method", ["tent", "nearest"])
+def test13_any_cell_order_builds_the_same_blocks(tmp_path, method):
+    """The same cells written in every layout of `LAYOUTS` that keeps the
+    cell set (this generator's, z fastest inside blocks, blocks sorted by
+    space, shuffled), and octree-like data shuffled, stream (in chunks of
+    a few thousand cells) into identical blocks: the block size, the block
+    list and every value; the block counts behind the choice are exact, so
+    the size is the one of the in-order file."""
+    ref = None
+    for layout in ("blocks", "zfast", "space", "shuffled"):
+        path = write_block_dataset(tmp_path / f"{layout}.cells", 60_000, 4, layout=layout)
+        vol = read_exabricks_blocks(path, chunk=4096, method=method)
+        if ref is None:
+            ref = vol
+            assert vol.block >= 8 and vol.nbytes / len(vol) < 4.2
+            continue
+        assert vol.block == ref.block and len(vol) == len(ref), layout
+        np.testing.assert_array_equal(vol.coord, ref.coord)
+        np.testing.assert_array_equal(vol.level, ref.level)
+        np.testing.assert_array_equal(vol.values, ref.values)
+    cells = DATA["cloud"]()
+    perm = np.random.default_rng(3).permutation(len(cells))
+    shuffled = mi_amr.AMRCells(cells.pos[perm], cells.level[perm], cells.value[perm])
+    a, b = BlockVolume.from_cells(cells, method=method), BlockVolume.from_cells(shuffled, method=method)
+    assert a.block == b.block
+    np.testing.assert_array_equal(a.coord, b.coord)
+    np.testing.assert_array_equal(a.values, b.values)
+
+
+def test14_dense_block_counts_equal_the_sorted_ones(monkeypatch):
+    """The block and ghost counts found on the dense tile index (any cell
+    order) equal those of sorting block keys (`ghost_blocks`), for every
+    block size, on octree-like, sparse and block-structured data; with the
+    dense index over its budget, loads fall back to sorting and give the
+    same blocks."""
+    import mi_amr.data.blocks as blocks
+    from mi_amr.data.blocks import TileIndex, _dense_ghosts, _level_coords, _pool, ghost_blocks
+    for name in ("cloud", "stadium", "blocks"):
+        cells = DATA[name]()
+        lo, hi = cells.bounds
+        lmax = int(cells.level.max())
+        origin = (lo >> lmax) << lmax
+        tiles = TileIndex(lo, hi, origin, lmax)
+        q = _level_coords(cells.pos, cells.level, origin)
+        occupied = np.zeros(tiles.total, np.uint8)
+        occupied[tiles.index(q, cells.level)] = 1
+        tiles.set_occupied(occupied)
+        fine = np.zeros((tiles.count, 8, 8, 8), bool)
+        r = tiles.rank[tiles.index(q, cells.level)]
+        fine[r, (q[2] >> 1) & 7, (q[1] >> 1) & 7, (q[0] >> 1) & 7] = True
+        for b in (2, 4, 8, 16):
+            grid = _pool(fine, 16 // b)
+            keys = np.unique(np.stack([cells.level.astype(np.int64)] + [c.astype(np.int64) >> (b.bit_length() - 1)
+                                                                      for c in q], axis=1), axis=0)
+            assert np.count_nonzero(grid) == len(keys), (name, b)
+            ghosts = ghost_blocks(keys[:, 1:], keys[:, 0])[1]
+            assert _dense_ghosts(tiles, grid) == len(ghosts), (name, b)
+        dense = BlockVolume.from_cells(cells)
+        monkeypatch.setattr(blocks, "DENSE_ENTRIES", 0)
+        monkeypatch.setattr(blocks, "TILE", 1)                    # no dense index: sorted keys
+        sorted_ = BlockVolume.from_cells(cells, dense.block)
+        monkeypatch.undo()
+        np.testing.assert_array_equal(sorted_.coord, dense.coord)
+        np.testing.assert_array_equal(sorted_.values, dense.values)

@@ -142,7 +142,7 @@ class BlockVolume(mi.Object):
                           for s in range(0, len(cells), CHUNK))
         vol = _build(chunks, lo, hi, int(cells.level.max()), cells.source, "error", block,
                      lambda: sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)),
-                     method)
+                     method, n_cells=len(cells))
         vol.meta = dict(getattr(cells, "meta", {}))
         for name, f in getattr(cells, "fields", {}).items():
             vol.add_field(name, lambda f=f: ((cells.pos[s:s + CHUNK], cells.level[s:s + CHUNK], f[s:s + CHUNK])
@@ -196,7 +196,7 @@ class BlockVolume(mi.Object):
             bar.close()
             raise ValueError(f"{source}: bounding box {lo.tolist()}..{hi.tolist()} exceeds 2**31 finest cells")
         with bar:
-            return _build(chunks, lo, hi, lmax, source, overlap, block, sample, method, bar, positions)
+            return _build(chunks, lo, hi, lmax, source, overlap, block, sample, method, bar, positions, n)
 
     # ---- Properties ----------------------------------------------------
     def __len__(self):
@@ -599,7 +599,177 @@ def _place_checked(chunks, values, keys, origin, packed, b, source, overlap, blo
     return n
 
 
-def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="tent", bar=None, positions=None):
+#: Cells per side of the coarse tiles that `TileIndex` numbers densely: the
+#: largest block size, so that every block lies in one tile.
+TILE = max(BLOCK_SIZES)
+#: A dense tile index (and the per-tile occupancy of its finest candidate
+#: blocks) holds at most this many entries, or one per cell if there are
+#: more; beyond that, blocks are found by sorting their keys.
+DENSE_ENTRIES = 1 << 24
+
+
+class TileIndex:
+    """A dense numbering of the aligned ``TILE^3``-cell tiles of every level
+    over the data's bounding box, to find a cell's block by arithmetic and
+    two table reads, in any cell order (docs/design.md section 9, "Loading
+    in any order").
+
+    Tile ``t`` of level L at tile coordinate ``(tx, ty, tz)`` (level
+    coordinates ``(pos - origin) >> L``, divided by TILE) has the index
+    ``offset[L] + (tz * ny[L] + ty) * nx[L] + tx``; ``rank`` maps an index
+    to the tile's number among the occupied tiles (-1: none), in index
+    order."""
+
+    def __init__(self, lo, hi, origin, lmax: int):
+        ext = np.asarray(hi, np.int64) - np.asarray(origin, np.int64)
+        self.dims = np.array([np.maximum(1, -(-((ext + (1 << L) - 1) >> L) // TILE)) for L in range(lmax + 1)],
+                             dtype=np.int64)                                       # (levels, 3) x, y, z
+        sizes = np.prod(self.dims, axis=1)
+        self.offset = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        self.total = int(self.offset[-1])
+        self.origin = np.asarray(origin, np.int64)
+        #: index arithmetic in int32 where the indices fit (half the memory traffic)
+        self.itype = np.int32 if self.total < 2**31 else np.int64
+        self.offset_t = self.offset[:-1].astype(self.itype)
+        self.stride_y = self.dims[:, 0].astype(self.itype)
+        self.stride_z = (self.dims[:, 0] * self.dims[:, 1]).astype(self.itype)
+        self.rank = None
+        self.count = 0
+
+    def index(self, q, level):
+        """Tile indices (`itype`) of cells at level coordinates ``q`` (three
+        int32 columns) and levels ``level``."""
+        lv = np.asarray(level)
+        lt = TILE.bit_length() - 1
+        i = np.take(self.offset_t, lv)
+        i += (q[2] >> lt).astype(self.itype, copy=False) * np.take(self.stride_z, lv)
+        i += (q[1] >> lt).astype(self.itype, copy=False) * np.take(self.stride_y, lv)
+        i += q[0] >> lt
+        return i
+
+    def set_occupied(self, occupied: np.ndarray):
+        """``rank`` from a 0/1 array over the tile indices."""
+        self.count = int(np.count_nonzero(occupied))
+        rank = np.cumsum(occupied, dtype=np.int32)
+        rank -= 1
+        rank[occupied == 0] = -1
+        self.rank = rank
+
+    def coords(self, tiles: np.ndarray):
+        """``(coord int64 (m, 3) x y z, level int64 (m,))`` of tile indices."""
+        L = np.searchsorted(self.offset, tiles, side="right") - 1
+        local = tiles - self.offset[L]
+        nx, ny = self.dims[L, 0], self.dims[L, 1]
+        return np.stack([local % nx, (local // nx) % ny, local // (nx * ny)], axis=1), L
+
+    def neighbour(self, tiles: np.ndarray, d) -> np.ndarray:
+        """Index of the tile at ``coord + d`` (same level) of each tile, or -1
+        outside the bounding box."""
+        c, L = self.coords(tiles)
+        c = c + np.asarray(d, np.int64)
+        ok = np.all((c >= 0) & (c < self.dims[L]), axis=1)
+        out = self.offset[L] + (c[:, 2] * self.dims[L, 1] + c[:, 1]) * self.dims[L, 0] + c[:, 0]
+        return np.where(ok, out, -1)
+
+
+def _pool(occupied: np.ndarray, s: int) -> np.ndarray:
+    """Per-tile occupancy grids (m, s0, s0, s0) [z, y, x] pooled (any) to
+    ``s`` sub-blocks per side."""
+    m, s0 = occupied.shape[0], occupied.shape[1]
+    f = s0 // s
+    if f == 1:
+        return occupied
+    return occupied.reshape(m, s, f, s, f, s, f).any(axis=(2, 4, 6))
+
+
+def _dense_ghosts(tiles: TileIndex, occupied: np.ndarray) -> int:
+    """Ghost blocks (`ghost_blocks`: missing blocks at ``coord - d`` of a
+    block, d in {0,1}^3 \\ 0) of the blocks whose per-tile occupancy is
+    ``occupied`` (K tiles, s^3 sub-blocks each), counted exactly on dense
+    grids: each candidate tile (an occupied tile or a lower neighbour of
+    one) is extended by one layer of sub-blocks from its upper neighbours."""
+    s = occupied.shape[1]
+    occ_tiles = np.flatnonzero(tiles.rank >= 0)
+    cand = [occ_tiles]
+    for d in UPPER_OFFSETS:
+        n = tiles.neighbour(occ_tiles, -d)
+        cand.append(n[n >= 0])
+    cand = np.unique(np.concatenate(cand))
+    padded = np.concatenate([occupied, np.zeros((1, s, s, s), bool)])      # row K: an empty tile
+    count = 0
+    step = max(1, (1 << 21) // (s + 1) ** 3)
+    for a in range(0, len(cand), step):
+        c = cand[a:a + step]
+        ext = np.zeros((len(c), s + 1, s + 1, s + 1), bool)
+        for e in [np.zeros(3, np.int64)] + UPPER_OFFSETS:
+            n = tiles.neighbour(c, e)
+            r = np.where(n >= 0, tiles.rank[np.maximum(n, 0)], -1)
+            r[r < 0] = len(occupied)
+            dst = tuple(slice(0, s) if e[a_] == 0 else slice(s, s + 1) for a_ in (2, 1, 0))
+            src = tuple(slice(0, s) if e[a_] == 0 else slice(0, 1) for a_ in (2, 1, 0))
+            ext[(slice(None),) + dst] = padded[r][(slice(None),) + src]
+        up = np.zeros((len(c), s, s, s), bool)
+        for d in UPPER_OFFSETS:
+            up |= ext[:, d[2]:d[2] + s, d[1]:d[1] + s, d[0]:d[0] + s]
+        count += int(np.count_nonzero(up & ~ext[:, :s, :s, :s]))
+    return count
+
+
+def _dense_blocks(tiles: TileIndex, positions, sizes, with_ghosts: bool, n: int, bar=None):
+    """Blocks found on the dense tile index, independent of cell order: one
+    pass marks the occupied tiles, one more (when several block sizes are
+    candidates) the occupied sub-blocks of the finest candidate size in
+    each tile, from which every candidate's block and ghost counts follow
+    exactly. Returns ``(B, sub-block occupancy (K, s, s, s) of the chosen
+    size)``, or None when the occupancy grids would exceed `DENSE_ENTRIES`."""
+    occupied = np.zeros(tiles.total, np.uint8)
+
+    def mark(chunk):
+        pos, level, _ = _resolve(chunk)
+        occupied[tiles.index(_level_coords(pos, level, tiles.origin), level)] = 1
+        return len(level)
+    for m in ordered_map(mark, positions()):
+        if bar is not None:
+            bar.update(m)
+    tiles.set_occupied(occupied)
+    del occupied
+    budget = max(DENSE_ENTRIES, 4 * n)             # bytes of the sub-block occupancy
+    usable = [b for b in sorted(sizes) if tiles.count * (TILE // b) ** 3 <= budget]
+    if not usable:
+        return None
+    bmin = usable[0]
+    s0 = TILE // bmin
+    lb = bmin.bit_length() - 1
+    fine = np.zeros(tiles.count * s0 ** 3, np.uint8)
+    ftype = np.int32 if len(fine) < 2**31 else np.int64
+    mask = np.int32(s0 - 1)
+
+    def mark_fine(chunk):
+        pos, level, _ = _resolve(chunk)
+        q = _level_coords(pos, level, tiles.origin)
+        r = tiles.rank[tiles.index(q, level)].astype(ftype, copy=False)
+        sub = (((q[2] >> lb) & mask) * np.int32(s0) + ((q[1] >> lb) & mask)) * np.int32(s0) + ((q[0] >> lb) & mask)
+        r *= s0 ** 3
+        r += sub
+        fine[r] = 1
+        return len(level)
+    if bar is not None and bar.total is not None:
+        bar.total += n
+    for m in ordered_map(mark_fine, positions()):
+        if bar is not None:
+            bar.update(m)
+    fine = fine.reshape(tiles.count, s0, s0, s0).view(bool)
+    if len(usable) == 1:
+        return usable[0], fine
+    grids = {b: _pool(fine, TILE // b) for b in usable}
+    counts = {b: int(np.count_nonzero(g)) for b, g in grids.items()}
+    ghosts = {b: _dense_ghosts(tiles, g) for b, g in grids.items()} if with_ghosts else None
+    b = choose_block_size(counts, ghosts)
+    return b, grids[b]
+
+
+def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="tent", bar=None, positions=None,
+           n_cells: int = 0):
     """Choose the block size (from ``sample()``, or the first chunk, for
     the reconstruction ``method``: name or object), then two passes over
     ``chunks()``: the set of blocks (over ``positions()`` when given), then
@@ -620,35 +790,56 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
 
     def block_keys(pos, level, b):
         return keys_and_coords(pos, level, b)[0]
-    # ---- Block size: fewest bytes per cell on the sample ----
     with_ghosts = reconstruction_method(method).needs_ghosts
-    if len(sizes) > 1:
-        runs = [_resolve(c) for c in (sample() if sample is not None else [next(iter(chunks()))])]
-        counts, ghosts = dict.fromkeys(sizes, 0), dict.fromkeys(sizes, 0)
-
-        def count(job):                           # blocks (and ghosts) of one size on one run, in threads
-            b, (p, lv, _) = job
-            c, L = _unpack_keys(_distinct(block_keys(p, lv, b)), packed)
-            return b, len(L), len(ghost_blocks(c, L)[1]) if with_ghosts else 0
-        for b, k, g in ordered_map(count, [(b, run) for b in sizes for run in runs]):
-            counts[b] += k
-            ghosts[b] += g
-        b = choose_block_size(counts, ghosts if with_ghosts else None)
+    dense = None
+    tiles = TileIndex(lo, hi, origin, lmax)
+    if n_cells and max(sizes) <= TILE and tiles.total <= max(DENSE_ENTRIES, n_cells):
+        # ---- Passes 1a, 1b: blocks and block size on the dense tile index (any cell order) ----
+        dense = _dense_blocks(tiles, positions or chunks, sizes, with_ghosts, n_cells, bar)
+    if dense is not None:
+        b, grid = dense
+        s = TILE // b
+        r, lz, ly, lx = np.nonzero(grid)
+        del grid
+        tc, tl = tiles.coords(np.flatnonzero(tiles.rank >= 0)[r])
+        coord = tc * s + np.stack([lx, ly, lz], axis=1)
+        order = np.lexsort((coord[:, 0], coord[:, 1], coord[:, 2], tl)) if packed else \
+            np.lexsort((tl, coord[:, 0], coord[:, 1], coord[:, 2]))               # the order of the keys
+        coord, blevel = coord[order].astype(np.int32), tl[order].astype(np.uint8)
+        keys = _block_keys(coord, blevel, packed)
+        block_of = np.full(tiles.count * s ** 3, -1, np.int32)                     # (tile, sub-block) -> block
+        block_of[((r * s + lz) * s + ly)[order] * s + lx[order]] = np.arange(len(order), dtype=np.int32)
+        del r, lz, ly, lx, order, tc, tl
     else:
-        b = sizes[0]
-    # ---- Pass 1: the blocks (each chunk's in a thread) ----
-    parts = []
-    def distinct_blocks(chunk):
-        pos, level, _ = _resolve(chunk)
-        return _distinct(block_keys(pos, level, b)), len(level)
-    for part, m in ordered_map(distinct_blocks, (positions or chunks)()):
-        parts.append(part)
-        if bar is not None:
-            bar.update(m)
-    keys = _distinct(np.concatenate(parts))
-    del parts
-    coord, blevel = _unpack_keys(keys, packed)
-    coord, blevel = coord.astype(np.int32), blevel.astype(np.uint8)
+        # ---- Block size: fewest bytes per cell on the sample ----
+        if len(sizes) > 1:
+            runs = [_resolve(c) for c in (sample() if sample is not None else [next(iter(chunks()))])]
+            counts, ghosts = dict.fromkeys(sizes, 0), dict.fromkeys(sizes, 0)
+
+            def count(job):                           # blocks (and ghosts) of one size on one run, in threads
+                b, (p, lv, _) = job
+                c, L = _unpack_keys(_distinct(block_keys(p, lv, b)), packed)
+                return b, len(L), len(ghost_blocks(c, L)[1]) if with_ghosts else 0
+            for b, k, g in ordered_map(count, [(b, run) for b in sizes for run in runs]):
+                counts[b] += k
+                ghosts[b] += g
+            b = choose_block_size(counts, ghosts if with_ghosts else None)
+        else:
+            b = sizes[0]
+        # ---- Pass 1: the blocks (each chunk's in a thread) ----
+        parts = []
+
+        def distinct_blocks(chunk):
+            pos, level, _ = _resolve(chunk)
+            return _distinct(block_keys(pos, level, b)), len(level)
+        for part, m in ordered_map(distinct_blocks, (positions or chunks)()):
+            parts.append(part)
+            if bar is not None:
+                bar.update(m)
+        keys = _distinct(np.concatenate(parts))
+        del parts
+        coord, blevel = _unpack_keys(keys, packed)
+        coord, blevel = coord.astype(np.int32), blevel.astype(np.uint8)
     b3 = b ** 3
     if len(keys) * b3 >= 2**32:
         raise ValueError(f"{source}: {len(keys)} blocks of {b}^3 values exceed 2**32 values")
@@ -656,15 +847,25 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     # ---- Pass 2: place each cell's value (in threads: a slot is written once
     # unless cells repeat, which the count of placed values reveals) ----
     lb = b.bit_length() - 1
+    mask = np.int32(b - 1)
 
     def place(chunk):
         pos, level, value = _resolve(chunk)
-        keys_c, q = keys_and_coords(pos, level, b)
-        heads = np.flatnonzero(np.r_[True, keys_c[1:] != keys_c[:-1]])     # runs of one block
-        blk = np.searchsorted(keys, keys_c[heads])
-        blk = np.repeat(blk, np.diff(np.r_[heads, len(keys_c)]))
-        m = np.int32(b - 1)
-        local = (q[0] & m) | ((q[1] & m) << lb) | ((q[2] & m) << (2 * lb))
+        if dense is not None:                      # block by table reads: no search, any order
+            q = _level_coords(pos, level, origin)
+            r = tiles.rank[tiles.index(q, level)]
+            sm = np.int32(s - 1)
+            sub = (((q[2] >> lb) & sm) * np.int32(s) + ((q[1] >> lb) & sm)) * np.int32(s) + ((q[0] >> lb) & sm)
+            r = r.astype(np.int32 if len(block_of) < 2**31 else np.int64, copy=False)
+            r *= s ** 3
+            r += sub
+            blk = block_of[r].astype(np.int64)
+        else:
+            keys_c, q = keys_and_coords(pos, level, b)
+            heads = np.flatnonzero(np.r_[True, keys_c[1:] != keys_c[:-1]])     # runs of one block
+            blk = np.searchsorted(keys, keys_c[heads])
+            blk = np.repeat(blk, np.diff(np.r_[heads, len(keys_c)]))
+        local = (q[0] & mask) | ((q[1] & mask) << lb) | ((q[2] & mask) << (2 * lb))
         values[(blk << (3 * lb)) | local] = value
         return len(value)
 

@@ -306,13 +306,17 @@ def block_leaves(cells: int, levels: int = 4, seed: int = 0, nxb=None, field: st
     return sub_lo[order], sub_level[order], size[order], n_fine, seed
 
 
-def _block_chunk(lo, level, size, n_fine: int, f):
+def _block_chunk(lo, level, size, n_fine: int, f, order: str = "F"):
     """Cells of the blocks ``lo``/``level`` of sizes ``size`` (K,), grouped
-    by size, each block's cells together: ``(pos, level, value)``."""
+    by size, each block's cells together: ``(pos, level, value)``; inside a
+    block x fastest (``order`` "F", as Fortran codes write) or z fastest
+    ("C", numpy's order of an array indexed [x, y, z])."""
     out = []
     for s in np.unique(size):
         sel = np.nonzero(size == s)[0]
         local = block_offsets(int(s))
+        if order == "C":
+            local = np.stack(np.unravel_index(np.arange(int(s) ** 3), (int(s),) * 3, order="C"), axis=1)
         L = level[sel].astype(np.int64)
         w = (np.int64(1) << L)[:, None, None]
         pos = (lo[sel][:, None, :] + local[None] * w).reshape(-1, 3)
@@ -333,38 +337,97 @@ def _chunk_bounds(size, chunk: int):
 
 
 def block_cells(lo, level, nxb, n_fine: int, seed: int, chunk: int = 1 << 21, threads: int | None = 1,
-                field: str = "cloud"):
+                field: str = "cloud", order: str = "F"):
     """Yield ``(pos int64 (m, 3), level int32 (m,), value float32 (m,))`` of
     the cells of the blocks ``lo``/``level`` of ``nxb`` cells per side (an
     int, or one size per block; see `block_leaves`), about ``chunk`` cells
     at a time; the values sample ``field`` (``cloud``, ``cosmo``) at cell centres.
-    ``threads``: chunks computed in that many threads (None: every core)."""
+    ``threads``: chunks computed in that many threads (None: every core).
+    ``order``: cells inside a block x fastest ("F") or z fastest ("C")."""
     from ..parallel import ordered_map
     f, _ = _field(field, seed)
     size = np.broadcast_to(np.asarray(nxb, dtype=np.int64), level.shape)
     if not len(level):
         return
-    yield from ordered_map(lambda r: _block_chunk(lo[r[0]:r[1]], level[r[0]:r[1]], size[r[0]:r[1]], n_fine, f),
+    yield from ordered_map(lambda r: _block_chunk(lo[r[0]:r[1]], level[r[0]:r[1]], size[r[0]:r[1]], n_fine, f,
+                                                  order),
                            _chunk_bounds(size, chunk), threads=threads)
 
 
+#: File layouts of `write_block_dataset`: how other writers order the same
+#: kind of data. ``blocks``: this generator's (each block's cells together, x
+#: fastest, blocks in refinement order); ``zfast``: the same with z fastest
+#: inside a block (numpy's C order, as writers that dump [x, y, z] arrays
+#: give); ``level``: blocks of one physical size on every level, so coarser
+#: blocks hold fewer cells (``nxb >> level`` per side), z fastest, the file
+#: grouped by level, coarsest first (as yt grids and many codes write);
+#: ``space``: blocks sorted by position (x fastest inside); ``shuffled``: the
+#: cells in random order (a file that keeps no order at all).
+LAYOUTS = ("blocks", "zfast", "level", "space", "shuffled")
+
+
+def _layout_leaves(args, layout: str):
+    """`block_leaves` output rearranged for ``layout`` (see `LAYOUTS`):
+    ``(lo, level, size, n_fine, seed)`` and the cell order inside blocks."""
+    lo, level, nxb, n_fine, seed = args
+    size = np.broadcast_to(np.asarray(nxb, dtype=np.int64), level.shape).copy()
+    if layout == "level":                       # cut each leaf into blocks of nxb >> level cells per side
+        top = int(size.max())
+        sub = np.maximum(top >> level.astype(np.int64), 2)
+        lo_parts, lev_parts, size_parts = [], [], []
+        for s in np.unique(sub):
+            u = np.nonzero(sub == s)[0]
+            for s0 in np.unique(size[u]):
+                v = u[size[u] == s0]
+                cut = max(1, int(s0) // int(s))
+                offs = block_offsets(cut) * min(int(s), int(s0))
+                w = (np.int64(1) << level[v].astype(np.int64))[:, None, None]
+                lo_parts.append((lo[v][:, None, :] + offs[None] * w).reshape(-1, 3))
+                lev_parts.append(np.repeat(level[v], len(offs)))
+                size_parts.append(np.full(len(v) * len(offs), min(int(s), int(s0))))
+        lo, level, size = (np.concatenate(p) for p in (lo_parts, lev_parts, size_parts))
+        order = np.argsort(-level.astype(np.int64), kind="stable")     # coarsest level first
+        return (lo[order], level[order], size[order], n_fine, seed), "C"
+    if layout == "space":
+        order = np.lexsort((lo[:, 0], lo[:, 1], lo[:, 2]))
+        return (lo[order], level[order], size[order], n_fine, seed), "F"
+    return (lo, level, size, n_fine, seed), ("C" if layout == "zfast" else "F")
+
+
 def write_block_dataset(path, cells: int, levels: int = 4, seed: int = 0, nxb=None, progress_bar=None,
-                        name: str = "blocks") -> Path:
+                        name: str = "blocks", layout: str = "blocks") -> Path:
     """Write the block-structured data set ``name`` (``blocks``, ``cosmo``) as
     an ExaBricks pair ``path`` (``.cells``) + ``.scalars``, streaming block by
-    block on every core (memory: a few chunks); ``nxb``: see `block_leaves`
-    (default: the data set's own)."""
+    block on every core (memory: a few chunks; ``shuffled`` holds the whole
+    file's records, 16 B/cell, and a permutation); ``nxb``: see
+    `block_leaves` (default: the data set's own); ``layout``: the order of
+    the cells in the file (see `LAYOUTS`)."""
     if name not in BLOCK_DATASETS:
         raise ValueError(f"unknown block-structured data set {name!r} (choose from {', '.join(BLOCK_DATASETS)})")
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r} (choose from {', '.join(LAYOUTS)})")
     field, default_nxb = BLOCK_DATASETS[name]
     path = Path(path)
     if path.suffix != ".cells":
         raise ValueError(f"{path}: the streaming writer writes .cells files")
     path.parent.mkdir(parents=True, exist_ok=True)
-    args = block_leaves(cells, levels, seed, default_nxb if nxb is None else nxb, field=field)
+    args, order = _layout_leaves(block_leaves(cells, levels, seed, default_nxb if nxb is None else nxb,
+                                              field=field), layout)
     tmp_c, tmp_s = path.with_suffix(".cells.part"), path.with_suffix(".scalars.part")
+    parts = block_cells(*args, threads=None, field=field, order=order)
+    if layout == "shuffled":                     # all records, then one permutation
+        parts = list(parts)
+        all_rec = np.concatenate([np.column_stack([p, lv]).astype("<i4") for p, lv, _ in parts])
+        all_val = np.concatenate([v for _, _, v in parts]).astype("<f4")
+        del parts
+        perm = np.random.default_rng(seed + 2).permutation(len(all_val))
+        all_rec, all_val = all_rec[perm], all_val[perm]
+        del perm
+        step = 1 << 22
+        parts = ((all_rec[s:s + step, :3], all_rec[s:s + step, 3], all_val[s:s + step])
+                 for s in range(0, len(all_val), step))
     with open(tmp_c, "wb") as fc, open(tmp_s, "wb") as fs:
-        for pos, lev, val in block_cells(*args, threads=None, field=field):
+        for pos, lev, val in parts:
             if progress_bar is not None:
                 progress_bar.update(len(lev))
             rec = np.empty((len(lev), 4), dtype="<i4")

@@ -418,6 +418,7 @@ def apply_timing(rec, times, mses):
 
 
 def main(argv=None):
+    from ..data.datasets import LAYOUTS
     from ..reconstruction import METHODS
     p = argparse.ArgumentParser(prog="python -m mi_amr.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -471,6 +472,11 @@ def main(argv=None):
     p.add_argument("--scale-kinds", nargs="+", default=None,
                    help="data kinds of the scale benchmark: blocks (16^3), mixed (8^3-32^3), cloud "
                         "(octree-like, up to 1e7 cells); default all three")
+    p.add_argument("--layouts", nargs="+", default=None, choices=list(LAYOUTS), metavar="LAYOUT",
+                   help="scale benchmark: file layouts of the .cells data, rows of their own: blocks (the "
+                        "generator's), zfast (z fastest inside blocks), level (blocks of one physical size, "
+                        "fewer cells on coarser levels, grouped by level), space (blocks sorted by position), "
+                        "shuffled (cells in random order); default blocks")
     p.add_argument("--scale-sources", nargs="+", default=None, choices=["cells", "amrb"],
                    help="files the scale benchmark opens: the .cells file, its .amrb conversion (default both)")
     p.add_argument("--scale-configs", nargs="+", default=None,
@@ -532,7 +538,8 @@ def main(argv=None):
         spp = 1 if args.spp == 16 else args.spp
         run_scale([int(n) for n in args.scale], args.scale_kinds or DEFAULT_KINDS,
                   args.scale_configs or DEFAULT_CONFIGS, Path(args.out), Path(args.data_dir), res, spp,
-                  args.variant, args.scale_sources or DEFAULT_SOURCES, args.cold_kernels)
+                  args.variant, args.scale_sources or DEFAULT_SOURCES, args.cold_kernels,
+                  tuple(args.layouts or ("blocks",)))
         print(f"wrote {args.out}/scale.json, scale.md and scale.png")
         return 0
     if args.resample is not None:

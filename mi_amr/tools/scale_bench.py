@@ -37,16 +37,32 @@ DEFAULT_SOURCES = ("cells", "amrb")
 BLOCK_KINDS = {"blocks": (16, 5), "mixed": ((8, 16, 32), 3)}
 
 
-def data_file(kind: str, n: int, data_dir: Path, source: str = "cells") -> Path:
-    """The ``.cells`` file of ``kind`` with about ``n`` cells (written on
-    first use, streaming for the block kinds), or its ``.amrb`` conversion."""
+def data_file(kind: str, n: int, data_dir: Path, source: str = "cells", layout: str = "blocks") -> Path:
+    """The ``.cells`` file of ``kind`` with about ``n`` cells laid out as
+    ``layout`` (`mi_amr.data.datasets.LAYOUTS`; written on first use,
+    streaming for the block kinds), or its ``.amrb`` conversion."""
     from ..data.datasets import ensure_dataset, write_block_dataset
     data_dir = Path(data_dir)
-    path = data_dir / f"{kind}-{n:.0e}.cells".replace("+", "")
+    suffix = "" if layout == "blocks" else f"-{layout}"
+    path = data_dir / f"{kind}-{n:.0e}{suffix}.cells".replace("+", "")
     if not path.exists():
         if kind in BLOCK_KINDS:
             nxb, levels = BLOCK_KINDS[kind]
-            write_block_dataset(path, n, levels, nxb=nxb)
+            if layout == "level":                 # one physical block size: 32^3 finest, fewer cells above
+                nxb = 32
+            write_block_dataset(path, n, levels, nxb=nxb, layout=layout)
+        elif layout == "shuffled":                 # octree-like cells in random order
+            import numpy as np
+
+            from ..data.cells import AMRCells
+            from ..data.datasets import make_dataset
+            from ..data.io import write_exabricks
+            cells = make_dataset(kind, n, levels=4)
+            perm = np.random.default_rng(2).permutation(len(cells))
+            write_exabricks(AMRCells(cells.pos[perm], cells.level[perm], cells.value[perm], validate=False), path)
+        elif layout != "blocks":
+            raise ValueError(f"layout {layout!r} applies to block-structured kinds ({', '.join(BLOCK_KINDS)}); "
+                             f"{kind} takes blocks or shuffled")
         else:
             ensure_dataset(path, kind, cells=n, levels=4)
     if source == "cells":
@@ -135,36 +151,42 @@ def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dic
 
 
 def run_scale(sizes, kinds, configs, out: Path, data_dir: Path, res: int, spp: int, variant: str,
-              sources=DEFAULT_SOURCES, cold_kernels: bool = False) -> list:
-    """Every size x kind x source x configuration, one fresh process each;
-    ``cold_kernels``: each process starts with an empty Dr.Jit kernel cache
-    (a new user's first run), else the cache of this machine's user."""
+              sources=DEFAULT_SOURCES, cold_kernels: bool = False, layouts=("blocks",)) -> list:
+    """Every size x kind x layout x source x configuration, one fresh
+    process each; ``layouts``: file layouts of the ``.cells`` data
+    (`mi_amr.data.datasets.LAYOUTS`; ``blocks`` is the generator's, the
+    others are read from ``.cells`` only: their ``.amrb`` is the same
+    file); ``cold_kernels``: each process starts with an empty Dr.Jit
+    kernel cache (a new user's first run), else the cache of this
+    machine's user."""
     out.mkdir(parents=True, exist_ok=True)
     records = []
-    for n in sizes:
-        for kind in kinds:
-            if kind not in BLOCK_KINDS and n > OCTREE_MAX:
-                print(f"{kind} {n:.0e}: skipped (octree-like data above {OCTREE_MAX:.0e} cells "
-                      "are generated in memory)", flush=True)
-                continue
-            for source in sources:
-                t0 = time.perf_counter()
-                path = data_file(kind, int(n), data_dir, source)
-                print(f"{kind} {n:.0e}: {path} ready ({time.perf_counter() - t0:.0f} s)", flush=True)
-                for config in configs:
-                    rec = _run_one(path, config, res, spp, variant, cold_kernels)
-                    rec.update(kind=kind, target_cells=n, source=source, cold_kernels=cold_kernels)
-                    records.append(rec)
-                    if "error" in rec:
-                        print(f"  {config}: failed: {rec['error']}", flush=True)
-                    else:
-                        print(f"  {source:5s} {config:22s} {rec['cells']:>13,d} cells: first picture "
-                              f"{rec['first_picture_s']:7.2f} s (open+build {rec['load_build_s']:7.2f} s, "
-                              f"{rec['cells_per_s'] / 1e6:6.2f} M cells/s; first frame {rec['first_frame_s']:5.2f} s)"
-                              f", steady frame {rec['steady_frame_s']:5.3f} s, resident "
-                              f"{rec['resident_B_per_cell']:5.2f} B/cell, peak {rec['peak_build_B_per_cell']:6.1f}"
-                              " B/cell", flush=True)
-                    (out / "scale.json").write_text(json.dumps(records, indent=1))
+    jobs = [(n, kind, layout, source) for n in sizes for kind in kinds for layout in layouts
+            for source in (sources if layout == "blocks" else [s for s in sources if s == "cells"])]
+    for n, kind, layout, source in jobs:
+        if kind not in BLOCK_KINDS and n > OCTREE_MAX:
+            print(f"{kind} {n:.0e}: skipped (octree-like data above {OCTREE_MAX:.0e} cells "
+                  "are generated in memory)", flush=True)
+            continue
+        if kind not in BLOCK_KINDS and layout not in ("blocks", "shuffled"):
+            continue                             # octree-like data have no blocks to reorder
+        t0 = time.perf_counter()
+        path = data_file(kind, int(n), data_dir, source, layout)
+        print(f"{kind} {n:.0e} {layout}: {path} ready ({time.perf_counter() - t0:.0f} s)", flush=True)
+        for config in configs:
+            rec = _run_one(path, config, res, spp, variant, cold_kernels)
+            rec.update(kind=kind, target_cells=n, source=source, cold_kernels=cold_kernels, layout=layout)
+            records.append(rec)
+            if "error" in rec:
+                print(f"  {config}: failed: {rec['error']}", flush=True)
+            else:
+                print(f"  {source:5s} {config:22s} {rec['cells']:>13,d} cells: first picture "
+                      f"{rec['first_picture_s']:7.2f} s (open+build {rec['load_build_s']:7.2f} s, "
+                      f"{rec['cells_per_s'] / 1e6:6.2f} M cells/s; first frame {rec['first_frame_s']:5.2f} s)"
+                      f", steady frame {rec['steady_frame_s']:5.3f} s, resident "
+                      f"{rec['resident_B_per_cell']:5.2f} B/cell, peak {rec['peak_build_B_per_cell']:6.1f}"
+                      " B/cell", flush=True)
+            (out / "scale.json").write_text(json.dumps(records, indent=1))
     write_scale_table(records, out)
     plot_scale(records, out)
     return records
@@ -183,16 +205,17 @@ def _run_one(path, config, res, spp, variant, cold_kernels) -> dict:
 
 def write_scale_table(records, out: Path):
     lines = ["# mi-amr scale benchmark", "",
-             "| data | source | cells | configuration | **first picture s** | open + build s | M cells/s | "
+             "| data | layout | source | cells | configuration | **first picture s** | open + build s | M cells/s | "
              "build s | first frame s | steady frame s | resident B/cell | peak B/cell |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in records:
         if "error" in r:
-            lines.append(f"| {r['kind']} | {r.get('source', 'cells')} | {r['target_cells']:.0e} | {r['config']} | "
-                         f"failed: {r['error']} | | | | | | | |")
+            lines.append(f"| {r['kind']} | {r.get('layout', 'blocks')} | {r.get('source', 'cells')} | "
+                         f"{r['target_cells']:.0e} | {r['config']} | failed: {r['error']} | | | | | | | |")
             continue
         build = ", ".join(f"{k} {v:.2f}" for k, v in r["build_s"].items())
-        lines.append(f"| {r['kind']} (B={r['block']}) | {r.get('source', 'cells')} | {r['cells']:,} | {r['config']} | "
+        lines.append(f"| {r['kind']} (B={r['block']}) | {r.get('layout', 'blocks')} | {r.get('source', 'cells')} | "
+                     f"{r['cells']:,} | {r['config']} | "
                      f"**{r['first_picture_s']:.2f}** | {r['load_build_s']:.2f} | {r['cells_per_s'] / 1e6:.2f} | "
                      f"{build} | {r['first_frame_s']:.2f} | {r['steady_frame_s']:.3f} | "
                      f"{r['resident_B_per_cell']:.2f} | {r['peak_build_B_per_cell']:.1f} |")
@@ -215,11 +238,12 @@ def plot_scale(records, out: Path):
         return
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
     styles = {"blocks": "-", "mixed": "-.", "cloud": "--"}
-    for (kind, source, config) in sorted({(r["kind"], r.get("source", "cells"), r["config"]) for r in ok}):
+    for (kind, layout, source, config) in sorted({(r["kind"], r.get("layout", "blocks"), r.get("source", "cells"),
+                                                   r["config"]) for r in ok}):
         rs = sorted((r for r in ok if r["kind"] == kind and r.get("source", "cells") == source
-                     and r["config"] == config), key=lambda r: r["cells"])
+                     and r.get("layout", "blocks") == layout and r["config"] == config), key=lambda r: r["cells"])
         x = [r["cells"] for r in rs]
-        label = f"{kind} .{source} {config.split('/', 1)[1]}"
+        label = f"{kind}{'' if layout == 'blocks' else ' ' + layout} .{source} {config.split('/', 1)[1]}"
         a.loglog(x, [r["first_picture_s"] for r in rs], styles.get(kind, ":"), marker="o",
                  label=f"{label} first picture")
         a.loglog(x, [r["steady_frame_s"] for r in rs], styles.get(kind, ":"), marker="s", label=f"{label} frame")
