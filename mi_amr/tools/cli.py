@@ -458,11 +458,13 @@ def cmd_dataset(args):
         from ..progress import progress
         with progress(int(args.cells), f"writing {args.output}") as bar:
             out = write_block_dataset(args.output, int(args.cells), args.levels, args.seed, args.nxb, bar,
-                                      name=args.name)
-        print(f"wrote {out}: {out.stat().st_size // 16} cells in blocks")
+                                      name=args.name, layout=args.layout)
+        print(f"wrote {out}: {out.stat().st_size // 16} cells in blocks ({args.layout} layout)")
         return
     if args.nxb is not None:
         raise SystemExit("mi-amr dataset: --nxb applies to 'blocks' and 'cosmo' written as .cells")
+    if args.layout != "blocks":
+        raise SystemExit("mi-amr dataset: --layout applies to 'blocks' and 'cosmo' written as .cells")
     cells = make_dataset(args.name, args.cells, args.levels, args.seed)
     out = save_cells(cells, args.output)
     print(f"wrote {out}: {cells}")
@@ -648,6 +650,11 @@ def build_parser():
     d.add_argument("--cells", type=_count, default=20000, help="about this many cells (1e8 and 1.31e9 are taken)")
     d.add_argument("--levels", type=int, default=4)
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--layout", default="blocks", choices=("blocks", "zfast", "level", "space", "shuffled"),
+                   help="order of the cells in the file, as other writers lay them out: blocks (each block's "
+                        "cells together, x fastest), zfast (z fastest inside blocks), level (blocks of one "
+                        "physical size, so coarser blocks hold fewer cells, grouped by level), space (blocks "
+                        "sorted by position), shuffled (random order)")
     d.add_argument("--nxb", type=_block_sizes, default=None, metavar="N[,N...]",
                    help="cells per block side of 'blocks' (default 16); several (e.g. 8,16,32): mixed sizes")
     d.set_defaults(func=cmd_dataset)
