@@ -16,6 +16,12 @@ face coordinates per block, ``prim`` stored [variable, block, k, j, i]).
 
 `octree`: an octree as ``yt.load_octree`` takes it (a depth-first refinement
 mask) with its leaf cells in the same order, built level by level.
+
+`write_ramses`: a RAMSES output directory (``info_XXXXX.txt``,
+``amr_XXXXX.out00001``, ``hydro_XXXXX.out00001``,
+``hydro_file_descriptor.txt``): one CPU, Fortran unformatted sequential
+records, the octs of every level from 1 to the deepest (RAMSES keeps the
+complete tree above ``levelmin``), cells x fastest within an oct.
 """
 
 from __future__ import annotations
@@ -192,3 +198,107 @@ def octree(max_depth, refine):
     inner, corner, depths = inner[order], corner[order], depths[order]
     leaf = ~inner
     return np.where(inner, 8, 0).astype(np.uint8), corner[leaf], (deepest - depths[leaf]).astype(np.int32)
+
+
+def _record(f, *arrays):
+    """One Fortran unformatted sequential record: its byte length (int32)
+    before and after the data."""
+    data = b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)
+    n = np.int32(len(data)).tobytes()
+    f.write(n + data + n)
+
+
+RAMSES_FIELDS = ("density", "velocity_x", "velocity_y", "velocity_z", "pressure")
+
+
+def write_ramses(directory, levelmin, refined, value, iout=1, fields=RAMSES_FIELDS):
+    """Write ``directory/output_{iout:05d}`` as RAMSES 3D hydro writes it (one
+    CPU, periodic box of length 1, code units = cgs). ``levelmin``: the
+    uniform level, 2^levelmin cells per side; ``refined``: per level from
+    ``levelmin`` on, the integer coordinates ``(m, 3)`` of that level's
+    cells that have children (an oct at the next level; each inside a
+    refined cell of the level above); ``value(level, ijk (m, 3)) -> (m,
+    len(fields))``: the variables of leaf cells of RAMSES level ``level``
+    (width 2^-level). Cells that have children hold -1. Returns the path of
+    the info file."""
+    out = Path(directory) / f"output_{iout:05d}"
+    out.mkdir(parents=True, exist_ok=True)
+    child = np.array([(i & 1, i >> 1 & 1, i >> 2 & 1) for i in range(8)], np.int64)   # RAMSES: x fastest
+    levels = []                  # per RAMSES level L = 1..: (oct coords k (n, 3), cells' values (8, nvar, n))
+    octs = np.zeros((1, 3), np.int64)
+    L = 1
+    while len(octs):
+        cells = 2 * octs[:, None, :] + child[None]                       # (n, 8, 3) at level L
+        flat = cells.reshape(-1, 3)
+        if L < levelmin:
+            has_children = np.ones(len(flat), bool)
+        else:
+            r = np.asarray(refined[L - levelmin], np.int64).reshape(-1, 3) if L - levelmin < len(refined) else \
+                np.zeros((0, 3), np.int64)
+            key = lambda c: (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+            has_children = np.isin(key(flat), key(r))
+            assert has_children.sum() == len(r), f"level {L}: refined cells outside the octs of that level"
+        values = np.full((len(flat), len(fields)), -1.0)
+        leaf = ~has_children
+        if leaf.any():
+            values[leaf] = np.asarray(value(L, flat[leaf]), np.float64).reshape(-1, len(fields))
+        levels.append((octs, values.reshape(len(octs), 8, len(fields)).transpose(1, 2, 0)))
+        octs = flat[has_children]
+        L += 1
+    nlevelmax, ncpu = len(levels), 1
+    numbl = np.array([len(k) for k, _ in levels], np.int32)
+    ngrid = int(numbl.sum())
+    with open(out / f"amr_{iout:05d}.out00001", "wb") as f:
+        i4, f8 = np.int32, np.float64
+        for rec in ([ncpu], [3], [1, 1, 1], [nlevelmax], [ngrid + 100], [0], [ngrid]):
+            _record(f, np.array(rec, i4))
+        _record(f, np.array([1.0], f8))                                   # boxlen
+        _record(f, np.array([1, iout, 1], i4))                           # noutput, iout, ifout
+        for rec in ([0.0], [1.0], [0.0], np.zeros(nlevelmax), np.zeros(nlevelmax)):   # tout aout t dtold dtnew
+            _record(f, np.array(rec, f8))
+        _record(f, np.array([0, 0], i4))                                 # nstep
+        for rec in (np.zeros(3), [0, 0, 1, 1, 0, 0, 0], np.zeros(5), [0.0]):          # stat cosm timing mass_sph
+            _record(f, np.array(rec, f8))
+        first = np.concatenate([[1], 1 + np.cumsum(numbl)[:-1]]).astype(i4)
+        _record(f, first)                                                # headl (ncpu x nlevelmax)
+        _record(f, (first + numbl - 1).astype(i4))                       # taill
+        _record(f, numbl)                                                # numbl
+        _record(f, np.zeros(10 * nlevelmax, i4))                         # numbtot
+        _record(f, np.zeros(5, i4))                                      # free_mem
+        _record(f, np.frombuffer(b"hilbert".ljust(128), np.uint8))       # ordering
+        _record(f, np.array([0.0, 8.0 ** nlevelmax], f8))                # bound_key
+        for _ in range(3):                                               # coarse son, flag1, cpu_map
+            _record(f, np.array([1], i4))
+        for L, (k, _) in enumerate(levels, 1):
+            n = len(k)
+            ind = np.arange(first[L - 1], first[L - 1] + n, dtype=i4)
+            _record(f, ind)                                              # grid index
+            _record(f, np.where(ind < ind[-1], ind + 1, 0).astype(i4))    # next
+            _record(f, np.where(ind > ind[0], ind - 1, 0).astype(i4))     # prev
+            for a in range(3):                                           # oct centres, box units
+                _record(f, ((2 * k[:, a] + 1) * 0.5 ** L).astype(f8))
+            for _ in range(1 + 6 + 8 + 8 + 8):                           # father, nbor, son, cpu_map, flag1
+                _record(f, np.zeros(n, i4))
+    with open(out / f"hydro_{iout:05d}.out00001", "wb") as f:
+        for rec in ([ncpu], [len(fields)], [3], [nlevelmax], [0]):
+            _record(f, np.array(rec, np.int32))
+        _record(f, np.array([5.0 / 3.0]))                                # gamma
+        for L, (k, v) in enumerate(levels, 1):
+            _record(f, np.array([L], np.int32))
+            _record(f, np.array([len(k)], np.int32))
+            for ind in range(8):
+                for var in range(len(fields)):
+                    _record(f, v[ind, var].astype(np.float64))
+    (out / "hydro_file_descriptor.txt").write_text(
+        "# version:  1\n# ivar, variable_name, variable_type\n"
+        + "".join(f"{i:3d}, {name}, d\n" for i, name in enumerate(fields, 1)))
+    info = out / f"info_{iout:05d}.txt"
+    head = [("ncpu", ncpu), ("ndim", 3), ("levelmin", levelmin), ("levelmax", nlevelmax), ("ngridmax", ngrid + 100),
+            ("nstep_coarse", 0)]
+    units = [("boxlen", 1.0), ("time", 0.0), ("aexp", 1.0), ("H0", 1.0), ("omega_m", 1.0), ("omega_l", 0.0),
+             ("omega_k", 0.0), ("omega_b", 0.0), ("unit_l", 1.0), ("unit_d", 1.0), ("unit_t", 1.0)]
+    info.write_text("".join(f"{k:<12}={v:11d}\n" for k, v in head) + "\n"
+                    + "".join(f"{k:<12}={v:23.15E}\n" for k, v in units) + "\n"
+                    + "ordering type=hilbert\n   DOMAIN   ind_min                 ind_max\n"
+                    + f"       1   0.000000000000000E+00   {8.0 ** nlevelmax:.15E}\n")
+    return info

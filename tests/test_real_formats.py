@@ -1,8 +1,9 @@
 """Simulation outputs in their codes' own formats (AMReX plotfile, Enzo
-packed HDF5, Athena++ athdf), written by the tests (tests/amr_formats.py) and read through
-yt as a user's data would be: coverage, every leaf value against what was
-written, shape, a render against the gridvolume reference, and the
-one-command render."""
+packed HDF5, Athena++ athdf, RAMSES Fortran records), written by the tests
+(tests/amr_formats.py) and read through yt as a user's data would be:
+coverage, every leaf value against what was written, shape, a render
+against the gridvolume reference, and the one-command render; one-level
+outputs of each grid code, and RAMSES's octree."""
 
 import mitsuba as mi
 import numpy as np
@@ -134,5 +135,104 @@ def test03_render_an_output_in_one_command(llvm, plotfile, tmp_path):
     r = render_cli([plotfile, "--field", "density", "-o", out, "--spp", "4", "--res", "24"])
     assert r.returncode == 0, r.stderr
     assert out.is_file() and out.with_suffix(".xml").is_file() and out.with_suffix(".cells").is_file()
+    img = np.array(mi.Bitmap(str(out)))
+    assert np.isfinite(img).all() and img.std() > 0
+
+
+# ---- One level: a uniform grid in each code's format ----------------------------
+@pytest.mark.parametrize("fmt", sorted(FORMATS))
+def test04_one_level_outputs_load_exactly_and_render(llvm, fmt, tmp_path):
+    """An output with one level (AMReX: two boxes, no refinement; Enzo: the
+    root grid alone; Athena++: two mesh blocks at the root level): every cell
+    and value as written, at the domain's aspect, and a tiny render."""
+    rng = np.random.default_rng(1)
+    if fmt == "amrex":
+        boxes = [((0, 0, 0), rng.random((4, 8, 4))), ((4, 0, 0), rng.random((4, 8, 4)))]
+        path = write_amrex_plotfile(tmp_path / "plt00000", [boxes], [0.0] * 3, [1.0, 2.0, 1.0])
+        extent = [1.0, 2.0, 1.0]
+    elif fmt == "enzo":
+        boxes = [((0, 0, 0), rng.random((8, 8, 8)))]
+        path = write_enzo(tmp_path / "DD0000", "DD0000", boxes[0][1], [])
+        extent = [1.0, 1.0, 1.0]
+    else:
+        boxes = [((0, 0, 0), rng.random((4, 4, 4))), ((4, 0, 0), rng.random((4, 4, 4)))]
+        path = write_athena_pp(tmp_path / "a.out1.00000.athdf", [boxes], [8, 4, 4], (2.0, 1.0, 1.0))
+        extent = [2.0, 1.0, 1.0]
+    ds = yt.load(str(path))
+    assert ds.index.max_level == 0
+    cells = mi_amr.from_yt(ds, FORMATS[fmt][0])
+    written = {(*(np.asarray(lo) + ijk).tolist(), 0): np.float32(d[ijk]) for lo, d in boxes for ijk in np.ndindex(*d.shape)}
+    assert {(*p, int(L)): v for p, L, v in zip(cells.pos.tolist(), cells.level, cells.value)} == written
+    plan = plan_scene(ds, ",".join(FORMATS[fmt][0]))
+    np.testing.assert_allclose(plan.extent, np.asarray(extent) / max(extent))
+    img = np.array(mi.render(mi.load_dict(scene_for(plan, res=16, spp=4))))
+    assert np.isfinite(img).all() and img.std() > 0
+
+
+# ---- RAMSES: octree AMR read by yt's RAMSES reader ----------------------------
+def ramses_value(level, ijk):
+    """The hydro variables of a RAMSES cell (level, integer coordinates at
+    that level): density distinct per cell, velocities 0, pressure density/10."""
+    rho = 1.0 + level + (ijk[:, 0] + 32 * ijk[:, 1] + 1024 * ijk[:, 2]) / 4096.0
+    zero = np.zeros_like(rho)
+    return np.stack([rho, zero, zero, zero, rho / 10], axis=1)
+
+
+def _rows_in(a, b):
+    """Which rows of ``a`` (m, 3) are rows of ``b``."""
+    return (a[:, None, :] == b[None]).all(axis=2).any(axis=1)
+
+
+@pytest.fixture(scope="module")
+def ramses_output(tmp_path_factory):
+    """``(info file, {(x, y, z, level): density})``: a RAMSES output of 4^3
+    root cells (levelmin 2), about a third of them refined and a third of
+    those refined again (RAMSES levels 2-4: 16^3 finest cells), and its leaf
+    cells in mi-amr's units (level 0 = RAMSES level 4)."""
+    from amr_formats import write_ramses
+    rng = np.random.default_rng(2)
+    child = np.array([(i & 1, i >> 1 & 1, i >> 2 & 1) for i in range(8)])
+    r2 = np.argwhere(rng.random((4, 4, 4)) < 0.35)
+    r3 = (2 * r2[:, None, :] + child[None]).reshape(-1, 3)
+    r3 = r3[rng.random(len(r3)) < 0.35]
+    info = write_ramses(tmp_path_factory.mktemp("ramses"), 2, [r2, r3], ramses_value)
+    leaves, parents = {}, None
+    for L, refined in ((2, r2), (3, r3), (4, np.zeros((0, 3), int))):
+        ijk = np.argwhere(np.ones((2 ** L,) * 3, bool))
+        if parents is not None:                       # the cells of the octs below refined cells
+            ijk = ijk[_rows_in(ijk // 2, parents)]
+        ijk = ijk[~_rows_in(ijk, refined)]
+        for c, rho in zip(ijk << (4 - L), ramses_value(L, ijk)[:, 0]):
+            leaves[(*c.tolist(), 4 - L)] = np.float32(rho)
+        parents = refined
+    return info, leaves
+
+
+def test05_ramses_leaves_exact(llvm, ramses_output):
+    """Every leaf cell of a RAMSES output read by yt's RAMSES reader:
+    position, level and value as written; coverage of the domain."""
+    from mi_amr.data.yt_import import from_yt_blocks
+    info, leaves = ramses_output
+    ds = yt.load(str(info))
+    assert type(ds).__name__ == "RAMSESDataset" and ds.index.max_level == 2
+    vol = from_yt_blocks(ds, ("ramses", "Density"))
+    cells = vol.to_cells()
+    assert {(*p, int(L)): v for p, L, v in zip(cells.pos.tolist(), cells.level, cells.value)} == leaves
+    assert sorted({k[3] for k in leaves}) == [0, 1, 2] and vol.covers_bounds
+    assert int((cells.width.astype(np.int64) ** 3).sum()) == 16 ** 3
+    assert vol.meta["domain_cells"] == [16, 16, 16] and vol.meta["code"] == "ramses"
+
+
+def test06_ramses_in_one_command(llvm, ramses_output, tmp_path, capsys):
+    """``mi-amr render`` and ``mi-amr info`` on a RAMSES output."""
+    from mi_amr.tools.cli import main
+    info, leaves = ramses_output
+    assert main(["info", str(info), "--field", "density", "--json"]) == 0
+    import json
+    described = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert described["cells"] == len(leaves)
+    out = tmp_path / "ramses.exr"
+    r = render_cli([info, "--field", "density", "-o", out, "--spp", "4", "--res", "16"])
+    assert r.returncode == 0, r.stderr
     img = np.array(mi.Bitmap(str(out)))
     assert np.isfinite(img).all() and img.std() > 0
