@@ -58,7 +58,7 @@ register()
 
 
 def from_yt(ds, field, **kw):
-    """Leaf cells of a yt grid dataset (see `mi_amr.data.yt_import.from_yt`)."""
+    """Leaf cells of a yt grid or octree data set (see `mi_amr.data.yt_import.from_yt`)."""
     from .data.yt_import import from_yt as _from_yt
     return _from_yt(ds, field, **kw)
 
