@@ -161,7 +161,8 @@ def test04_one_level_outputs_load_exactly_and_render(llvm, fmt, tmp_path):
     ds = yt.load(str(path))
     assert ds.index.max_level == 0
     cells = mi_amr.from_yt(ds, FORMATS[fmt][0])
-    written = {(*(np.asarray(lo) + ijk).tolist(), 0): np.float32(d[ijk]) for lo, d in boxes for ijk in np.ndindex(*d.shape)}
+    written = {(*(np.asarray(lo) + ijk).tolist(), 0): np.float32(d[ijk])
+               for lo, d in boxes for ijk in np.ndindex(*d.shape)}
     assert {(*p, int(L)): v for p, L, v in zip(cells.pos.tolist(), cells.level, cells.value)} == written
     plan = plan_scene(ds, ",".join(FORMATS[fmt][0]))
     np.testing.assert_allclose(plan.extent, np.asarray(extent) / max(extent))

@@ -229,8 +229,8 @@ def test11_uniform_grid_is_one_level_of_amr():
 
 
 def test12_two_levels_refining_by_four_are_refused_in_one_line():
-    grids = [dict(left_edge=[0.0] * 3, right_edge=[1.0] * 3, level=0, dimensions=[4, 4, 4], density=np.ones((4, 4, 4))),
-             dict(left_edge=[0.25] * 3, right_edge=[0.5] * 3, level=1, dimensions=[4, 4, 4], density=np.ones((4, 4, 4)))]
+    grids = [dict(left_edge=[lo] * 3, right_edge=[hi] * 3, level=L, dimensions=[4, 4, 4], density=np.ones((4, 4, 4)))
+             for L, lo, hi in ((0, 0.0, 1.0), (1, 0.25, 0.5))]
     ds = yt.load_amr_grids(grids, [4, 4, 4], refine_by=4)
     with pytest.raises(ValueError, match="refine_by = 4 with 2 levels") as e:
         mi_amr.from_yt(ds, ("stream", "density"))

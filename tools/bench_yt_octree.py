@@ -42,7 +42,7 @@ def main(argv=None):
     share = min(1.0, max(0.0, (args.leaves / 8 ** depth - 1) / 7))      # each refined cell: 7 more leaves
     rng = np.random.default_rng(0)
     t = time.perf_counter()
-    mask, pos, level = octree(depth + 1, lambda c, d: np.full(len(c), True) if d < depth else rng.random(len(c)) < share)
+    mask, _, level = octree(depth + 1, lambda c, d: np.full(len(c), d < depth) | (rng.random(len(c)) < share))
     value = 1.0 + np.arange(len(level), dtype=np.float64)
     ds = yt.load_octree(octree_mask=mask, data={("gas", "density"): value[:, None]}, num_zones=1,
                         partial_coverage=0)
