@@ -717,22 +717,46 @@ def _dense_ghosts(tiles: TileIndex, occupied: np.ndarray) -> int:
 
 def _dense_blocks(tiles: TileIndex, positions, sizes, with_ghosts: bool, n: int, bar=None):
     """Blocks found on the dense tile index, independent of cell order: one
-    pass marks the occupied tiles, one more (when several block sizes are
-    candidates) the occupied sub-blocks of the finest candidate size in
-    each tile, from which every candidate's block and ghost counts follow
-    exactly. Returns ``(B, sub-block occupancy (K, s, s, s) of the chosen
-    size)``, or None when the occupancy grids would exceed `DENSE_ENTRIES`."""
-    occupied = np.zeros(tiles.total, np.uint8)
+    pass marks the occupied octants (sub-blocks of ``TILE / 2`` cells) of
+    each tile; when those are not all full (block-structured data fill
+    them, and then no smaller block can hold fewer bytes), one more pass
+    marks the occupied sub-blocks of the finest candidate size in each
+    tile. Every candidate's block and ghost counts follow exactly. Returns
+    ``(B, sub-block occupancy (K, s, s, s) [z, y, x] of the chosen size)``,
+    or None when the occupancy grids would exceed `DENSE_ENTRIES`."""
+    half = TILE // 2
+    lh = half.bit_length() - 1
+    octants = np.zeros(tiles.total * 8, np.uint8)
+    otype = np.int32 if len(octants) < 2**31 else np.int64
+    one = np.int32(1)
 
     def mark(chunk):
         pos, level, _ = _resolve(chunk)
-        occupied[tiles.index(_level_coords(pos, level, tiles.origin), level)] = 1
+        q = _level_coords(pos, level, tiles.origin)
+        i = tiles.index(q, level).astype(otype, copy=False)
+        i <<= 3
+        i |= (((q[2] >> lh) & one) << 2) | (((q[1] >> lh) & one) << 1) | ((q[0] >> lh) & one)
+        octants[i] = 1
         return len(level)
     for m in ordered_map(mark, positions()):
         if bar is not None:
             bar.update(m)
-    tiles.set_occupied(occupied)
-    del occupied
+    octants = octants.reshape(tiles.total, 8).view(bool)
+    occupied = octants.any(axis=1)
+    tiles.set_occupied(occupied.view(np.uint8))
+    coarse = octants[occupied].reshape(tiles.count, 2, 2, 2)      # [z, y, x] octants of each occupied tile
+    del octants, occupied
+    exact = [b for b in sizes if b in (TILE, half)]
+    if exact and (len(exact) == len(sizes) or n == np.count_nonzero(coarse) * half ** 3):
+        # the octants hold every candidate (or are full: smaller blocks only add headers)
+        grids = {b: _pool(coarse, TILE // b) for b in exact}
+        if len(grids) == 1:
+            return exact[0], grids[exact[0]]
+        counts = {b: int(np.count_nonzero(g)) for b, g in grids.items()}
+        ghosts = {b: _dense_ghosts(tiles, g) for b, g in grids.items()} if with_ghosts else None
+        b = choose_block_size(counts, ghosts)
+        return b, grids[b]
+    del coarse
     budget = max(DENSE_ENTRIES, 4 * n)             # bytes of the sub-block occupancy
     usable = [b for b in sorted(sizes) if tiles.count * (TILE // b) ** 3 <= budget]
     if not usable:
@@ -854,6 +878,11 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
         if dense is not None:                      # block by table reads: no search, any order
             q = _level_coords(pos, level, origin)
             r = tiles.rank[tiles.index(q, level)]
+            if s == 1:                             # blocks are the tiles
+                blk = r.astype(np.int64)
+                local = (q[0] & mask) | ((q[1] & mask) << lb) | ((q[2] & mask) << (2 * lb))
+                values[(blk << (3 * lb)) | local] = value
+                return len(value)
             sm = np.int32(s - 1)
             sub = (((q[2] >> lb) & sm) * np.int32(s) + ((q[1] >> lb) & sm)) * np.int32(s) + ((q[0] >> lb) & sm)
             r = r.astype(np.int32 if len(block_of) < 2**31 else np.int64, copy=False)
