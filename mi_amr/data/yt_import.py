@@ -31,8 +31,9 @@ import numpy as np
 from .cells import AMRCells
 
 #: Cells per piece handed to the block builder (an octree's io chunk, e.g. a
-#: RAMSES domain or a whole ``yt.load_octree`` data set, is cut into these).
-PIECE = 1 << 22
+#: RAMSES domain or a whole ``yt.load_octree`` data set, is cut into these,
+#: converted in threads).
+PIECE = 1 << 20
 
 #: Python packages that yt's readers import on demand and the ``yt`` extra
 #: of mi-amr brings (import name -> what pip installs).
@@ -225,8 +226,9 @@ class _OctreeLeaves:
         max_level, dle, _, _, dxf = self.layout
         centres = chunk.fcoords.to("code_length").d
         widths = chunk.fwidth.to("code_length").d
-        for s in range(0, len(centres), PIECE):
-            yield octree_cells(centres[s:s + PIECE], widths[s:s + PIECE], dle, dxf, max_level, self.ds)
+        from ..parallel import ordered_map             # pieces converted on every core
+        yield from ordered_map(lambda s: octree_cells(centres[s:s + PIECE], widths[s:s + PIECE], dle, dxf,
+                                                      max_level, self.ds), range(0, len(centres), PIECE))
 
 
 def octree_cells(centres, widths, left_edge, finest, max_level: int, what="octree data"):
