@@ -359,8 +359,10 @@ def block_cells(lo, level, nxb, n_fine: int, seed: int, chunk: int = 1 << 21, th
 #: fastest, blocks in refinement order); ``zfast``: the same with z fastest
 #: inside a block (numpy's C order, as writers that dump [x, y, z] arrays
 #: give); ``level``: blocks of one physical size on every level, so coarser
-#: blocks hold fewer cells (``nxb >> level`` per side), z fastest, the file
-#: grouped by level, coarsest first (as yt grids and many codes write);
+#: blocks hold fewer cells (``nxb >> level`` per side), refined region by
+#: region (a third of the coarser blocks at random hold the next finer level:
+#: a different cell set), z fastest, the file grouped by level, coarsest
+#: first (as yt grids and many codes write);
 #: ``space``: blocks sorted by position (x fastest inside); ``shuffled``: the
 #: cells in random order (a file that keeps no order at all).
 LAYOUTS = ("blocks", "zfast", "level", "space", "shuffled")
@@ -386,6 +388,12 @@ def _layout_leaves(args, layout: str):
                 lev_parts.append(np.repeat(level[v], len(offs)))
                 size_parts.append(np.full(len(v) * len(offs), min(int(s), int(s0))))
         lo, level, size = (np.concatenate(p) for p in (lo_parts, lev_parts, size_parts))
+        # refined region by region, as patch-based codes flag them: a third of the coarser
+        # blocks, picked at random, hold the next finer level (same extent, 2x the cells per
+        # side), so coarse blocks no longer come in aligned groups of 2^3
+        finer = (level > 0) & (np.random.default_rng(seed + 3).random(len(level)) < 1 / 3)
+        level = np.where(finer, level - 1, level).astype(level.dtype)
+        size = np.where(finer, size * 2, size)
         order = np.argsort(-level.astype(np.int64), kind="stable")     # coarsest level first
         return (lo[order], level[order], size[order], n_fine, seed), "C"
     if layout == "space":
