@@ -140,7 +140,7 @@ def test07_missing_reader_dependency_names_the_package(llvm, tmp_path, monkeypat
         raise ModuleNotFoundError("No module named 'h5py'", name="h5py")
     monkeypatch.setattr(yt, "load", load)
     (tmp_path / "DD0018").write_text("")
-    with pytest.raises(ImportError, match="'h5py'.*pip install h5py"):
+    with pytest.raises(ImportError, match=r"'h5py'.*pip install 'mi-amr\[yt\]'"):
         plan_scene(tmp_path / "DD0018", "density")
 
 

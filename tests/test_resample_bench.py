@@ -53,15 +53,15 @@ def test_resample_study_end_to_end(tmp_path):
     from mi_amr.tools.bench import main
     out = tmp_path / "out"
     main(["--resample", "cosmo:3e4:4", "--out", str(out), "--data-dir", str(tmp_path / "data"), "--res", "24",
-          "--truth-spp", "128", "--max-spp", "8", "--resolutions", "16", "32", "--resample-methods", "nearest",
+          "--truth-spp", "128", "--max-spp", "8", "--resolutions", "8", "32", "--resample-methods", "nearest",
           "--renderers", "heterogeneous", "--repeats", "1", "--check-max", "0", "--unfrozen"])
     for name in ("resample.json", "resample.md", "resample.png"):
         assert (out / name).stat().st_size > 0
     rec = json.loads((out / "resample.json").read_text())[0]
     assert rec["levels"] == 4 and rec["transform"] == "log10"
     rows = {r["resolution"]: r for r in rec["rivals"]}
-    assert set(rows) == {16, 32}
-    assert rows[32]["floor"] < rows[16]["floor"]          # a finer resample is less biased
+    assert set(rows) == {8, 32}
+    assert rows[32]["floor"] < rows[8]["floor"]           # a finer resample is less biased
     assert rows[32]["bytes"] == 16 * 32 ** 3
     # the amr medium is unbiased: its error falls as 1/sqrt(spp) (1 -> 8 spp: 2.83x, within 35%)
     c = {p[0]: p[2] for p in rec["amr_curve"]}

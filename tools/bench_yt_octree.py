@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Load rate of octree AMR through yt: an octree of about ``--leaves`` leaf
-cells built with ``yt.load_octree`` (tests/amr_formats.octree: complete to
+cells built with ``yt.load_octree`` (``octree`` of tests/amr_formats.py: complete to
 depth 7, a share of the depth-7 cells refined once more), then
 `mi_amr.data.yt_import.from_yt_blocks` on it, timed in two parts:
 
