@@ -118,8 +118,8 @@ def open_data(data, field=None, fields=()):
         lo, hi = data.bounds
         box = physical_box(data)
         return data, (hi - lo).astype(np.float64) if box is None else box[1], data.source
-    if hasattr(data, "index") and hasattr(data, "domain_left_edge"):
-        return _from_yt(data, field, fields)
+    if hasattr(data, "domain_left_edge") and hasattr(type(data), "index"):   # a yt data set (its index is
+        return _from_yt(data, field, fields)                                 # built later, errors as one line)
     path = Path(str(data))
     if path.suffix in (".cells", ".npz", ".amrb"):
         scalars = field_scalars(path, field)
