@@ -370,7 +370,17 @@ def test14_dense_block_counts_equal_the_sorted_ones(monkeypatch):
             assert np.count_nonzero(grid) == len(keys), (name, b)
             ghosts = ghost_blocks(keys[:, 1:], keys[:, 0])[1]
             assert _dense_ghosts(tiles, grid) == len(ghosts), (name, b)
+    # wide keys (an axis beyond 2^19 blocks), whose order (z first) is not the tiles' (level first)
+    local = np.argwhere(np.ones((16, 16, 16), bool))[:, ::-1]
+    pos = np.concatenate([[0, 0, 16] + local, [1 << 20, 0, 0] + 2 * local])
+    level = np.repeat(np.array([0, 1], np.int32), len(local))
+    perm = np.random.default_rng(1).permutation(len(pos))
+    spread = mi_amr.AMRCells(pos[perm], level[perm], np.arange(len(pos), dtype=np.float32)[perm])
+    for cells in [DATA[name]() for name in ("cloud", "stadium", "blocks")] + [spread]:
         dense = BlockVolume.from_cells(cells)
+        for a, b in zip(sorted_cells(cells), sorted_cells(dense.to_cells())):
+            np.testing.assert_array_equal(a, b)
+        dense = BlockVolume.from_cells(cells, dense.block)       # same candidates, so the same key packing
         monkeypatch.setattr(blocks, "DENSE_ENTRIES", 0)
         monkeypatch.setattr(blocks, "TILE", 1)                    # no dense index: sorted keys
         sorted_ = BlockVolume.from_cells(cells, dense.block)

@@ -602,9 +602,10 @@ def _place_checked(chunks, values, keys, origin, packed, b, source, overlap, blo
 #: Cells per side of the coarse tiles that `TileIndex` numbers densely: the
 #: largest block size, so that every block lies in one tile.
 TILE = max(BLOCK_SIZES)
-#: A dense tile index (and the per-tile occupancy of its finest candidate
-#: blocks) holds at most this many entries, or one per cell if there are
-#: more; beyond that, blocks are found by sorting their keys.
+#: A dense tile index holds at most this many tiles, or one per four cells
+#: if there are more (its tables take 13 bytes a tile while loading); the
+#: per-tile occupancy of the finest candidate blocks at most this many bytes,
+#: or four per cell. Beyond that, blocks are found by sorting their keys.
 DENSE_ENTRIES = 1 << 24
 
 
@@ -749,13 +750,7 @@ def _dense_blocks(tiles: TileIndex, positions, sizes, with_ghosts: bool, n: int,
     exact = [b for b in sizes if b in (TILE, half)]
     if exact and (len(exact) == len(sizes) or n == np.count_nonzero(coarse) * half ** 3):
         # the octants hold every candidate (or are full: smaller blocks only add headers)
-        grids = {b: _pool(coarse, TILE // b) for b in exact}
-        if len(grids) == 1:
-            return exact[0], grids[exact[0]]
-        counts = {b: int(np.count_nonzero(g)) for b, g in grids.items()}
-        ghosts = {b: _dense_ghosts(tiles, g) for b, g in grids.items()} if with_ghosts else None
-        b = choose_block_size(counts, ghosts)
-        return b, grids[b]
+        return _fewest_bytes(tiles, coarse, exact, with_ghosts)
     del coarse
     budget = max(DENSE_ENTRIES, 4 * n)             # bytes of the sub-block occupancy
     usable = [b for b in sorted(sizes) if tiles.count * (TILE // b) ** 3 <= budget]
@@ -782,10 +777,17 @@ def _dense_blocks(tiles: TileIndex, positions, sizes, with_ghosts: bool, n: int,
     for m in ordered_map(mark_fine, positions()):
         if bar is not None:
             bar.update(m)
-    fine = fine.reshape(tiles.count, s0, s0, s0).view(bool)
-    if len(usable) == 1:
-        return usable[0], fine
-    grids = {b: _pool(fine, TILE // b) for b in usable}
+    return _fewest_bytes(tiles, fine.reshape(tiles.count, s0, s0, s0).view(bool), usable, with_ghosts)
+
+
+def _fewest_bytes(tiles: TileIndex, occupied: np.ndarray, sizes, with_ghosts: bool):
+    """``(B, occupancy pooled to B)`` for the block size among ``sizes`` with
+    the fewest bytes (`choose_block_size`), from per-tile occupancy grids
+    ``occupied`` as fine as the smallest size, with exact block (and, when
+    ``with_ghosts``, ghost) counts."""
+    grids = {b: _pool(occupied, TILE // b) for b in sizes}
+    if len(grids) == 1:
+        return next(iter(grids.items()))
     counts = {b: int(np.count_nonzero(g)) for b, g in grids.items()}
     ghosts = {b: _dense_ghosts(tiles, g) for b, g in grids.items()} if with_ghosts else None
     b = choose_block_size(counts, ghosts)
@@ -817,7 +819,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     with_ghosts = reconstruction_method(method).needs_ghosts
     dense = None
     tiles = TileIndex(lo, hi, origin, lmax)
-    if n_cells and max(sizes) <= TILE and tiles.total <= max(DENSE_ENTRIES, n_cells):
+    if n_cells and max(sizes) <= TILE and tiles.total <= max(DENSE_ENTRIES, n_cells // 4):
         # ---- Passes 1a, 1b: blocks and block size on the dense tile index (any cell order) ----
         dense = _dense_blocks(tiles, positions or chunks, sizes, with_ghosts, n_cells, bar)
     if dense is not None:
@@ -878,17 +880,15 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
         if dense is not None:                      # block by table reads: no search, any order
             q = _level_coords(pos, level, origin)
             r = tiles.rank[tiles.index(q, level)]
-            if s == 1:                             # blocks are the tiles
+            if s == 1 and packed:                  # blocks are the tiles, numbered alike (key order)
                 blk = r.astype(np.int64)
-                local = (q[0] & mask) | ((q[1] & mask) << lb) | ((q[2] & mask) << (2 * lb))
-                values[(blk << (3 * lb)) | local] = value
-                return len(value)
-            sm = np.int32(s - 1)
-            sub = (((q[2] >> lb) & sm) * np.int32(s) + ((q[1] >> lb) & sm)) * np.int32(s) + ((q[0] >> lb) & sm)
-            r = r.astype(np.int32 if len(block_of) < 2**31 else np.int64, copy=False)
-            r *= s ** 3
-            r += sub
-            blk = block_of[r].astype(np.int64)
+            else:
+                sm = np.int32(s - 1)
+                sub = (((q[2] >> lb) & sm) * np.int32(s) + ((q[1] >> lb) & sm)) * np.int32(s) + ((q[0] >> lb) & sm)
+                r = r.astype(np.int32 if len(block_of) < 2**31 else np.int64, copy=False)
+                r *= s ** 3
+                r += sub
+                blk = block_of[r].astype(np.int64)
         else:
             keys_c, q = keys_and_coords(pos, level, b)
             heads = np.flatnonzero(np.r_[True, keys_c[1:] != keys_c[:-1]])     # runs of one block
