@@ -144,7 +144,7 @@ def medium_bytes(volume, reconstruction: str = "tent") -> dict:
     copied to the GPU as well."""
     import numpy as np
 
-    from .data.blocks import ghost_blocks
+    from .data.block_keys import ghost_blocks
     from .reconstruction import reconstruction_method
     from .structures.cost_model import _candidates
     from .structures.level_hash import KEY_BITS

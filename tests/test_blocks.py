@@ -160,7 +160,7 @@ def test07_macrocell_ranges_from_blocks_are_exact(name, support, monkeypatch):
     per coarse level) or from cells equal folding every cell into every
     macrocell its support touches, also when the blocks are reduced in
     small chunks by two threads at once; a pooled grid equals a direct build."""
-    from mi_amr.structures import macrocell_grid
+    from mi_amr.structures import block_windows, macrocell_grid
     cells = DATA[name]()
     vol = BlockVolume.from_cells(cells)
     for res in (5, 8, 16, 37):                   # 8 and 16 align with the blocks
@@ -172,7 +172,7 @@ def test07_macrocell_ranges_from_blocks_are_exact(name, support, monkeypatch):
         with monkeypatch.context() as m:
             m.setattr(macrocell_grid, "BLOCK_CHUNK", 8 * vol.block ** 3)       # eight blocks a chunk
             m.setattr(macrocell_grid, "build_threads", lambda: 2)          # as on a 2-core box
-            m.setattr(macrocell_grid, "WINDOW_PATTERNS", 0)          # every window gathered, not sliced
+            m.setattr(block_windows, "WINDOW_PATTERNS", 0)           # every window gathered, not sliced
             g = MacrocellGrid(vol, res, support=support)
         for a, b in zip((g.vmin, g.vmax, g.level_bits), ref):
             np.testing.assert_array_equal(a, b)
@@ -349,14 +349,15 @@ def test14_dense_block_counts_equal_the_sorted_ones(monkeypatch):
     dense index over its budget, loads fall back to sorting and give the
     same blocks."""
     import mi_amr.data.blocks as blocks
-    from mi_amr.data.blocks import TileIndex, _dense_ghosts, _level_coords, _pool, ghost_blocks
+    from mi_amr.data.block_keys import ghost_blocks, level_coords
+    from mi_amr.data.blocks import TileIndex, _dense_ghosts, _pool
     for name in ("cloud", "stadium", "blocks"):
         cells = DATA[name]()
         lo, hi = cells.bounds
         lmax = int(cells.level.max())
         origin = (lo >> lmax) << lmax
         tiles = TileIndex(lo, hi, origin, lmax)
-        q = _level_coords(cells.pos, cells.level, origin)
+        q = level_coords(cells.pos, cells.level, origin)
         occupied = np.zeros(tiles.total, np.uint8)
         occupied[tiles.index(q, cells.level)] = 1
         tiles.set_occupied(occupied)

@@ -23,6 +23,8 @@ from ..memory import CHUNK
 from ..parallel import ordered_map
 from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
+from .block_keys import (KEY_AXIS_BITS, UPPER_OFFSETS, block_keys, block_offsets, distinct_keys, fits_packed,
+                         ghost_blocks, level_coords, packed_keys, slot_index, unpack_keys)
 from .cells import MAX_LEVEL, AMRCells, check_cells
 
 #: Block sizes tried by `choose_block_size` (cells per side).
@@ -270,8 +272,8 @@ class BlockVolume(mi.Object):
         if not name or name in self.fields:
             raise ValueError(f"{self.source}: field name {name!r} is empty or used already")
         out = np.full(self.values.shape, np.nan, dtype=np.float32)
-        packed = _fits_packed(self.coord)
-        keys = _block_keys(self.coord, self.level, packed)
+        packed = fits_packed(self.coord)
+        keys = block_keys(self.coord, self.level, packed)
         order = np.argsort(keys)
         placed = 0
         for pos, level, value in chunks():
@@ -279,11 +281,11 @@ class BlockVolume(mi.Object):
             value = np.asarray(value, dtype=np.float32)
             if not np.all(np.isfinite(value)):
                 raise ValueError(f"{self.source}: field {name!r} has NaN or Inf values")
-            q = np.stack(_level_coords(pos, level, self.origin), axis=1).astype(np.int64)
-            k = _block_keys(q >> self.log2_block, level, packed)
+            q = np.stack(level_coords(pos, level, self.origin), axis=1).astype(np.int64)
+            k = block_keys(q >> self.log2_block, level, packed)
             i = np.minimum(np.searchsorted(keys, k, sorter=order), len(keys) - 1)
             hit = (keys[order[i]] == k) & np.all(q >= 0, axis=1)
-            slot = _slot(order[i], q, self.block)
+            slot = slot_index(order[i], q, self.block)
             hit[hit] &= ~np.isnan(self.values[slot[hit]])
             if skip_missing:
                 slot, value = slot[hit], value[hit]
@@ -352,15 +354,15 @@ class BlockVolume(mi.Object):
         block k (ghosts numbered after the K blocks), or ``0xFFFFFFFF``."""
         ghost_coord, ghost_level = ghost_blocks(self.coord, self.level)
         coord = self.coord.astype(np.int64)
-        packed = _fits_packed(coord, 1)
-        keys = _block_keys(coord, self.level, packed)
+        packed = fits_packed(coord, 1)
+        keys = block_keys(coord, self.level, packed)
         order = np.argsort(keys)
         all_coord = np.concatenate([coord, ghost_coord])
         all_level = np.concatenate([self.level, ghost_level])
         neighbours = np.full((len(all_level), 7), 0xFFFFFFFF, dtype=np.uint32)
 
         def find(d):                               # one column per thread
-            k = _block_keys(all_coord + UPPER_OFFSETS[d], all_level, packed)
+            k = block_keys(all_coord + UPPER_OFFSETS[d], all_level, packed)
             i = np.minimum(np.searchsorted(keys, k, sorter=order), len(keys) - 1)
             hit = keys[order[i]] == k
             neighbours[hit, d] = order[i][hit]
@@ -377,14 +379,14 @@ class BlockVolume(mi.Object):
         value = np.zeros(len(q), dtype=np.float32)
         if not len(sel):
             return value, found
-        keys = _block_keys(self.coord[sel], np.full(len(sel), level), False)
+        keys = block_keys(self.coord[sel], np.full(len(sel), level), False)
         order = np.argsort(keys)
         ok = np.all(q >= 0, axis=1)
-        qk = _block_keys(np.where(ok[:, None], q, 0) >> self.log2_block, np.full(len(q), level), False)
+        qk = block_keys(np.where(ok[:, None], q, 0) >> self.log2_block, np.full(len(q), level), False)
         i = np.minimum(np.searchsorted(keys, qk, sorter=order), len(sel) - 1)
         hit = ok & (keys[order[i]] == qk)
         blk = sel[order[i]]
-        slot = _slot(blk, q, self.block)
+        slot = slot_index(blk, q, self.block)
         v = self.values[np.where(hit, slot, 0)]
         found = hit & ~np.isnan(v)
         value[found] = v[found]
@@ -415,78 +417,6 @@ def choose_block_size(block_counts: dict, ghost_counts: dict | None = None) -> i
     return min(cost, key=cost.get)
 
 
-#: Block offsets d = (dx, dy, dz) for d = dx + 2 dy + 4 dz = 1..7.
-UPPER_OFFSETS = [np.array([d & 1, (d >> 1) & 1, (d >> 2) & 1], dtype=np.int64) for d in range(1, 8)]
-
-
-def ghost_blocks(coord: np.ndarray, level: np.ndarray):
-    """The missing blocks at ``coord - d`` (d in `UPPER_OFFSETS`, same level)
-    of the given blocks: ``(coord int64 (G, 3), level (G,))``, distinct."""
-    coord = np.asarray(coord, dtype=np.int64)
-    packed = _fits_packed(coord)
-    keys = np.unique(_block_keys(coord, level, packed))
-    cand_c = np.concatenate([coord - off for off in UPPER_OFFSETS])
-    cand_l = np.tile(level, len(UPPER_OFFSETS))
-    ok = np.all(cand_c >= 0, axis=1)
-    cand_k, first = np.unique(_block_keys(cand_c[ok], cand_l[ok], packed), return_index=True)
-    ghost = ~np.isin(cand_k, keys)
-    return cand_c[ok][first[ghost]], cand_l[ok][first[ghost]]
-
-
-def block_offsets(b: int) -> np.ndarray:
-    """Cell offsets (x, y, z) inside a ``b^3`` block, in storage order (x fastest)."""
-    return np.stack(np.unravel_index(np.arange(b ** 3), (b,) * 3, order="F"), axis=1)
-
-
-def _slot(blk, q, b: int):
-    """Index in the values of cell ``q`` (level coordinates) of block ``blk``."""
-    loc = q & (b - 1)
-    return blk * b ** 3 + loc[:, 0] + b * (loc[:, 1] + b * loc[:, 2])
-
-
-#: Bits per axis of a packed int64 block key (5 bits hold the level).
-KEY_AXIS_BITS = 19
-
-
-def _block_keys(coord: np.ndarray, level: np.ndarray, packed: bool = True) -> np.ndarray:
-    """One sortable key per (block coordinate, level): packed into int64
-    when every coordinate is below ``2**KEY_AXIS_BITS``, else a 16-byte void
-    (big-endian rows, so byte order is numeric order)."""
-    coord = np.asarray(coord)
-    if packed:
-        c = coord.astype(np.int64)
-        return ((np.asarray(level, dtype=np.int64) << (3 * KEY_AXIS_BITS)) | (c[:, 2] << (2 * KEY_AXIS_BITS))
-                | (c[:, 1] << KEY_AXIS_BITS) | c[:, 0])
-    rows = np.empty((len(level), 4), dtype=">i4")
-    rows[:, :3] = coord[:, ::-1]
-    rows[:, 3] = level
-    return np.ascontiguousarray(rows).view(np.dtype((np.void, 16))).ravel()
-
-
-def _fits_packed(coord: np.ndarray, margin: int = 0) -> bool:
-    """Whether block coordinates (plus ``margin``) fit packed int64 keys
-    (sorting and searching those is much faster than 16-byte keys)."""
-    return not len(coord) or int(coord.max()) + margin < (1 << KEY_AXIS_BITS)
-
-
-def _unpack_keys(keys: np.ndarray, packed: bool):
-    """Inverse of `_block_keys`: ``(coord int64 (K, 3), level int64 (K,))``."""
-    if packed:
-        m = (1 << KEY_AXIS_BITS) - 1
-        return (np.stack([keys & m, (keys >> KEY_AXIS_BITS) & m, (keys >> (2 * KEY_AXIS_BITS)) & m], axis=1),
-                keys >> (3 * KEY_AXIS_BITS))
-    rows = keys.view(">i4").reshape(-1, 4).astype(np.int64)
-    return rows[:, 2::-1].copy(), rows[:, 3]
-
-
-def _distinct(keys: np.ndarray) -> np.ndarray:
-    """Sorted distinct keys; runs of equal neighbours (cells of one block
-    stored together, as codes write them) are collapsed before sorting."""
-    if len(keys) > 1:
-        keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
-    return np.unique(keys)
-
-
 def _check_and_measure(pos, level, value):
     """Fast validation of one chunk (levels in range, finite values, corners
     aligned) and its measures ``(lo (3,), hi (3,), max level)``; ``None``
@@ -514,35 +444,6 @@ def _check_and_measure(pos, level, value):
     return lo, hi, int(lv.max())
 
 
-def _level_coords(pos, level, origin):
-    """Level coordinates ``(pos - origin) >> level`` as three int32 columns
-    (x, y, z). The differences lie in [0, 2^31) (bounds are checked before),
-    so int32 arithmetic that wraps gives them exactly."""
-    lv = np.asarray(level).astype(np.int32, copy=False)
-    out = []
-    for a in range(3):
-        o = int(origin[a])
-        o = np.int32(((o + 2**31) % 2**32) - 2**31)          # origin modulo 2^32, as int32
-        c = pos[:, a]
-        if c.dtype != np.int32:
-            c = (c.astype(np.int64) - int(origin[a])).astype(np.int32)
-        else:
-            with np.errstate(over="ignore"):
-                c = c - o
-        out.append(np.right_shift(c, lv))
-    return out
-
-
-def _packed_keys(q, level, lb: int) -> np.ndarray:
-    """Packed int64 block keys (see `_block_keys`) of level coordinates ``q``
-    (three int32 columns) for blocks of ``2^lb`` cells per side."""
-    key = np.asarray(level).astype(np.int64) << (3 * KEY_AXIS_BITS)
-    key |= (q[2] >> lb).astype(np.int64) << (2 * KEY_AXIS_BITS)
-    key |= (q[1] >> lb).astype(np.int64) << KEY_AXIS_BITS
-    key |= q[0] >> lb
-    return key
-
-
 def scan_values(values: np.ndarray, level: np.ndarray, block: int, bar=None):
     """One pass over the values of blocks (in threads): ``(present cells,
     (min, max) of the values, present cells weighted by their volume in
@@ -566,7 +467,7 @@ def scan_values(values: np.ndarray, level: np.ndarray, block: int, bar=None):
     return n, (lo, hi), volume, partial
 
 
-def _place_checked(chunks, values, keys, origin, packed, b, source, overlap, block_keys) -> int:
+def _place_checked(chunks, values, keys, origin, packed, b, source, overlap, cell_block_keys) -> int:
     """Place the values chunk by chunk in stream order, finding repeated
     cells: with ``overlap == "error"`` the first one is named, else the
     first cell of a slot is kept. Returns the cells placed."""
@@ -575,7 +476,7 @@ def _place_checked(chunks, values, keys, origin, packed, b, source, overlap, blo
         pos, level, value = _resolve(chunk)
         L = level.astype(np.int64)
         q = (pos.astype(np.int64) - origin) >> L[:, None]
-        slot = _slot(np.searchsorted(keys, block_keys(pos, level, b)), q, b)
+        slot = slot_index(np.searchsorted(keys, cell_block_keys(pos, level, b)), q, b)
         m = len(slot)
         taken = ~np.isnan(values[slot])           # placed by an earlier chunk
         free = np.nonzero(~taken)[0]
@@ -733,7 +634,7 @@ def _dense_blocks(tiles: TileIndex, positions, sizes, with_ghosts: bool, n: int,
 
     def mark(chunk):
         pos, level, _ = _resolve(chunk)
-        q = _level_coords(pos, level, tiles.origin)
+        q = level_coords(pos, level, tiles.origin)
         i = tiles.index(q, level).astype(otype, copy=False)
         i <<= 3
         i |= (((q[2] >> lh) & one) << 2) | (((q[1] >> lh) & one) << 1) | ((q[0] >> lh) & one)
@@ -765,7 +666,7 @@ def _dense_blocks(tiles: TileIndex, positions, sizes, with_ghosts: bool, n: int,
 
     def mark_fine(chunk):
         pos, level, _ = _resolve(chunk)
-        q = _level_coords(pos, level, tiles.origin)
+        q = level_coords(pos, level, tiles.origin)
         r = tiles.rank[tiles.index(q, level)].astype(ftype, copy=False)
         sub = (((q[2] >> lb) & mask) * np.int32(s0) + ((q[1] >> lb) & mask)) * np.int32(s0) + ((q[0] >> lb) & mask)
         r *= s0 ** 3
@@ -808,13 +709,13 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     packed = int(np.max(np.asarray(hi, dtype=np.int64) - origin)) // min(sizes) < (1 << KEY_AXIS_BITS)
 
     def keys_and_coords(pos, level, b):           # block keys and level coordinates of cells
-        q = _level_coords(pos, level, origin)
+        q = level_coords(pos, level, origin)
         lb = b.bit_length() - 1
         if packed:
-            return _packed_keys(q, level, lb), q
-        return _block_keys(np.stack([c >> lb for c in q], axis=1), level, False), q
+            return packed_keys(q, level, lb), q
+        return block_keys(np.stack([c >> lb for c in q], axis=1), level, False), q
 
-    def block_keys(pos, level, b):
+    def cell_block_keys(pos, level, b):
         return keys_and_coords(pos, level, b)[0]
     with_ghosts = reconstruction_method(method).needs_ghosts
     dense = None
@@ -832,7 +733,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
         order = np.lexsort((coord[:, 0], coord[:, 1], coord[:, 2], tl)) if packed else \
             np.lexsort((tl, coord[:, 0], coord[:, 1], coord[:, 2]))               # the order of the keys
         coord, blevel = coord[order].astype(np.int32), tl[order].astype(np.uint8)
-        keys = _block_keys(coord, blevel, packed)
+        keys = block_keys(coord, blevel, packed)
         block_of = np.full(tiles.count * s ** 3, -1, np.int32)                     # (tile, sub-block) -> block
         block_of[((r * s + lz) * s + ly)[order] * s + lx[order]] = np.arange(len(order), dtype=np.int32)
         del r, lz, ly, lx, order, tc, tl
@@ -844,7 +745,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
 
             def count(job):                           # blocks (and ghosts) of one size on one run, in threads
                 b, (p, lv, _) = job
-                c, L = _unpack_keys(_distinct(block_keys(p, lv, b)), packed)
+                c, L = unpack_keys(distinct_keys(cell_block_keys(p, lv, b)), packed)
                 return b, len(L), len(ghost_blocks(c, L)[1]) if with_ghosts else 0
             for b, k, g in ordered_map(count, [(b, run) for b in sizes for run in runs]):
                 counts[b] += k
@@ -857,14 +758,14 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
 
         def distinct_blocks(chunk):
             pos, level, _ = _resolve(chunk)
-            return _distinct(block_keys(pos, level, b)), len(level)
+            return distinct_keys(cell_block_keys(pos, level, b)), len(level)
         for part, m in ordered_map(distinct_blocks, (positions or chunks)()):
             parts.append(part)
             if bar is not None:
                 bar.update(m)
-        keys = _distinct(np.concatenate(parts))
+        keys = distinct_keys(np.concatenate(parts))
         del parts
-        coord, blevel = _unpack_keys(keys, packed)
+        coord, blevel = unpack_keys(keys, packed)
         coord, blevel = coord.astype(np.int32), blevel.astype(np.uint8)
     b3 = b ** 3
     if len(keys) * b3 >= 2**32:
@@ -878,7 +779,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     def place(chunk):
         pos, level, value = _resolve(chunk)
         if dense is not None:                      # block by table reads: no search, any order
-            q = _level_coords(pos, level, origin)
+            q = level_coords(pos, level, origin)
             r = tiles.rank[tiles.index(q, level)]
             if s == 1 and packed:                  # blocks are the tiles, numbered alike (key order)
                 blk = r.astype(np.int64)
@@ -908,7 +809,7 @@ def _build(chunks, lo, hi, lmax, source, overlap, block, sample=None, method="te
     placed, value_range, volume, partial = scan_values(values, blevel, b, bar)
     if placed != n:                               # repeated cells: place again, in order, chunk by chunk
         values[:] = np.nan
-        n = _place_checked(chunks, values, keys, origin, packed, b, source, overlap, block_keys)
+        n = _place_checked(chunks, values, keys, origin, packed, b, source, overlap, cell_block_keys)
         placed, value_range, volume, partial = scan_values(values, blevel, b)
     box = int(np.prod(np.asarray(hi, np.int64) - np.asarray(lo, np.int64)))
     vol = BlockVolume(b, blevel, coord, values, origin, np.asarray(lo, np.int64), np.asarray(hi, np.int64),
@@ -943,7 +844,7 @@ def _under_coarse_cells(vol: BlockVolume, fine, coarse, k: int):
     def any_present(start):
         f, c = fine[start:start + step], coarse[start:start + step]
         q = ((vol.coord[f].astype(np.int64) << vol.log2_block) >> k)[:, None, :] + local[None]   # (m, s^3, 3)
-        slot = _slot(np.repeat(c, len(local)), q.reshape(-1, 3), b)
+        slot = slot_index(np.repeat(c, len(local)), q.reshape(-1, 3), b)
         return (vol.values[slot] == vol.values[slot]).reshape(len(f), -1).any(axis=1)             # not NaN
     keep = np.concatenate([np.zeros(0, bool)] + list(ordered_map(any_present, range(0, len(fine), step))))
     return fine[keep], coarse[keep]
@@ -960,12 +861,12 @@ def _remove_overlaps(vol: BlockVolume, overlap: str) -> int:
     local = block_offsets(b)
     for Lc in levels[1:]:
         csel = np.nonzero(vol.level == Lc)[0]
-        ckeys = _block_keys(vol.coord[csel], np.full(len(csel), Lc), False)
+        ckeys = block_keys(vol.coord[csel], np.full(len(csel), Lc), False)
         corder = np.argsort(ckeys)
         for Lf in levels[levels < Lc]:
             k = int(Lc - Lf)
             fsel = np.nonzero(vol.level == Lf)[0]
-            anc = _block_keys(vol.coord[fsel] >> k, np.full(len(fsel), Lc), False)
+            anc = block_keys(vol.coord[fsel] >> k, np.full(len(fsel), Lc), False)
             i = np.minimum(np.searchsorted(ckeys, anc, sorter=corder), len(csel) - 1)
             match = ckeys[corder[i]] == anc
             cand, cblock = fsel[match], csel[corder[i[match]]]     # fine blocks and their ancestor block
@@ -977,7 +878,7 @@ def _remove_overlaps(vol: BlockVolume, overlap: str) -> int:
                 v = vol.values.reshape(-1, b3)[blocks]
                 bi, ci = np.nonzero(~np.isnan(v))
                 q = (vol.coord[blocks][bi].astype(np.int64) << vol.log2_block) + local[ci]
-                slot = _slot(anc_block[bi], q >> k, b)             # the coarse cell over each fine one
+                slot = slot_index(anc_block[bi], q >> k, b)             # the coarse cell over each fine one
                 return q, slot, ~np.isnan(vol.values[slot])
             # tested in threads, removed here in order: a coarse cell that an
             # earlier chunk removed is tested again, so it is counted once

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .blocks import block_offsets
+from .block_keys import block_offsets
 from .cells import AMRCells
 
 NAMES = ("cloud", "shell", "stadium", "blocks", "cosmo")

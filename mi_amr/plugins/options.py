@@ -21,15 +21,13 @@ from ..data.transform import VALUE_TRANSFORMS, apply_value_transform
 from ..memory import default_memory_limit
 from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
 from ..pipeline import SAMPLINGS, TRAVERSALS, StructureOptions
+from ..transfer.classification import MAX_DENSITY_SCALE
 from ..transfer.function import TransferFunction
 
 MAJORANTS = ("ray", "global")
 OVERLAPS = ("error", "finest")
 #: Bound on the iterations of one tracking loop (reported by the counters).
 MAX_TRACKING_ITERATIONS = 1 << 20
-#: Largest density_scale: majorants and their reciprocals stay normal float32
-#: numbers (at 1e38 the reciprocal flushes to 0 and a medium turns clear).
-MAX_DENSITY_SCALE = 1e30
 #: Largest condition number of to_world's linear part (float32 precision).
 MAX_CONDITION = 1e7
 #: The parameters ``amr`` accepts, besides a nested phase function (the
@@ -104,14 +102,6 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
         to_world=_to_world(props, data),
         structures=structures,
         emission=emission)
-
-
-def check_density_scale(v) -> float:
-    """``v`` as a valid density scale, or a `ParameterError`."""
-    v = float(v)
-    if not (np.isfinite(v) and 0 <= v <= MAX_DENSITY_SCALE):
-        raise ParameterError(f"amr: density_scale must be a finite number in [0, {MAX_DENSITY_SCALE:g}], got {v:g}")
-    return v
 
 
 def as_transform4f(t) -> "mi.ScalarTransform4f":

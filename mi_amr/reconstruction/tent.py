@@ -25,6 +25,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..data.block_keys import UPPER_OFFSETS
 from .base import WEIGHT_EPS, Reconstruction
 
 #: Stencil corner c = dx + 2 dy + 4 dz.
@@ -182,7 +183,6 @@ def stencil_ranges(volume, max_cells: int = 1 << 20):
     min/max over the present corners of the stencil based at each cell
     ([block, z, y, x]; +inf/-inf where none is present) and ``cells`` the
     present cells of the chunk."""
-    from ..data.blocks import UPPER_OFFSETS          # (the data layer resolves methods)
     ghost_coord, ghost_level, neighbours = volume.stencil_index()
     K, B = len(volume.level), volume.block
     level = np.concatenate([volume.level, ghost_level])

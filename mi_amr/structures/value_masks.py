@@ -35,6 +35,7 @@ from ..data.cells import AMRCells
 from ..parallel import ordered_map
 from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
+from .block_windows import block_windows
 
 N_BINS = 64
 ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
@@ -88,7 +89,6 @@ def value_masks(data: AMRCells | BlockVolume, grid, method: str | Reconstruction
     module docstring): the bins of the method's items (`Reconstruction.mask_items`,
     read block by block) folded into the macrocells their boxes
     (`Reconstruction.mask_item_box`) overlap."""
-    from .macrocell_grid import block_windows       # (it imports this module)
     method = reconstruction_method(method)
     volume = BlockVolume.from_cells(data, method=method) if isinstance(data, AMRCells) else data
     bins = bins or ValueBins.of(volume)

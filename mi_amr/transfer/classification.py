@@ -220,11 +220,17 @@ def check_emission_scale(v) -> float:
     return v
 
 
+#: Largest density_scale: majorants and their reciprocals stay normal float32
+#: numbers (at 1e38 the reciprocal flushes to 0 and a medium turns clear).
+MAX_DENSITY_SCALE = 1e30
+
+
 def check_density_scale(v) -> float:
-    """``v`` as a valid density scale, or a `ParameterError` (the bound is
-    `mi_amr.plugins.options.MAX_DENSITY_SCALE`)."""
-    from ..plugins.options import check_density_scale as check
-    return check(v)
+    """``v`` as a valid density scale, or a `ParameterError`."""
+    v = float(v)
+    if not (np.isfinite(v) and 0 <= v <= MAX_DENSITY_SCALE):
+        raise ParameterError(f"amr: density_scale must be a finite number in [0, {MAX_DENSITY_SCALE:g}], got {v:g}")
+    return v
 
 
 def _upload(rgba, domain, scale, tf: TransferFunction, value: float) -> None:
