@@ -18,7 +18,7 @@ import mi_amr
 import mitsuba as mi
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.tools import peers
-from mi_amr.tools.bench import bench_scene
+from mi_amr.tools.harness import bench_scene
 from mi_amr.tools.reference import baked_grids, reference_medium
 
 from conftest import random_amr

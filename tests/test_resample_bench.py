@@ -73,7 +73,7 @@ def test_zoom_looks_at_the_densest_cell_from_outside():
     """``--zoom W``: a telephoto view of the cell holding the largest value,
     from the benchmark camera's direction and distance (outside the unit
     cube the volume fills), its field of view spanning W at that cell."""
-    from mi_amr.tools.bench import BENCH_FOV, BENCH_ORIGIN, BENCH_TARGET, zoom_camera
+    from mi_amr.tools.harness import BENCH_FOV, BENCH_ORIGIN, BENCH_TARGET, zoom_camera
     from mi_amr.tools.resample_bench import densest_point
     cells = make_dataset("cosmo", cells=3000, levels=3, seed=2)
     p = densest_point(cells)

@@ -171,7 +171,7 @@ def run_case(mi, spec, old, args):
     import numpy as np
 
     from mi_amr.plugins.medium import AMRMedium
-    from mi_amr.tools.bench import FROZEN_WARMUP, wait_idle
+    from mi_amr.tools.harness import FROZEN_WARMUP, wait_idle
     cls = AMRMedium.variant_class()
     scene = mi.load_dict(case_scene(mi, spec, args.res))
     integrator = scene.integrator()

@@ -11,7 +11,7 @@ The job (written by `mi_amr.tools.peers.write_job`) holds the reference's
 dense grids with the transfer function baked in (``sigma_t`` [nz, ny, nx, 1],
 ``albedo`` [nz, ny, nx, 3], float32: what `reference_medium` hands to
 Mitsuba's ``heterogeneous`` + ``gridvolume``, filter ``nearest``) and the
-parameters of the benchmark scene (`mi_amr.tools.bench.bench_scene`).
+parameters of the benchmark scene (`mi_amr.tools.harness.bench_scene`).
 Configurations:
 
 ``heterogeneous``
@@ -54,7 +54,7 @@ import numpy as np
 JOB_VERSION = 1
 #: What a job file must hold besides the two grids.
 JOB_KEYS = ("density_scale", "resolution", "spp", "max_depth", "rounds", "configs", "frozen")
-#: Untimed frames before a timed one (as `mi_amr.tools.bench.FROZEN_WARMUP`).
+#: Untimed frames before a timed one (as `mi_amr.tools.harness.FROZEN_WARMUP`).
 FROZEN_WARMUP = 3
 #: The fork's variant closest to the benchmark's ``llvm_ad_rgb``: the same.
 DEFAULT_VARIANT = "llvm_ad_rgb"
@@ -97,7 +97,7 @@ def config_parts(config: str):
 
 def load_scene(mi, job, config, tensors):
     """``(scene, extremum structure or None)``: the benchmark scene
-    (`mi_amr.tools.bench.bench_scene`) with the configuration's medium;
+    (`mi_amr.tools.harness.bench_scene`) with the configuration's medium;
     ``tensors``: the (sigma_t, albedo) TensorXf."""
     T = mi.ScalarTransform4f
     extremum_res, integrator = config_parts(config)
@@ -146,7 +146,7 @@ def process_cpu_seconds() -> float:
 
 
 def wait_idle(slice_s: float = 0.02, busy_share: float = 0.25, limit_s: float = 2.0) -> float:
-    """As `mi_amr.tools.bench.wait_idle`: wait until this process uses less
+    """As `mi_amr.tools.harness.wait_idle`: wait until this process uses less
     than ``busy_share`` of a core over a ``slice_s`` slice (at most ``limit_s``)."""
     t_start = time.perf_counter()
     while True:
@@ -161,7 +161,7 @@ def wait_idle(slice_s: float = 0.02, busy_share: float = 0.25, limit_s: float = 
 
 def frame_function(mi, dr, spp: int, frozen: bool):
     """``frame(scene, seed)`` -> float64 image, plain or ``dr.freeze``-recorded
-    (as `mi_amr.tools.bench.frame_function`)."""
+    (as `mi_amr.tools.harness.frame_function`)."""
     if not frozen:
         return lambda scene, seed: np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float64)
 

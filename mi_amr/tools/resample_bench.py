@@ -194,7 +194,7 @@ class Study:
                 "density_scale": p.density_scale, "reconstruction": "nearest"}
 
     def truth_scene(self):
-        from .bench import bench_scene
+        from .harness import bench_scene
         med = {"type": "amr", "data": self.plan.data, "value_transform": self.plan.transform, **self.medium_common()}
         return bench_scene(med, self.args.res, {"type": "amrvolpath", "max_depth": self.args.max_depth},
                            self.camera)
@@ -210,7 +210,7 @@ class Study:
     def rival_scene(self, grid: np.ndarray, renderer: str):
         """Scene of ``renderer`` on a transformed dense grid."""
         mi = self.mi
-        from .bench import bench_scene
+        from .harness import bench_scene
         if renderer == "dense16":
             med = {"type": "amr", "data": _dense_blocks(grid, f"{self.plan.data.source} (dense)"),
                    "grid_resolution": 16, **self.medium_common()}
@@ -250,7 +250,7 @@ def densest_point(data) -> np.ndarray:
 def render_mean(mi, scene, spp: int, seed: int, frozen: bool = True) -> np.ndarray:
     """Mean image of ``spp`` samples per pixel, `CHUNK_SPP` per call (frozen:
     replayed, no per-call trace)."""
-    from .bench import frame_function
+    from .harness import frame_function
     frames = {}
     acc, done, k = None, 0, 0
     while done < spp:
@@ -290,7 +290,7 @@ def curve(mi, scene, truth, truth_noise, args, floor=None, frozen=None):
     """``[[spp, seconds, RMSE (truth noise off), raw RMSE], ...]`` at 1, 2, 4, ...
     spp up to ``args.max_spp``; a rival's curve stops two points after it is
     within 10% of its ``floor`` (flat from there)."""
-    from .bench import FROZEN_WARMUP, frame_function, wait_idle
+    from .harness import FROZEN_WARMUP, frame_function, wait_idle
     out, within = [], 0
     frames = {}
     spp = 1
@@ -365,7 +365,7 @@ def study_one(mi, spec: str, args) -> dict:
     from ..autoscene import plan_scene
     from ..data.transform import positive_floor
     from ..progress import progress
-    from .bench import check_alone
+    from .harness import check_alone
     path, field, name = data_path(spec, Path(args.data_dir))
     t0 = time.perf_counter()
     plan = plan_scene(str(path), args.field or field)
@@ -373,7 +373,7 @@ def study_one(mi, spec: str, args) -> dict:
     data = plan.data
     camera = None
     if getattr(args, "zoom", None):
-        from .bench import zoom_camera
+        from .harness import zoom_camera
         camera = zoom_camera(densest_point(data), args.zoom)
     study = Study(mi, plan, args, camera)
     values = data.value if hasattr(data, "value") else data.values

@@ -90,7 +90,7 @@ def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dic
     import numpy as np
 
     import mi_amr
-    from .bench import bench_scene
+    from .harness import bench_scene
     def rss():
         with open("/proc/self/statm") as f:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
