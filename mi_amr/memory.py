@@ -56,11 +56,11 @@ def grid_bytes(n_macrocells: int, n_values: int) -> float:
 
 def hash_bytes(n_blocks: int, method) -> float:
     """Peak host bytes of the block hash for the reconstruction ``method``
-    (name or object; keys, payload and build rounds, and the ghost blocks
-    and neighbour rows of a method that needs them), without the device copy
-    of the values: ``Reconstruction.hash_bytes_per_block`` per block."""
-    from .reconstruction import reconstruction_method
-    return reconstruction_method(method).hash_bytes_per_block * n_blocks
+    (a `mi_amr.reconstruction.Reconstruction`; keys, payload and build
+    rounds, and the ghost blocks and neighbour rows of a method that needs
+    them), without the device copy of the values:
+    ``method.hash_bytes_per_block`` per block."""
+    return method.hash_bytes_per_block * n_blocks
 
 
 class MemoryLimitError(MemoryError):
@@ -122,51 +122,3 @@ def bricks_bytes(n_cells: int, partial_block_cells: int) -> float:
 
 def structure_bytes(kind: str, n_cells: int) -> float:
     return BYTES_PER_CELL[kind] * float(n_cells)
-
-
-#: Host bytes per macrocell of the grid an ``amr`` medium keeps: value range
-#: (2 x 4 B), level bits (4 B) and majorant (4 B); value masks add 8 B.
-GRID_BYTES_PER_MACROCELL = 16
-
-
-def medium_bytes(volume, reconstruction: str = "tent") -> dict:
-    """Host bytes of an ``amr`` medium with the default structures (traversal
-    ``grid``, sampling ``hash``) over ``volume`` (a `BlockVolume`), from its
-    blocks: ``data`` (`BlockVolume.nbytes`), ``hash`` (the point-location
-    tables, sized as `mi_amr.structures.level_hash.LevelHash` sizes them, with
-    the ghost blocks and neighbour rows of ``tent``: exact), ``grid``: ``[low,
-    high]``, the macrocell grid at the coarsest and the finest resolution
-    the medium's cost model weighs (``grid_resolution``, macrocells per axis;
-    which it keeps depends on the TF and the density scale: an estimate),
-    their ``total`` (``[low, high]``) and ``build_peak``: the peak the medium
-    checks against the memory limit before building the hash (`hash_bytes`
-    plus the values). On the CUDA backend the values and structures are
-    copied to the GPU as well."""
-    import numpy as np
-
-    from .data.block_keys import ghost_blocks
-    from .reconstruction import reconstruction_method
-    from .structures.cost_model import _candidates
-    from .structures.level_hash import KEY_BITS
-    from .structures.macrocell_grid import axis_resolution
-    method = reconstruction_method(reconstruction)
-    coord, level = volume.coord.astype(np.int64), np.asarray(volume.level)
-    neighbour_bytes = 4
-    if method.needs_ghosts:
-        ghost_coord, ghost_level = ghost_blocks(volume.coord, volume.level)
-        coord = np.concatenate([coord, np.asarray(ghost_coord, np.int64).reshape(-1, 3)])
-        level = np.concatenate([level, np.asarray(ghost_level)])
-        neighbour_bytes = 4 * 7 * len(level)
-    wide = bool(coord.size) and int(coord.max()) >= (1 << KEY_BITS)
-    # per level a table of a power of two >= 16 slots at load factor <= 0.35 (LevelHash)
-    slots = sum(1 << max(4, int(np.ceil(np.log2(n / 0.35)))) for n in np.unique(level, return_counts=True)[1])
-    hash_ = slots * (12 + 4 * wide) + neighbour_bytes
-    lo, hi = volume.bounds
-    per = GRID_BYTES_PER_MACROCELL + 8 * method.value_masks_tighten
-    cands = _candidates(volume)
-    grid = [per * int(np.prod(axis_resolution(c, (hi - lo).astype(np.float64)))) for c in (cands[0], cands[-1])]
-    data = int(volume.nbytes)
-    return {"data": data, "hash": int(hash_), "grid": grid, "grid_resolution": [int(cands[0]), int(cands[-1])],
-            "total": [int(data + hash_ + g) for g in grid],
-            "build_peak": int(hash_bytes(len(volume.level), method) + volume.values.nbytes),
-            "reconstruction": method.name}

@@ -107,9 +107,11 @@ def test16_structures_that_do_not_fit_fail_before_allocating(llvm, tmp_path, mon
     from conftest import random_amr
     from mi_amr.data.blocks import BlockVolume
     from mi_amr.memory import format_bytes, grid_bytes, hash_bytes
+    from mi_amr.reconstruction import reconstruction_method
     data = random_amr(0)
     vol = BlockVolume.from_cells(data, method="tent")
-    grid_need, hash_need = grid_bytes(8, vol.values.size), hash_bytes(len(vol.level), "tent") + vol.values.nbytes
+    grid_need = grid_bytes(8, vol.values.size)
+    hash_need = hash_bytes(len(vol.level), reconstruction_method("tent")) + vol.values.nbytes
     assert grid_need < hash_need
     limit = 0.5 * (grid_need + hash_need)
     with pytest.raises(Exception, match=r"the hash structure .* needs about .*memory limit of "

@@ -5,7 +5,7 @@
 `describe` gathers levels, cells per level and their physical sizes, the
 domain, each field's range with its shares of zeros and negatives (per cell
 and volume-weighted) and the memory of an ``amr`` medium with the default
-structures (`mi_amr.memory.medium_bytes`); `format_info` prints it.
+structures (`mi_amr.structures.footprint.medium_bytes`); `format_info` prints it.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ def describe(data, field: str | None = None, scalars: str | None = None) -> dict
     from ..autoscene import _yt_load, open_data
     from ..data.io import load_volume
     from ..data.metadata import cell_size
-    from ..memory import medium_bytes
+    from ..structures.footprint import medium_bytes
     path = Path(str(data))
     ds = None
     if scalars is not None:
