@@ -6,6 +6,8 @@
   ``to_world``, with the same phase function and ``sample_emitters``.
 * `with_amr_parameters`: override parameters of every ``amr`` medium
   (e.g. ``majorant="global"``) without editing the file.
+* `parse_scene`, `amr_elements`, `set_parameters`: the pieces, shared with
+  the viewer's snapshots (`mi_amr.view.snapshot`).
 
 Both return a scene loaded with the original file's directory on Mitsuba's
 file resolver, so relative paths in the scene keep working.
@@ -24,11 +26,26 @@ _TYPE_TAGS = {bool: "boolean", int: "integer", float: "float", str: "string"}
 _PASS_THROUGH = {"phase", "sample_emitters"}      # kept on the reference medium
 
 
-def _amr_elements(root):
+def amr_elements(root) -> list:
+    """Every ``<medium type="amr">`` element under ``root``, in file order."""
     return [e for e in root.iter("medium") if e.get("type") == "amr"]
 
 
-def _load_tree(path, params=None) -> ET.ElementTree:
+def set_parameters(element, values: dict, drop=()):
+    """Replace the parameters of ``element`` (a plugin's XML element) named
+    in ``values`` by one typed child each (bool, int, float or str), and
+    remove those named in ``drop``."""
+    for child in list(element):
+        if child.get("name") in values or child.get("name") in drop:
+            element.remove(child)
+    for name, value in values.items():
+        ET.SubElement(element, _TYPE_TAGS[type(value)], name=name,
+                      value=str(value).lower() if isinstance(value, bool) else str(value))
+
+
+def parse_scene(path, params=None) -> ET.ElementTree:
+    """The XML of the scene at ``path`` (a `ValueError` if it does not
+    parse, or lacks one of the ``$`` parameters named in ``params``)."""
     try:
         tree = ET.parse(path)
     except (ET.ParseError, OSError) as e:
@@ -63,15 +80,10 @@ def _load(root, scene_path: Path, params: dict):
 
 def with_amr_parameters(scene_path, overrides: dict, **params):
     """Load an XML scene with ``overrides`` set on every ``amr`` medium."""
-    tree = _load_tree(scene_path, params)
+    tree = parse_scene(scene_path, params)
     root = tree.getroot()
-    for med in _amr_elements(root):
-        for name, value in overrides.items():
-            for child in list(med):
-                if child.get("name") == name:
-                    med.remove(child)
-            ET.SubElement(med, _TYPE_TAGS[type(value)], name=name,
-                          value=str(value).lower() if isinstance(value, bool) else str(value))
+    for med in amr_elements(root):
+        set_parameters(med, overrides)
     return _load(root, scene_path, params)
 
 
@@ -85,11 +97,11 @@ def reference_scene(scene_path, work_dir, resolution=None, memory_limit=None, **
 
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
-    tree = _load_tree(scene_path, params)
+    tree = parse_scene(scene_path, params)
     root = tree.getroot()
     defaults = [e for e in root if e.tag == "default"]
     media = []
-    for k, med in enumerate(_amr_elements(root)):
+    for k, med in enumerate(amr_elements(root)):
         # Instantiate the amr medium alone (with the scene's defaults).
         alone = copy.deepcopy(med)
         alone.set("version", root.get("version", "3.0.0"))
