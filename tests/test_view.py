@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from mi_amr.view.camera import OrbitCamera
-from mi_amr.view.engine import safe_name
+from mi_amr.view.protocol import safe_name
 from mi_amr.view.tf_spec import TABLE_SIZE, TFSpec, spiky_points
 
 pytest.importorskip("starlette")
@@ -431,10 +431,12 @@ def test12_a_missing_denoiser_is_said_not_hidden(monkeypatch, tmp_path, capsys):
     import mi_amr.view.engine as eng
     from mi_amr.tools.cli import main
     monkeypatch.setattr(eng, "denoiser", lambda: (None, "denoising needs mitsuba-oidn: pip install 'mi-amr[view]'"))
+    from mi_amr.view.scene import LoadedScene
     engine = eng.ViewEngine("unused.cells")
-    engine.initial_camera = OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0)
-    engine.initial_spec, engine.colormaps, engine.log_available = TFSpec(), ("plasma",), False
-    engine.size, engine.max_spp, engine.description = [64, 64], 8, "test"
+    engine.loaded = LoadedScene("unused.cells", None, "test", [64, 64],
+                                OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0), TFSpec(), ("plasma",),
+                                stored_log=False)
+    engine.max_spp = 8
     engine.ready.set()
     view = engine.open_view(lambda header, jpeg: None)
     hello = engine.describe(view)
@@ -444,3 +446,172 @@ def test12_a_missing_denoiser_is_said_not_hidden(monkeypatch, tmp_path, capsys):
     scene = Path(__file__).parents[1] / "scenes" / "blocks.xml"
     assert main(["render", str(scene), "-o", str(tmp_path / "x.exr"), "--denoise"]) == 2
     assert "mitsuba-oidn" in capsys.readouterr().err and not (tmp_path / "x.exr").exists()
+
+
+# ---- the wire protocol ------------------------------------------------------------------
+def test13_every_message_round_trips():
+    """Each page message parses from its JSON back to itself; each server
+    message is the JSON the page reads (the wire format of before)."""
+    from mi_amr.view import protocol as p
+    page = [p.CameraChange(10.0, -20.0, 2.5, (0.1, 0.2, 0.3)), p.CameraChange(azimuth=5.0), p.CameraChange(),
+            p.TFChange(((0.0, 0.0), (0.5, 1.0), (1.0, 0.25)), "viridis", True, (-2.0, 1.5), 4.0),
+            p.TFChange(density=0.5), p.DenoiseChange(True), p.DenoiseChange(False), p.HistogramRequest(),
+            p.SnapshotRequest("shot-1.v2"), p.Ack()]
+    assert {type(m) for m in page} == set(p.PageMessage.__args__)
+    for msg in page:
+        assert p.parse(p.dumps(msg)) == msg
+    assert p.to_json(p.CameraChange(azimuth=5.0)) == {"type": "camera", "azimuth": 5.0}
+    cam, spec = OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0), TFSpec()
+    wire = [
+        (p.Status("loading", "reading x", 3, None), {"type": "status", "state": "loading", "desc": "reading x",
+                                                      "done": 3, "total": None}),
+        (p.Hello(7, cam, spec, ("plasma",), True, False, "no oidn", False, (32, 16), 64, "d.cells",
+                 {"plasma": ["#0d0887"]}),
+         {"type": "hello", "view": 7, "camera": cam.to_json(), "tf": spec.to_json(), "colormaps": ["plasma"],
+          "log_available": True, "denoiser": False, "denoiser_missing": "no oidn", "denoise": False,
+          "size": [32, 16], "max_spp": 64, "data": "d.cells", "colormap_stops": {"plasma": ["#0d0887"]}}),
+        (p.HistogramReply((0.25, 0.75), (0.0, 1.0), False),
+         {"type": "histogram", "counts": [0.25, 0.75], "range": [0.0, 1.0], "log": False}),
+        (p.Frame(3, 8, True, False, 32, 16, 12.5, 64),
+         {"type": "frame", "version": 3, "spp": 8, "denoised": True, "preview": False, "width": 32, "height": 16,
+          "render_ms": 12.5, "max_spp": 64}),
+        (p.SnapshotDone(("/o/a.exr", "/o/a.xml"), 16), {"type": "snapshot", "files": ["/o/a.exr", "/o/a.xml"],
+                                                        "spp": 16}),
+        (p.Error("bad", "tf"), {"type": "error", "message": "bad", "about": "tf"}),
+        (p.Error("not JSON"), {"type": "error", "message": "not JSON"}),
+    ]
+    assert {type(m) for m, _ in wire} == set(p.ServerMessage.__args__)
+    for msg, expected in wire:
+        assert json.loads(p.dumps(msg)) == expected
+        assert all(msg[k] == v for k, v in expected.items())          # read as the page reads it
+
+
+def test14_bad_messages_get_the_errors_of_before():
+    """Binary, oversized, not JSON, not an object, an unknown type, a field
+    a message lacks, wrong types, NaN and Inf: one `ProtocolError` each,
+    worded as the server's replies were, and the server's reply to each is
+    that error (naming the message type once it is known)."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from mi_amr.view import protocol as p
+    from mi_amr.view.server import _handle
+    cases = [
+        (b"\x00\x01binary", "messages must be JSON text, not binary", None),
+        ("x" * 100_000, f"message too long (100000 > {p.MAX_MESSAGE} bytes)", None),
+        ("not json {", "not JSON: Expecting value: line 1 column 1 (char 0)", None),
+        ("[1, 2]", "a message is a JSON object with a 'type'", None),
+        (json.dumps({"type": "reboot"}), "unknown message type 'reboot'", None),
+        (json.dumps({"azimuth": 3}), "unknown message type None", None),
+        (json.dumps({"type": ["camera"]}), "unknown message type ['camera']", None),
+        (json.dumps({"type": "camera", "azimuth": "NaN"}), "azimuth: a finite number in [-1000000.0, 1000000.0]",
+         "camera"),
+        ('{"type": "camera", "azimuth": NaN}', "azimuth: a finite number in [-1000000.0, 1000000.0]", "camera"),
+        ('{"type": "camera", "azimuth": 1e999}', "azimuth: a finite number in [-1000000.0, 1000000.0]", "camera"),
+        (json.dumps({"type": "camera", "azimuth": 10 ** 400}), "azimuth: a finite number in [-1000000.0, 1000000.0]",
+         "camera"),
+        (json.dumps({"type": "camera", "elevation": True}), "elevation: a finite number in [-90, 90]", "camera"),
+        ('{"type": "camera", "distance": Infinity}', "distance: a finite number above 0", "camera"),
+        (json.dumps({"type": "camera", "target": [0, 0]}), "target: three numbers", "camera"),
+        ('{"type": "camera", "target": [0, 0, NaN]}', "target: three finite numbers", "camera"),
+        (json.dumps({"type": "camera", "zoom": 2}), "camera: no field(s) 'zoom' "
+         "(fields: azimuth, distance, elevation, target)", "camera"),
+        (json.dumps({"type": "tf", "points": [[0, 0]] * 5000}), "points: a list of 2 to 256 [u, alpha] pairs", "tf"),
+        (json.dumps({"type": "tf", "points": [[0, 0], ["1", 1]]}), "points: a list of [u, alpha] number pairs", "tf"),
+        ('{"type": "tf", "points": [[0, 0], [1, NaN]]}', "points: a list of finite [u, alpha] pairs", "tf"),
+        (json.dumps({"type": "tf", "points": [[0, 0], [2, 1]]}), "points: u and alpha must lie in [0, 1]", "tf"),
+        (json.dumps({"type": "tf", "log": "yes"}), "log: true or false", "tf"),
+        (json.dumps({"type": "tf", "range": "a"}), "range: [lo, hi], two numbers", "tf"),
+        ('{"type": "tf", "range": [0, Infinity]}', "range: finite, with lo < hi", "tf"),
+        (json.dumps({"type": "tf", "range": [1, 1]}), "range: finite, with lo < hi", "tf"),
+        (json.dumps({"type": "tf", "density": True}), "density: a positive number", "tf"),
+        (json.dumps({"type": "tf", "density": -1}), "density: a positive number", "tf"),
+        (json.dumps({"type": "tf", "colormap": 3}), "colormap: the name of a colormap", "tf"),
+        (json.dumps({"type": "denoise", "on": 1}), "denoise: 'on' must be true or false", "denoise"),
+        (json.dumps({"type": "denoise"}), "denoise: 'on' must be true or false", "denoise"),
+        (json.dumps({"type": "snapshot", "name": "../../escape"}),
+         "snapshot name '../../escape': letters, digits, '-', '_' and '.' only (not leading), no folders", "snapshot"),
+        (json.dumps({"type": "snapshot"}), "snapshot name: 1 to 100 characters", "snapshot"),
+        (json.dumps({"type": "ack", "spp": 3}), "ack: no field(s) 'spp' (fields: none)", "ack"),
+    ]
+    for text, message, about in cases:
+        with pytest.raises(p.ProtocolError) as e:
+            p.parse(text)
+        assert (str(e.value), e.value.about) == (message, about), text
+        wire = {"text": text} if isinstance(text, str) else {"bytes": text}
+        with ThreadPoolExecutor(1) as pool:          # a loop of its own (Playwright's may run on this thread)
+            reply = pool.submit(asyncio.run, _handle(wire, None, None, None, None, None)).result()
+        assert p.to_json(reply) == {"type": "error", "message": message, **({"about": about} if about else {})}
+
+
+def test15_an_xml_scene_keeps_its_own_tf(tmp_path):
+    """An XML scene's TF table (7 uneven entries) reaches the editor entry by
+    entry and the medium as it is, also after the page sends the TF back
+    with a new density; the snapshot writes the same table values. A table
+    longer than the editor takes (300 entries) starts the editor from 65
+    samples, the medium still from the table itself."""
+    from mi_amr.data.datasets import make_dataset
+    from mi_amr.data.io import save_cells
+    from mi_amr.transfer.function import TransferFunction
+    from mi_amr.view import protocol as p
+    from mi_amr.view.engine import JIT_LOCK, ViewEngine
+    from mi_amr.view.scene import EDITOR_POINTS, LoadedScene, scene_spec
+    rgba = [[0.1, 0.2, 0.3, 0.0], [0.9, 0.1, 0.1, 0.137], [0.2, 0.8, 0.1, 0.0123], [0.3, 0.3, 0.9, 0.91],
+            [0.5, 0.5, 0.5, 0.333], [1.0, 0.7, 0.0, 0.05], [0.0, 0.0, 0.0, 0.777]]
+    (tmp_path / "tf7.json").write_text(json.dumps({"domain": [0.015, 1.7], "rgba": rgba}))
+    save_cells(make_dataset("cloud", cells=5000, seed=1), tmp_path / "d.cells")
+    (tmp_path / "s.xml").write_text(f"""<scene version="3.0.0">
+    <integrator type="volpath"><integer name="max_depth" value="8"/></integrator>
+    <sensor type="perspective">
+        <float name="fov" value="35"/>
+        <transform name="to_world"><lookat origin="1.8, 1.3, 2.6" target="0.5, 0.5, 0.5" up="0, 1, 0"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="32"/></film>
+    </sensor>
+    <emitter type="constant"><rgb name="radiance" value="0.8"/></emitter>
+    <medium type="amr" id="m">
+        <string name="filename" value="d.cells"/>
+        <string name="transfer_function" value="{tmp_path / 'tf7.json'}"/>
+        <float name="density_scale" value="20"/>
+    </medium>
+    <shape type="cube">
+        <transform name="to_world"><scale value="0.5"/><translate value="0.5, 0.5, 0.5"/></transform>
+        <bsdf type="null"/><ref name="interior" id="m"/>
+    </shape>
+</scene>""")
+    source = TransferFunction(rgba, (0.015, 1.7))
+    engine = ViewEngine(tmp_path / "s.xml", res=16, max_spp=2).start()
+    try:
+        assert engine.ready.wait(120) and engine.error is None, engine.error
+        spec = engine.initial_spec
+        assert spec.points == list(zip(np.linspace(0, 1, 7).tolist(), source.rgba[:, 3].tolist()))
+        assert spec.range == (0.015, 1.7) and spec.colormap == "scene"
+        frames = []
+        view = engine.open_view(lambda header, jpeg: frames.append(header))
+        hello = engine.describe(view)
+        # the page sends its TF back as it got it, with a new density (the slider)
+        text = json.dumps({"type": "tf", **json.loads(p.dumps(hello))["tf"], "density": 7.5})
+        assert engine.change(view, p.parse(text)) is False
+        assert view.spec.density == 7.5 and engine.loaded.table(view.spec) is engine.loaded.scene_tf
+        deadline = time.monotonic() + 60
+        while not (frames and frames[-1]["spp"] >= 2 and frames[-1]["version"] == 1) \
+                and time.monotonic() < deadline:
+            time.sleep(0.05)
+        with JIT_LOCK:
+            np.testing.assert_array_equal(engine.loaded.medium.tf.rgba, source.rgba)
+            assert engine.loaded.medium.tf.domain == source.domain
+        files = engine.snapshot(view, tmp_path / "out", "kept")
+    finally:
+        engine.stop()
+    written = json.loads(files[3].read_text())
+    assert written["domain"] == [0.015, 1.7]
+    np.testing.assert_allclose(written["rgba"], rgba, atol=1e-7, rtol=0)
+    assert 'name="density_scale" value="7.5"' in files[2].read_text()
+    long = TransferFunction(np.linspace(0, 1, 300)[:, None] * [1, 0.5, 0.25, 1], (0.0, 2.0))
+    spec = scene_spec(long, False, 1.0)
+    assert len(spec.points) == EDITOR_POINTS
+    s = LoadedScene("x.xml", None, "x", [16, 16], OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0),
+                    spec, ("scene",), False, scene_rgb=long.rgba[:, :3], scene_tf=long)
+    assert s.table(spec) is long and s.table(TFSpec(spec.points, "scene", False, (0.0, 2.0), 3.0)) is long
+    edited = TFSpec([(0.0, 0.0), (1.0, 1.0)], "scene", False, (0.0, 2.0), 1.0)
+    assert s.table(edited) is not long and len(s.table(edited)) == TABLE_SIZE

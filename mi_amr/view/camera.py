@@ -3,8 +3,8 @@
 The camera sits at ``distance`` from ``target``, at ``azimuth`` degrees about
 the ``up`` axis and ``elevation`` degrees above the plane normal to it; it
 looks at the target. Orbit changes the two angles, zoom the distance, pan the
-target: the page does that arithmetic and sends the result, which
-`OrbitCamera.from_message` checks.
+target: the page does that arithmetic and sends the result (a
+`protocol.CameraChange`), which `OrbitCamera.moved` applies.
 """
 
 from __future__ import annotations
@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from .protocol import CameraChange, parse_message
 
 #: Elevation stays this far from the poles (look_at needs up and view apart).
 MAX_ELEVATION = 89.0
@@ -60,25 +62,27 @@ class OrbitCamera:
         return {"target": list(self.target), "up": list(self.up), "azimuth": self.azimuth,
                 "elevation": self.elevation, "distance": self.distance, "fov": self.fov}
 
-    def from_message(self, msg: dict) -> "OrbitCamera":
-        """This camera with the angles, distance and target of a page
-        message (missing ones kept); a `ValueError` names a bad field."""
-        def number(name, lo=-np.inf, hi=np.inf):
-            v = msg.get(name, getattr(self, name))
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or not lo <= v <= hi:
-                raise ValueError(f"{name}: a finite number in [{lo}, {hi}]")
-            return float(v)
-        az = number("azimuth", -1e6, 1e6) % 360.0
-        el = float(np.clip(number("elevation", -90, 90), -MAX_ELEVATION, MAX_ELEVATION))
-        dist = number("distance", 1e-6 * self.distance, 1e6 * self.distance)
-        target = msg.get("target", list(self.target))
-        try:
-            t = np.array(target, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError("target: three numbers") from None
-        if t.shape != (3,) or not np.all(np.isfinite(t)) or np.abs(t).max() > 1e9:
-            raise ValueError("target: three finite numbers")
-        return OrbitCamera(tuple(t.tolist()), self.up, az, el, dist, self.fov)
+    def from_message(self, msg) -> "OrbitCamera":
+        """This camera moved by a page message (a `protocol.CameraChange` or
+        its JSON fields); a `ValueError` names a bad field."""
+        if not isinstance(msg, CameraChange):
+            msg = parse_message(dict(msg, type="camera"))
+        return self.moved(msg)
+
+    def moved(self, change: CameraChange) -> "OrbitCamera":
+        """This camera with the angles, distance and target of ``change``
+        (missing ones kept; its fields already checked by the protocol): the
+        azimuth wrapped to [0, 360), the elevation clamped to
+        +-`MAX_ELEVATION`, the distance within 10^+-6 of this one's."""
+        az = (change.azimuth if change.azimuth is not None else self.azimuth) % 360.0
+        el = change.elevation if change.elevation is not None else self.elevation
+        el = float(np.clip(el, -MAX_ELEVATION, MAX_ELEVATION))
+        dist = change.distance if change.distance is not None else self.distance
+        lo, hi = 1e-6 * self.distance, 1e6 * self.distance
+        if not lo <= dist <= hi:
+            raise ValueError(f"distance: a finite number in [{lo}, {hi}]")
+        target = change.target if change.target is not None else self.target
+        return OrbitCamera(tuple(map(float, target)), self.up, float(az), el, float(dist), self.fov)
 
     def transform(self):
         """The sensor's ``to_world`` (a ``mi.ScalarTransform4f``)."""

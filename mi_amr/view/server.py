@@ -1,35 +1,33 @@
 """The viewer's web server (Starlette on uvicorn): the page, its files and
-one websocket per tab.
+one websocket per tab, speaking `protocol`.
 
 Every request needs the secret token: ``?token=...`` in the URL (the page
 then keeps it in a cookie, as Jupyter does) or that cookie; without it, 403.
-The server binds to 127.0.0.1 unless told otherwise. On the websocket the
-page sends JSON messages (``camera``, ``tf``, ``denoise``, ``histogram``,
-``snapshot``, ``ack``); the server answers with JSON (``status``, ``hello``,
-``histogram``, ``snapshot``, ``error``) and binary frames: a 4-byte
-big-endian header length, the header (JSON), the JPEG image. A malformed
-message gets an ``error`` reply and changes nothing; frames wait for the
-page's ``ack`` of the previous one and only the newest waits (no backlog).
+The server binds to 127.0.0.1 unless told otherwise. Each websocket
+message is parsed once (`protocol.parse`) and handed to the engine; a
+malformed one gets an ``error`` reply and changes nothing. Frames wait for
+the page's ``ack`` of the previous one and only the newest waits (no
+backlog).
 """
 
 from __future__ import annotations
 
 import asyncio
 import hmac
-import json
 import secrets
 import socket
 import struct
 import sys
 import threading
+from dataclasses import replace
 from pathlib import Path
 
+from . import protocol as p
 from .engine import ViewEngine
+from .protocol import MAX_MESSAGE
 
 STATIC = Path(__file__).parent / "static"
 COOKIE = "mi_amr_view_token"
-#: Largest message accepted from a page (bytes).
-MAX_MESSAGE = 64 * 1024
 #: A frame is sent without the previous one's ack after this long (seconds).
 ACK_TIMEOUT = 2.0
 
@@ -85,8 +83,8 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, disconnect):
     frame_ready, acked = asyncio.Event(), asyncio.Event()
     acked.set()
 
-    def status(s):                                   # from the loading thread
-        loop.call_soon_threadsafe(outbox.put_nowait, dict(s, type="status"))
+    def status(s: p.Status):                         # from the loading thread
+        loop.call_soon_threadsafe(outbox.put_nowait, s)
 
     def send_frame(header, jpeg):                    # from the render thread: newest wins
         def put():
@@ -97,7 +95,7 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, disconnect):
     async def writer():
         while True:
             msg = await outbox.get()
-            await ws.send_text(json.dumps(msg))
+            await ws.send_text(p.dumps(msg))
 
     async def frames():
         while True:
@@ -109,17 +107,17 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, disconnect):
             frame_ready.clear()
             header, jpeg = latest["frame"]
             acked.clear()
-            head = json.dumps(header).encode()
+            head = p.dumps(header).encode()
             await ws.send_bytes(struct.pack(">I", len(head)) + head + jpeg)
 
     stop_status = engine.on_status(status)
-    await outbox.put(dict(engine.status, type="status"))
+    await outbox.put(engine.status)
     tasks = [asyncio.create_task(writer())]
     view = None
     try:
         ready = await loop.run_in_executor(None, engine.ready.wait, 3600)
         if not ready or engine.error:
-            await ws.send_text(json.dumps({"type": "status", "state": "error", "desc": engine.error or "not ready"}))
+            await ws.send_text(p.dumps(replace(engine.status, state="error", desc=engine.error or "not ready")))
             return
         view = engine.open_view(send_frame)
         await outbox.put(engine.describe(view))
@@ -142,38 +140,31 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, disconnect):
             engine.close_view(view)
 
 
-async def _handle(message, engine, view, out_dir, loop, acked):
+async def _handle(message, engine, view, out_dir, loop, acked) -> p.ServerMessage | None:
     """One page message -> a reply (or None); never raises for bad input."""
-    text = message.get("text")
-    if text is None:
-        return {"type": "error", "message": "messages must be JSON text, not binary"}
-    if len(text) > MAX_MESSAGE:
-        return {"type": "error", "message": f"message too long ({len(text)} > {MAX_MESSAGE} bytes)"}
+    about = None
     try:
-        msg = json.loads(text)
-    except json.JSONDecodeError as e:
-        return {"type": "error", "message": f"not JSON: {e}"}
-    if not isinstance(msg, dict):
-        return {"type": "error", "message": "a message is a JSON object with a 'type'"}
-    kind = msg.get("type")
-    try:
-        if kind == "ack":
-            acked.set()
-            return None
-        if kind in ("camera", "tf", "denoise"):
-            if engine.change(view, msg):          # a new range or units: a new histogram
+        msg = p.parse(message.get("text"))
+        about = msg.TYPE
+        match msg:
+            case p.Ack():
+                acked.set()
+                return None
+            case p.CameraChange() | p.TFChange() | p.DenoiseChange():
+                if engine.change(view, msg):          # a new range or units: a new histogram
+                    return engine.histogram(view)
+                return None
+            case p.HistogramRequest():
                 return engine.histogram(view)
-            return None
-        if kind == "histogram":
-            return engine.histogram(view)
-        if kind == "snapshot":
-            paths = await loop.run_in_executor(None, engine.snapshot, view, out_dir, msg.get("name"))
-            return {"type": "snapshot", "files": [str(p) for p in paths], "spp": view.spp}
-        return {"type": "error", "message": f"unknown message type {kind!r}"}
+            case p.SnapshotRequest(name=name):
+                paths = await loop.run_in_executor(None, engine.snapshot, view, out_dir, name)
+                return p.SnapshotDone(tuple(str(f) for f in paths), view.spp)
+    except p.ProtocolError as e:
+        return p.Error(str(e), e.about)
     except ValueError as e:
-        return {"type": "error", "message": str(e), "about": kind}
+        return p.Error(str(e), about)
     except Exception as e:                            # a bug must not end the session: say it
-        return {"type": "error", "message": f"{type(e).__name__}: {e}", "about": kind}
+        return p.Error(f"{type(e).__name__}: {e}", about)
 
 
 class ViewServer:

@@ -18,14 +18,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..transfer.function import TransferFunction
+from .protocol import TFChange, parse_message
 
 #: Entries of the tables the editor makes (fine enough for a linear display
 #: over log-stored values spanning several decades).
 TABLE_SIZE = 1024
 #: Colormaps offered in the editor ("scene": the medium's own colours).
 COLORMAPS = ("plasma", "viridis", "magma", "inferno", "cividis", "turbo", "coolwarm", "gray")
-#: Most control points a message may carry.
-MAX_POINTS = 256
 
 
 def spiky_points() -> list[tuple[float, float]]:
@@ -58,45 +57,34 @@ class TFSpec:
                 "density": float(self.density)}
 
     @classmethod
-    def from_message(cls, msg: dict, current: "TFSpec", log_available: bool,
+    def from_message(cls, msg, current: "TFSpec", log_available: bool,
                      colormaps=COLORMAPS) -> "TFSpec":
-        """A validated spec from an editor message (missing keys keep
-        ``current``'s); a `ValueError` names the first bad field."""
-        points = msg.get("points", current.points)
-        if not isinstance(points, list) or not 2 <= len(points) <= MAX_POINTS:
-            raise ValueError(f"points: a list of 2 to {MAX_POINTS} [u, alpha] pairs")
-        try:
-            pts = np.array(points, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError("points: a list of [u, alpha] number pairs") from None
-        if pts.ndim != 2 or pts.shape[1] != 2 or not np.all(np.isfinite(pts)):
-            raise ValueError("points: a list of finite [u, alpha] pairs")
-        if pts[:, 0].min() < 0 or pts[:, 0].max() > 1 or pts[:, 1].min() < 0 or pts[:, 1].max() > 1:
-            raise ValueError("points: u and alpha must lie in [0, 1]")
-        cmap = msg.get("colormap", current.colormap)
+        """A validated spec from an editor message (a `protocol.TFChange` or
+        its JSON fields; missing ones keep ``current``'s); a `ValueError`
+        names the first bad field."""
+        if not isinstance(msg, TFChange):
+            msg = parse_message(dict(msg, type="tf"))
+        return current.changed(msg, log_available, colormaps)
+
+    def changed(self, change: TFChange, log_available: bool, colormaps=COLORMAPS) -> "TFSpec":
+        """This spec with ``change`` applied (its fields already checked by
+        the protocol), checked against the scene: ``colormaps`` offered,
+        whether the log10 display is (``log_available``: log-stored values);
+        points sorted by u. A `ValueError` names the field."""
+        pts = change.points if change.points is not None else self.points
+        cmap = change.colormap if change.colormap is not None else self.colormap
         if cmap not in colormaps:
             raise ValueError(f"colormap: one of {', '.join(colormaps)}")
-        log = msg.get("log", current.log)
-        if not isinstance(log, bool):
-            raise ValueError("log: true or false")
+        log = change.log if change.log is not None else self.log
         if log and not log_available:
             raise ValueError("log: these data hold values <= 0 over much of the volume; "
                              "the log10 display is not available")
-        rng = msg.get("range", current.range)
-        try:
-            lo, hi = (float(x) for x in rng)
-        except (TypeError, ValueError):
-            raise ValueError("range: [lo, hi], two numbers") from None
-        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise ValueError("range: finite, with lo < hi")
+        lo, hi = (float(x) for x in (change.range if change.range is not None else self.range))
         if not log and log_available and hi <= 0:
             raise ValueError("range: hi must be above 0 (the data are positive)")
-        density = msg.get("density", current.density)
-        if isinstance(density, bool) or not isinstance(density, (int, float)) \
-                or not np.isfinite(density) or not density > 0:
-            raise ValueError("density: a positive number")
-        order = np.argsort(pts[:, 0], kind="stable")
-        return cls([tuple(p) for p in pts[order].tolist()], cmap, log, (lo, hi), float(density))
+        density = change.density if change.density is not None else self.density
+        order = sorted(range(len(pts)), key=lambda i: pts[i][0])      # stable
+        return TFSpec([(float(pts[i][0]), float(pts[i][1])) for i in order], cmap, log, (lo, hi), float(density))
 
     def table(self, stored_log: bool, scene_rgb: np.ndarray | None = None) -> TransferFunction:
         """The medium's TF: `TABLE_SIZE` entries uniform in stored units over

@@ -1,0 +1,362 @@
+"""The viewer's wire protocol: every message between the page
+(``static/viewer.js``) and the server, as dataclasses; `parse` turns what the
+page sends into one of them (or a `ProtocolError` naming what is wrong),
+`to_json` turns what the server sends into the JSON the page reads.
+
+Page to server, JSON text of at most `MAX_MESSAGE` bytes, ``{"type": ...,
+fields}``; a change message's missing fields keep the view's value:
+
+* ``camera``: `CameraChange` (orbit angles in degrees, distance and target
+  in world units; `camera.OrbitCamera`)
+* ``tf``: `TFChange` (the TF editor's state, display units; `tf_spec`)
+* ``denoise``: `DenoiseChange`
+* ``histogram``: `HistogramRequest`; ``snapshot``: `SnapshotRequest`
+* ``ack``: `Ack` (the newest frame is on screen)
+
+Server to page: `Status`, `Hello`, `HistogramReply`, `SnapshotDone` and
+`Error` as JSON text; `Frame` as the header of a binary message (a 4-byte
+big-endian header length, the header's JSON, the JPEG image).
+
+The parser checks what a message alone can tell (types, sizes, finite
+numbers, fixed ranges); what depends on the view or the scene (a distance
+relative to the current one, the scene's colormaps, whether the log10
+display exists) is checked where the change is applied, also with a
+`ValueError` naming the field.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, fields
+from typing import ClassVar
+
+#: Largest message accepted from a page (characters of JSON text).
+MAX_MESSAGE = 64 * 1024
+#: Most control points a TF message may carry.
+MAX_POINTS = 256
+#: Longest colormap name a TF message may carry.
+MAX_NAME = 100
+
+
+class ProtocolError(ValueError):
+    """A page message the server refuses; ``about``: its type, once known
+    (the page shows a snapshot's error beside the snapshot button)."""
+
+    def __init__(self, message: str, about: str | None = None):
+        super().__init__(message)
+        self.about = about
+
+
+def _optional(**kw):
+    """A field left out of the JSON while it is None."""
+    return field(default=None, metadata={"omit_none": True}, **kw)
+
+
+class Message:
+    """A protocol message: ``TYPE`` is its ``"type"`` on the wire; ``msg[key]``
+    reads a field as the page sees it (``to_json(msg)[key]``)."""
+    TYPE: ClassVar[str]
+
+    def __getitem__(self, key):
+        return to_json(self)[key]
+
+
+# ---- Page to server -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CameraChange(Message):
+    """The orbit camera's new angles (degrees), distance and target (world units)."""
+    TYPE: ClassVar[str] = "camera"
+    azimuth: float | None = _optional()
+    elevation: float | None = _optional()
+    distance: float | None = _optional()
+    target: tuple[float, float, float] | None = _optional()
+
+
+@dataclass(frozen=True)
+class TFChange(Message):
+    """The TF editor's new state: opacity ``points`` (u, alpha) in [0, 1]^2,
+    ``colormap`` name, ``log`` (log10 display), display ``range`` (lo, hi),
+    ``density`` scale."""
+    TYPE: ClassVar[str] = "tf"
+    points: tuple[tuple[float, float], ...] | None = _optional()
+    colormap: str | None = _optional()
+    log: bool | None = _optional()
+    range: tuple[float, float] | None = _optional()
+    density: float | None = _optional()
+
+
+@dataclass(frozen=True)
+class DenoiseChange(Message):
+    """Show denoised images (``on``) or the raw accumulation."""
+    TYPE: ClassVar[str] = "denoise"
+    on: bool
+
+
+@dataclass(frozen=True)
+class HistogramRequest(Message):
+    """Ask for the histogram under the view's TF editor."""
+    TYPE: ClassVar[str] = "histogram"
+
+
+@dataclass(frozen=True)
+class SnapshotRequest(Message):
+    """Write the view's image and scene as ``name``.* (a plain file stem)."""
+    TYPE: ClassVar[str] = "snapshot"
+    name: str
+
+
+@dataclass(frozen=True)
+class Ack(Message):
+    """The page shows the newest frame: the next may be sent."""
+    TYPE: ClassVar[str] = "ack"
+
+
+ViewChange = CameraChange | TFChange | DenoiseChange
+PageMessage = CameraChange | TFChange | DenoiseChange | HistogramRequest | SnapshotRequest | Ack
+
+
+# ---- Server to page -----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Status(Message):
+    """Loading progress: ``state`` loading, ready or error; ``done`` of
+    ``total`` steps (None: unknown) of the step ``desc``."""
+    TYPE: ClassVar[str] = "status"
+    state: str
+    desc: str
+    done: int = 0
+    total: int | None = None
+
+
+@dataclass(frozen=True)
+class Hello(Message):
+    """What a page needs to draw its controls: its view's ``camera``
+    (`OrbitCamera`) and ``tf`` (`TFSpec`), the scene's colormaps (and their
+    colours, ``{name: ["#rrggbb", ...]}`` over u), the film ``size``
+    [width, height] in pixels."""
+    TYPE: ClassVar[str] = "hello"
+    view: int
+    camera: object
+    tf: object
+    colormaps: tuple[str, ...]
+    log_available: bool
+    denoiser: bool
+    denoiser_missing: str | None
+    denoise: bool
+    size: tuple[int, int]
+    max_spp: int
+    data: str
+    colormap_stops: dict
+
+
+@dataclass(frozen=True)
+class HistogramReply(Message):
+    """Volume shares in equal bins over the display ``range`` (lo, hi) of
+    the ``log`` or linear display."""
+    TYPE: ClassVar[str] = "histogram"
+    counts: tuple[float, ...]
+    range: tuple[float, float]
+    log: bool
+
+
+@dataclass(frozen=True)
+class Frame(Message):
+    """A binary frame's header: the view ``version`` it shows, its samples
+    per pixel, ``width`` x ``height`` pixels, render time in ms."""
+    TYPE: ClassVar[str] = "frame"
+    version: int
+    spp: int
+    denoised: bool
+    preview: bool
+    width: int
+    height: int
+    render_ms: float
+    max_spp: int
+
+
+@dataclass(frozen=True)
+class SnapshotDone(Message):
+    """The files a snapshot wrote (absolute paths) and its samples per pixel."""
+    TYPE: ClassVar[str] = "snapshot"
+    files: tuple[str, ...]
+    spp: int
+
+
+@dataclass(frozen=True)
+class Error(Message):
+    """A refused message (nothing changed); ``about``: its type, when known."""
+    TYPE: ClassVar[str] = "error"
+    message: str
+    about: str | None = _optional()
+
+
+ServerMessage = Status | Hello | HistogramReply | Frame | SnapshotDone | Error
+
+
+# ---- JSON ----------------------------------------------------------------------------------------
+def _plain(value):
+    """``value`` as JSON types (objects with a ``to_json``, tuples, numpy scalars)."""
+    if hasattr(value, "to_json"):
+        return value.to_json()
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if hasattr(value, "item"):                  # numpy scalars
+        return value.item()
+    return value
+
+
+def to_json(msg: Message) -> dict:
+    """``msg`` as the JSON object on the wire: ``{"type": ..., fields}``."""
+    out = {"type": msg.TYPE}
+    for f in fields(msg):
+        value = getattr(msg, f.name)
+        if value is None and f.metadata.get("omit_none"):
+            continue
+        out[f.name] = _plain(value)
+    return out
+
+
+def dumps(msg: Message) -> str:
+    """``to_json(msg)`` as text."""
+    return json.dumps(to_json(msg))
+
+
+# ---- Parsing -------------------------------------------------------------------------------------
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _finite(v) -> bool:
+    try:
+        return _is_number(v) and math.isfinite(float(v))
+    except OverflowError:                       # an integer beyond float
+        return False
+
+
+def _number(name, v, lo=-math.inf, hi=math.inf) -> float:
+    if not _finite(v) or not lo <= v <= hi:
+        raise ValueError(f"{name}: a finite number in [{lo}, {hi}]")
+    return float(v)
+
+
+def _camera(f: dict) -> CameraChange:
+    out = {}
+    if "azimuth" in f:
+        out["azimuth"] = _number("azimuth", f["azimuth"], -1e6, 1e6)
+    if "elevation" in f:
+        out["elevation"] = _number("elevation", f["elevation"], -90, 90)
+    if "distance" in f:
+        d = f["distance"]
+        if not _finite(d) or not d > 0:
+            raise ValueError("distance: a finite number above 0")
+        out["distance"] = float(d)
+    if "target" in f:
+        t = f["target"]
+        if not isinstance(t, list) or len(t) != 3 or not all(_is_number(x) for x in t):
+            raise ValueError("target: three numbers")
+        if not all(_finite(x) and abs(x) <= 1e9 for x in t):
+            raise ValueError("target: three finite numbers")
+        out["target"] = tuple(float(x) for x in t)
+    return CameraChange(**out)
+
+
+def _tf(f: dict) -> TFChange:
+    out = {}
+    if "points" in f:
+        p = f["points"]
+        if not isinstance(p, list) or not 2 <= len(p) <= MAX_POINTS:
+            raise ValueError(f"points: a list of 2 to {MAX_POINTS} [u, alpha] pairs")
+        if not all(isinstance(q, list) and len(q) == 2 and all(_is_number(x) for x in q) for q in p):
+            raise ValueError("points: a list of [u, alpha] number pairs")
+        if not all(_finite(x) for q in p for x in q):
+            raise ValueError("points: a list of finite [u, alpha] pairs")
+        if not all(0 <= x <= 1 for q in p for x in q):
+            raise ValueError("points: u and alpha must lie in [0, 1]")
+        out["points"] = tuple((float(u), float(a)) for u, a in p)
+    if "colormap" in f:
+        c = f["colormap"]
+        if not isinstance(c, str) or not 1 <= len(c) <= MAX_NAME:
+            raise ValueError("colormap: the name of a colormap")
+        out["colormap"] = c
+    if "log" in f:
+        if not isinstance(f["log"], bool):
+            raise ValueError("log: true or false")
+        out["log"] = f["log"]
+    if "range" in f:
+        r = f["range"]
+        if not isinstance(r, list) or len(r) != 2 or not all(_is_number(x) for x in r):
+            raise ValueError("range: [lo, hi], two numbers")
+        if not (all(_finite(x) for x in r) and r[0] < r[1]):
+            raise ValueError("range: finite, with lo < hi")
+        out["range"] = (float(r[0]), float(r[1]))
+    if "density" in f:
+        d = f["density"]
+        if not _finite(d) or not d > 0:
+            raise ValueError("density: a positive number")
+        out["density"] = float(d)
+    return TFChange(**out)
+
+
+def _denoise(f: dict) -> DenoiseChange:
+    if not isinstance(f.get("on"), bool):
+        raise ValueError("denoise: 'on' must be true or false")
+    return DenoiseChange(f["on"])
+
+
+def _snapshot(f: dict) -> SnapshotRequest:
+    return SnapshotRequest(safe_name(f.get("name")))
+
+
+def safe_name(name) -> str:
+    """A snapshot name as a plain file stem: letters, digits, ``-``, ``_``,
+    ``.`` (not leading), at most 100 characters; anything else (a path, a
+    separator, ``..``) is a `ValueError`."""
+    if not isinstance(name, str) or not 1 <= len(name) <= 100:
+        raise ValueError("snapshot name: 1 to 100 characters")
+    if name.startswith(".") or any(not (c.isascii() and (c.isalnum() or c in "-_.")) for c in name):
+        raise ValueError(f"snapshot name {name!r}: letters, digits, '-', '_' and '.' only (not leading), "
+                         "no folders")
+    return name
+
+
+#: Each page message type: its class and the parser of its fields.
+_PARSERS = {cls.TYPE: (cls, parse_fields) for cls, parse_fields in (
+    (CameraChange, _camera), (TFChange, _tf), (DenoiseChange, _denoise),
+    (HistogramRequest, lambda f: HistogramRequest()), (SnapshotRequest, _snapshot), (Ack, lambda f: Ack()))}
+
+
+def parse(text) -> PageMessage:
+    """A page's websocket message (``str``; anything else is binary) as a
+    typed message; a `ProtocolError` names what is wrong."""
+    if not isinstance(text, str):
+        raise ProtocolError("messages must be JSON text, not binary")
+    if len(text) > MAX_MESSAGE:
+        raise ProtocolError(f"message too long ({len(text)} > {MAX_MESSAGE} bytes)")
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ProtocolError(f"not JSON: {e}") from None
+    return parse_message(obj)
+
+
+def parse_message(obj) -> PageMessage:
+    """A decoded JSON message (a dict with a ``type``) as a typed message;
+    a `ProtocolError` for an unknown type, a field it does not have, or a
+    bad value (the field named)."""
+    if not isinstance(obj, dict):
+        raise ProtocolError("a message is a JSON object with a 'type'")
+    kind = obj.get("type")
+    if not isinstance(kind, str) or kind not in _PARSERS:
+        raise ProtocolError(f"unknown message type {kind!r}")
+    cls, parse_fields = _PARSERS[kind]
+    known = {f.name for f in fields(cls)}
+    extra = sorted(k for k in obj if k != "type" and k not in known)
+    if extra:
+        raise ProtocolError(f"{kind}: no field(s) {', '.join(map(repr, extra))} "
+                            f"(fields: {', '.join(sorted(known)) or 'none'})", kind)
+    try:
+        return parse_fields({k: v for k, v in obj.items() if k != "type"})
+    except ValueError as e:
+        raise ProtocolError(str(e), kind) from None

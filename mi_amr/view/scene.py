@@ -1,0 +1,204 @@
+"""A scene loaded for the viewer: what its views start from and what renders
+them.
+
+`load_scene` reads AMR data (a path or yt data set, planned from the data
+alone by `mi_amr.autoscene`) or an XML scene with an ``amr`` medium into a
+`LoadedScene`: the Mitsuba scene, its first ``amr`` medium, its parameters,
+the ``dr.freeze``-recorded 1-spp passes, and a view's starting camera and
+TF. Dropping the object releases all of it (on the thread that rendered).
+
+An XML scene's own TF table is kept exactly: the editor starts from its
+entries (or, for a table of more than `MAX_POINTS` entries, from
+`EDITOR_POINTS` samples of its opacity), and while a view's curve, colours,
+units and range are still the scene's the medium gets the scene's table
+itself, never one resampled from the editor's points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..transfer.function import TransferFunction
+from .camera import OrbitCamera
+from .protocol import MAX_POINTS
+from .tf_spec import COLORMAPS, PRESET_POINTS, Histogram, TFSpec
+
+#: Opacity samples the editor starts from for an XML scene's TF table of more
+#: than `MAX_POINTS` entries (the table itself is kept; see the module docstring).
+EDITOR_POINTS = 65
+
+
+class FrozenPasses:
+    """1-spp ``mi.render`` passes of one scene, ``dr.freeze``-recorded once
+    per film size (a replay does not see the film's size, a scalar of the
+    recorded kernels: one recording must never serve another size)."""
+
+    def __init__(self):
+        self._frozen = {}
+
+    def render(self, scene, seed: int, size) -> np.ndarray:
+        """One pass, (height, width, channels) float32, for ``size`` = [width, height] pixels."""
+        import drjit as dr
+        import mitsuba as mi
+        key = tuple(size)
+        if key not in self._frozen:
+            self._frozen[key] = dr.freeze(lambda scene, seed: mi.render(scene, spp=1, seed=seed))
+        image = np.array(self._frozen[key](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
+        if image.shape[:2] != (size[1], size[0]):
+            raise RuntimeError(f"rendered {image.shape[:2]}, expected {(size[1], size[0])}")
+        return image
+
+    def forget(self, size):
+        """Drop the recording for ``size`` (after a failed pass)."""
+        self._frozen.pop(tuple(size), None)
+
+
+@dataclass
+class LoadedScene:
+    """One loaded source (see the module docstring). ``size``: the film,
+    [width, height] pixels; ``stored_log``: the medium holds log10 values
+    (then, and only then, the log10 display is offered); ``scene_rgb``
+    (N, 3) and ``scene_tf``: an XML scene's own TF colours and table;
+    ``plan``: the autoscene plan of data (None for XML scenes). The Mitsuba
+    objects are None only for a scene built by hand that never renders."""
+    source: object
+    field: str | None
+    description: str
+    size: list
+    initial_camera: OrbitCamera
+    initial_spec: TFSpec
+    colormaps: tuple
+    stored_log: bool
+    scene_rgb: np.ndarray | None = None
+    scene_tf: TransferFunction | None = None
+    plan: object = None
+    scene: object = None                        # mi.Scene
+    medium: object = None                       # its first amr medium
+    params: object = None                       # mi.traverse(scene)
+    keys: dict = field(default_factory=dict)    # the sensor's "to_world" and "size" parameter keys
+    passes: FrozenPasses = field(default_factory=FrozenPasses)
+    applied: dict = field(default_factory=dict)  # the camera, size and spec the scene holds now
+    histogram: Histogram | None = None
+
+    @property
+    def log_available(self) -> bool:
+        return self.stored_log
+
+    def table(self, spec: TFSpec) -> TransferFunction:
+        """The medium's TF for ``spec``: the scene's own table while the
+        spec's curve, colours, units and range are the scene's (the density
+        scale is no part of the table), else ``spec.table``."""
+        first = self.initial_spec
+        if self.scene_tf is not None and (spec.points, spec.colormap, spec.log, spec.range) == \
+                (first.points, first.colormap, first.log, first.range):
+            return self.scene_tf
+        return spec.table(self.stored_log, self.scene_rgb)
+
+    def apply(self, camera: OrbitCamera, spec: TFSpec, size):
+        """Put a view's state into the scene (only what differs); under `JIT_LOCK`."""
+        moved = self.applied.get("camera") != camera
+        resized = self.applied.get("size") != size
+        if moved:
+            self.params[self.keys["to_world"]] = camera.transform()
+        if resized:
+            self.params[self.keys["size"]] = size
+        if moved or resized:
+            self.params.update()
+            self.applied.update(camera=camera, size=size)
+        if self.applied.get("spec") != spec:
+            self.medium.set_transfer_function(self.table(spec), spec.density)
+            self.applied["spec"] = spec
+
+    def render(self, seed: int, size) -> np.ndarray:
+        """One 1-spp pass of what `apply` put in, [width, height] = ``size``."""
+        return self.passes.render(self.scene, seed, size)
+
+    def forget(self, size):
+        """After a failed pass: drop its recording, re-apply everything next time."""
+        self.passes.forget(size)
+        self.applied.clear()
+
+    def shares(self, spec: TFSpec) -> list[float]:
+        """The editor's histogram for ``spec`` (`Histogram`, built on first use)."""
+        if self.histogram is None:
+            self.histogram = Histogram(self.medium.volume)
+        return self.histogram.shares(spec, self.stored_log)
+
+
+def scene_spec(tf: TransferFunction, stored_log: bool, density: float) -> TFSpec:
+    """The editor's start for a scene's own ``tf`` (stored units; colormap
+    "scene"): a point at each entry's opacity, or `EDITOR_POINTS` samples of
+    it for a table of more than `MAX_POINTS` entries."""
+    alpha = tf.rgba[:, 3].astype(np.float64)
+    n = len(tf) if len(tf) <= MAX_POINTS else EDITOR_POINTS
+    u = np.linspace(0, 1, n)
+    if n != len(tf):
+        alpha = np.interp(u, np.linspace(0, 1, len(tf)), alpha)
+    return TFSpec([(float(a), float(b)) for a, b in zip(u, alpha)], "scene", stored_log, tuple(tf.domain), density)
+
+
+def load_scene(source, field, res: int, say) -> LoadedScene:
+    """``source`` loaded for views ``res`` pixels wide; ``say(desc)``
+    reports each step. Under `JIT_LOCK`, with the Mitsuba variant set."""
+    import mitsuba as mi
+
+    import mi_amr
+    loaded = _load_xml(mi, source, res, say) if str(source).lower().endswith(".xml") \
+        else _load_data(mi, source, field, res, say)
+    loaded.medium = mi_amr.amr_media(loaded.scene)[0]
+    loaded.params = params = mi.traverse(loaded.scene)
+    # the first sensor's keys (named after its id: "sensor" in planned scenes)
+    films = [k[:-len("film.size")] for k in params.keys() if k.endswith("film.size")]
+    if not films:
+        raise ValueError(f"{source}: the scene's sensor has no film to render into")
+    prefix = "sensor." if "sensor.film.size" in params.keys() else films[0]
+    loaded.keys = {"to_world": prefix + "to_world", "size": prefix + "film.size"}
+    params[loaded.keys["size"]] = loaded.size
+    params.update()
+    return loaded
+
+
+def _load_data(mi, source, field, res: int, say) -> LoadedScene:
+    from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, positive_share, scene_for
+    say(f"reading {source}")
+    plan = plan_scene(source, field)
+    stored_log = plan.transform == "log10" or positive_share(plan.data) >= MIN_POSITIVE_SHARE
+    cmap, points = PRESET_POINTS.get(plan.tf, PRESET_POINTS["spiky"])
+    spec = TFSpec(points, cmap, plan.transform == "log10", plan.tf_range, plan.density_scale)
+    plan = replace(plan, transform="log10" if stored_log else "none")
+    d = scene_for(plan, res=res, spp=1)
+    medium = d["volume"]["interior"]
+    medium.pop("tf_min"), medium.pop("tf_max")
+    medium["transfer_function"] = spec.table(stored_log)
+    say("building the medium")
+    return LoadedScene(source, field, f"{source}" + (f" field {field}" if field else ""), [res, res],
+                       OrbitCamera.looking(plan.origin, plan.target, plan.up, plan.fov), spec, COLORMAPS,
+                       stored_log, plan=plan, scene=mi.load_dict(d, parallel=False))
+
+
+def _load_xml(mi, source, res: int, say) -> LoadedScene:
+    import mi_amr
+    say(f"loading {source}")
+    scene = mi.load_file(str(source), parallel=False)
+    media = mi_amr.amr_media(scene)
+    if not media:
+        raise ValueError(f"{source}: the scene has no amr medium to explore")
+    med = media[0]
+    stored_log = med.volume.meta.get("value_transform") == "log10"
+    tf = TransferFunction(med.tf.rgba, med.tf.domain)       # a copy: the viewer replaces the medium's
+    spec = scene_spec(tf, stored_log, float(med.density_scale))
+    sensor = scene.sensors()[0]
+    m = np.array(sensor.world_transform().matrix, np.float64).reshape(4, 4)
+    origin, forward, up = m[:3, 3], m[:3, 2], m[:3, 1]
+    bbox = scene.bbox()
+    centre = 0.5 * (np.array(bbox.min, np.float64) + np.array(bbox.max, np.float64))
+    dist = max(float(np.linalg.norm(centre - origin)), 1e-3)
+    sensor_params = mi.traverse(sensor)
+    fov = float(np.ravel(sensor_params["x_fov"])[0]) if "x_fov" in sensor_params.keys() else 45.0
+    w, h = sensor.film().size()
+    return LoadedScene(source, None, str(source), [res, max(16, int(round(res * h / w)))],
+                       OrbitCamera.looking(origin, origin + dist * forward, up, fov), spec,
+                       ("scene",) + COLORMAPS, stored_log, scene_rgb=np.asarray(tf.rgba[:, :3], np.float64),
+                       scene_tf=tf, scene=scene)
