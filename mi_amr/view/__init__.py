@@ -1,7 +1,8 @@
 """``mi-amr view``: explore AMR data in the browser (docs/design.md section 11).
 
-`ViewEngine` renders (one scene, a view per browser tab), `ViewServer`
-serves the page and its websocket, `notebook` shows the same page in
+`ViewEngine` renders (one `scene.LoadedScene`, a view per browser tab),
+`ViewServer` serves the page and its websocket (messages: `protocol`),
+`snapshot` writes a view to files, `notebook` shows the same page in
 Jupyter. Needs the ``mi-amr[view]`` extra (Starlette, uvicorn; mitsuba-oidn
 for denoising)."""
 
