@@ -87,6 +87,26 @@ def test01_constant_slab_without_scattering(llvm, decomposition):
     assert np.all(np.abs(mean - expected) < 5 * err + 1e-4), (mean, expected, err)
 
 
+@pytest.mark.parametrize("decomposition", [False, True])
+def test01b_emission_of_the_extinction_field_from_the_collisions_value(llvm, decomposition):
+    """An emission TF over the extinction field itself takes L_e from the
+    value the free flight found at its real collision (one point query);
+    a control collision of decomposition tracking, which looks nothing up,
+    looks L_e up. Two halves along the ray (values 0.25 then 0.75, L_e
+    proportional to the value, sigma constant): L = L_e1 (1 - e^{-s/2}) +
+    e^{-s/2} L_e2 (1 - e^{-s/2})."""
+    sigma, scale = 1.3, 2.0
+    cells = two_level_cells()
+    glow = TransferFunction(np.array([[*GLOW, 0.0], [*GLOW, 1.0]]), (0.0, 1.0))     # alpha = value
+    medium = {"type": "amr", "data": AMRCells(cells.pos, cells.level, cells.value), "transfer_function": BLACK,
+              "density_scale": sigma, "reconstruction": "nearest", "emission": glow, "emission_scale": scale}
+    scene = mi.load_dict(ortho_scene(medium, decomposition_tracking=decomposition))
+    mean, err = mean_and_error(mi.render(scene, spp=64, seed=5))
+    half = np.exp(-sigma / 2)
+    expected = scale * GLOW * (0.25 * (1 - half) + half * 0.75 * (1 - half))
+    assert np.all(np.abs(mean - expected) < 5 * err + 1e-4), (mean, expected, err)
+
+
 @pytest.mark.parametrize("traversal,sampling", [("grid", "hash"), ("abr", "abr"), ("brick", "brick"),
                                                 ("kdtree", "hash")])
 def test02_two_level_field_with_a_second_emission_field(llvm, traversal, sampling):

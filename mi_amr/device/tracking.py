@@ -239,19 +239,22 @@ class _Tracking:
         return state, t, alive
 
 
-@jit_struct(rng=Rng, mu="Float", collided="Bool", value="Float", sigma_t="Float",
+@jit_struct(rng=Rng, mu="Float", collided="Bool", value="Float", looked="Bool", sigma_t="Float",
             lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32")
 class DeltaState(_Fields):
     """Loop state of `DeltaTracking`: the stream, the segment's majorant,
-    the real collision so far (its value and sigma_t) and the counts."""
+    the real collision so far (its value, whether that value was looked up
+    there, and sigma_t) and the counts."""
 
 
-@jit_struct(collided="Bool", t="Float", albedo="Color3f", sigma_t="Float", counts=TrackingCounts)
+@jit_struct(collided="Bool", t="Float", albedo="Color3f", sigma_t="Float", value="Float", looked="Bool",
+            counts=TrackingCounts)
 class FreeFlight(_Fields):
     """Result of a free flight: ``collided`` where a real collision
     happened, at the world ray's ``t`` (`LocalRay.world_t`; where none
-    happened, where the walk ended), with its ``albedo`` and ``sigma_t``;
-    and the counts."""
+    happened, where the walk ended), with its ``albedo`` and ``sigma_t``,
+    the reconstructed ``value`` there where ``looked`` (a control collision
+    of decomposition tracking looks nothing up), and the counts."""
 
 
 class DeltaTracking(_Tracking):
@@ -266,7 +269,7 @@ class DeltaTracking(_Tracking):
 
     def begin(self, ray, active):
         return DeltaState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), collided=mi.Bool(False),
-                          value=mi.Float(0.0), sigma_t=mi.Float(0.0), lookups=mi.UInt32(0),
+                          value=mi.Float(0.0), looked=mi.Bool(False), sigma_t=mi.Float(0.0), lookups=mi.UInt32(0),
                           null=mi.UInt32(0), real=mi.UInt32(0), steps=mi.UInt32(0))
 
     def real_sigma_t(self, c: TentativeCollision):
@@ -280,6 +283,7 @@ class DeltaTracking(_Tracking):
         accept = c.by_control | (c.look & (state.rng.next_1d(c.look) * c.residual < excess))
         state.collided |= accept
         state.value = dr.select(accept & ~c.by_control, c.value, state.value)
+        state.looked = dr.select(accept, ~c.by_control, state.looked)
         state.sigma_t = dr.select(accept, self.real_sigma_t(c), state.sigma_t)
         state.null += dr.select(c.inside & ~accept, 1, 0)
         state.real += dr.select(accept, 1, 0)
@@ -289,7 +293,8 @@ class DeltaTracking(_Tracking):
         counts = TrackingCounts(state.lookups, state.null, state.real, state.steps,
                                 dr.select(end.exhausted, 1, 0))
         return FreeFlight(collided=state.collided, t=ray.world_t(end.t),
-                          albedo=self.albedo_of(state.value, state.collided), sigma_t=state.sigma_t, counts=counts)
+                          albedo=self.albedo_of(state.value, state.collided), sigma_t=state.sigma_t,
+                          value=state.value, looked=state.collided & state.looked, counts=counts)
 
 
 @jit_struct(**DeltaState.JIT_FIELDS, mu_c="Float")

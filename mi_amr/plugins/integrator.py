@@ -208,7 +208,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                     # t with density T(t) sigma_t(t), so adding sigma_a/sigma_t
                     # L_e = (1 - albedo) L_e there estimates the integral of
                     # T sigma_a L_e along the segment (docs/design.md section 12)
-                    L[real] += throughput * (1.0 - flight.albedo) * amr_media[k].emitted_radiance(mei.p, real)
+                    L[real] += throughput * (1.0 - flight.albedo) * amr_media[k].emitted_radiance_at(flight, mei.p,
+                                                                                                   real)
                 throughput[real] *= flight.albedo        # sigma_s / sigma_t
                 act_scatter |= real
 

@@ -463,6 +463,22 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         value, found = sampler.eval(self._to_local @ p, active)
         return self.classification.emitted_radiance(value, found)
 
+    def emitted_radiance_at(self, flight: FreeFlight, p: mi.Point3f, active=True):
+        """``L_e`` at the real collisions of ``flight`` (world points ``p``),
+        from the one point query of the flight where the emission TF reads
+        the extinction's own values (no ``emission_field``, no
+        ``emission_transform``): the value found there serves both; a
+        control collision of decomposition tracking, which looked nothing
+        up, and an emission field of its own look up ``p`` (`emitted_radiance`)."""
+        emission = self.options.emission
+        if emission is None:
+            return mi.Color3f(0.0)
+        if emission.field is not None or emission.transform != "none":
+            return self.emitted_radiance(p, active)
+        found = mi.Bool(active) & flight.looked
+        from_value = self.classification.emitted_radiance(flight.value, found)
+        return dr.select(found, from_value, self.emitted_radiance(p, mi.Bool(active) & ~flight.looked))
+
     def set_emission(self, emission: TransferFunction | None = None, emission_scale: float | None = None):
         """A new emission TF and/or scale (None keeps the current one): the
         same path as ``params.update()`` (`Classification.set`); no majorant
