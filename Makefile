@@ -1,6 +1,7 @@
 # Two commands do all the set-up on a fresh Debian machine:
 #   make demo   renders scenes/demo.xml to out/demo.exr (+ .png)
-#   make test   runs the test suite (fast default; see README for markers)
+#   make test   runs the test suite (fast default; markers: docs/manual/setup.md)
+#   make docs   builds the manual (docs/, mkdocs.yml) into site/
 SHELL := /bin/sh
 PY    := .venv/bin/python
 RUN   := DRJIT_LIBLLVM_PATH="$$(tools/find-llvm19)" $(PY)
@@ -11,7 +12,7 @@ PYTEST_ARGS ?=
 JOBS  ?= auto
 XDIST  = $(if $(filter 0,$(JOBS)),,-n $(JOBS) --dist loadfile)
 
-.PHONY: setup peers demo gallery test test-all test-gpu bench bench-quick bench-scale clean
+.PHONY: setup peers demo docs gallery test test-all test-gpu bench bench-quick bench-scale clean
 
 setup:
 	@tools/setup.sh
@@ -23,6 +24,11 @@ peers: setup
 
 demo: setup
 	$(RUN) -m mi_amr.tools.cli render scenes/demo.xml -o out/demo.exr --spp $(SPP)
+
+# the manual (MkDocs, Material, mkdocstrings) into site/; --strict: a broken link
+# or reference fails (tests/test_docs.py test07 builds it the same way)
+docs: setup
+	NO_MKDOCS_2_WARNING=1 .venv/bin/python -m mkdocs build --strict -d site
 
 # the front-page images (docs/images, committed): minutes on 2 cores
 gallery: setup

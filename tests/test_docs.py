@@ -1,10 +1,13 @@
-"""The README's Python example and the notebooks run as written, and the
+"""The manual's Python examples and the notebooks run as written, and the
 words around the code keep up with it: cited paths, doc sections, dotted
-names and test numbers exist, test names are unique, and the README's
-parameter tables match what the plugins accept."""
+names and test numbers exist, test names are unique, the manual's parameter
+tables match what the plugins accept, every image the README and the docs
+show is in the repository, and the manual (MkDocs, docs/) builds with no
+warning."""
 
 import ast
 import json
+import os
 import re
 from pathlib import Path
 
@@ -14,17 +17,28 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test01_readme_python_examples_run():
-    """Every ```python block of the README, in order, in one namespace."""
-    src = (ROOT / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", src, re.S)
-    assert len(blocks) >= 2
+#: The manual's pages with Python examples, in the order their examples run
+#: (one namespace: the transfer-function page changes the medium's scene).
+EXAMPLE_PAGES = ("docs/manual/medium.md", "docs/manual/cluster.md", "docs/manual/transfer-functions.md")
+
+
+def test01_manual_python_examples_run():
+    """Every ```python block of the manual's pages (README.md has none
+    left: it links them), in order, in one namespace."""
+    blocks = [(page, b) for page in EXAMPLE_PAGES
+              for b in re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)]
+    assert len(blocks) >= 4, [page for page, _ in blocks]
+    assert not re.findall(r"```python\n", (ROOT / "README.md").read_text()), \
+        "README.md has a Python example: move it to a manual page named in EXAMPLE_PAGES"
+    others = [p.relative_to(ROOT).as_posix() for p in sorted((ROOT / "docs" / "manual").glob("*.md"))
+              if "```python" in p.read_text() and p.relative_to(ROOT).as_posix() not in EXAMPLE_PAGES]
+    assert not others, f"Python examples that no test runs: {others}"
     ns = {}
-    exec(compile(blocks[0], "README.md", "exec"), ns)
+    exec(compile(blocks[0][1], blocks[0][0], "exec"), ns)
     img = np.array(ns["image"])
     assert img.shape == (128, 128, 3) and np.isfinite(img).all() and img[..., 0].std() > 0.01
-    for block in blocks[1:]:
-        exec(compile(block, "README.md", "exec"), ns)
+    for page, block in blocks[1:]:
+        exec(compile(block, page, "exec"), ns)
     med = ns["mi_amr"].amr_media(ns["scene"])[0]
     assert med.density_scale == 200.0 and med.tf.rgba[:, 3].max() == 1.0
 
@@ -67,18 +81,31 @@ def test02_notebooks_run_top_to_bottom(name):
     assert r.returncode == 0, f"{name} failed:\n{r.stdout[-2000:]}\n{r.stderr[-4000:]}"
 
 
-def test03_every_image_the_readme_links_is_in_the_repository():
-    """Markdown images and <img> tags with relative paths; the gallery's
-    PNGs also stay under 200 kB (front-page weight)."""
-    src = (ROOT / "README.md").read_text()
+def _local_images(md: Path) -> list:
+    """The repository files a Markdown file shows (images and <img> tags with
+    relative paths, resolved against the file's folder)."""
+    src = md.read_text()
     links = re.findall(r"!\[[^\]]*\]\(([^)\s]+)\)", src) + re.findall(r'<img[^>]*src="([^"]+)"', src)
-    local = [l for l in links if not l.startswith(("http://", "https://"))]
-    assert len([l for l in local if l.startswith("docs/images/")]) >= 4, local
-    for link in local:
-        path = ROOT / link
+    return [(link, (md.parent / link).resolve()) for link in links if not link.startswith(("http://", "https://"))]
+
+
+def test03_every_image_the_readme_and_the_docs_link_is_in_the_repository():
+    """Markdown images and <img> tags with relative paths in the README and
+    every doc; the front page shows a picture under 150 kB, the gallery's
+    PNGs (at least four, in the manual) stay under 200 kB."""
+    images = ROOT / "docs" / "images"
+    front = _local_images(ROOT / "README.md")
+    assert [p for _, p in front if p.parent == images], f"README.md shows no picture of docs/images: {front}"
+    for link, path in front:
         assert path.is_file(), f"README links {link}, which is not in the repository"
-        if link.startswith("docs/images/"):
-            assert path.stat().st_size < 200_000, f"{link}: {path.stat().st_size} bytes"
+        assert path.stat().st_size < 150_000, f"README.md: {link}: {path.stat().st_size} bytes"
+    manual = {p for md in sorted((ROOT / "docs" / "manual").glob("*.md")) for _, p in _local_images(md)}
+    assert len([p for p in manual if p.parent == images]) >= 4, sorted(manual)
+    for md in sorted((ROOT / "docs").glob("**/*.md")):
+        for link, path in _local_images(md):
+            assert path.is_file(), f"{md.relative_to(ROOT)} links {link}, which is not in the repository"
+            if path.parent == images:
+                assert path.stat().st_size < 200_000, f"{link}: {path.stat().st_size} bytes"
 
 
 # ---- Words that keep: names, references and tables that follow the code ----
@@ -226,9 +253,9 @@ def test05_test_names_are_unique_within_each_file():
     assert not bad, "\n".join(bad)
 
 
-def _readme_table(heading: str) -> set:
-    """The names in the first column of the first table after ``heading``."""
-    src = (ROOT / "README.md").read_text()
+def _doc_table(page: str, heading: str) -> set:
+    """The names in the first column of the first table after ``heading`` in ``page``."""
+    src = (ROOT / page).read_text()
     start = src.index(heading)
     rows = re.search(r"\n(\|.*\|\n)+", src[start:]).group(0).strip().splitlines()[2:]
     names = set()
@@ -259,15 +286,39 @@ def _known_set(path: str, name: str) -> set:
     return set(ast.literal_eval(node.value.args[0] if isinstance(node.value, ast.Call) else node.value))
 
 
-@pytest.mark.parametrize("heading,module,cls", [
-    ("### Parameters of `amr`", "mi_amr/plugins/options.py", "AMRMedium"),
-    ("## The `amrvolpath` integrator", "mi_amr/plugins/integrator.py", "AMRVolpathIntegrator"),
+@pytest.mark.parametrize("page,heading,module,cls", [
+    ("docs/manual/medium.md", "## Parameters of `amr`", "mi_amr/plugins/options.py", "AMRMedium"),
+    ("docs/manual/integrator.md", "# The `amrvolpath` integrator", "mi_amr/plugins/integrator.py",
+     "AMRVolpathIntegrator"),
 ])
-def test06_readme_parameter_tables_match_the_parsers(heading, module, cls):
-    """The README's parameter table of each plugin names exactly the
+def test06_manual_parameter_tables_match_the_parsers(page, heading, module, cls):
+    """The manual's parameter table of each plugin names exactly the
     parameters its parser accepts (`KNOWN`, given to `check_known`), and so
     does the plugin docstring's ``.. pluginparameters::`` table."""
     known = _known_set(module, "KNOWN")
     doc_path = "mi_amr/plugins/medium.py" if cls == "AMRMedium" else module
-    assert _readme_table(heading) == known, f"README ({heading}) against {module} KNOWN"
+    assert _doc_table(page, heading) == known, f"{page} ({heading}) against {module} KNOWN"
     assert _docstring_table(doc_path, cls) == known, f"{doc_path} {cls} docstring against {module} KNOWN"
+
+
+def test07_manual_builds_strictly_with_no_warning(tmp_path):
+    """``mkdocs build --strict`` (what ``make docs`` runs) into a temporary
+    folder: a broken link, a missing anchor, a page left out of the nav or an
+    API reference that does not resolve fails it, and any other warning in
+    its log fails this test. mkdocstrings reads the source (griffe): nothing
+    is imported, so it takes about two seconds."""
+    import subprocess
+    import sys
+    for mod in ("mkdocs", "material", "mkdocstrings_handlers.python"):
+        pytest.importorskip(mod)
+    r = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(ROOT / "mkdocs.yml"),
+                        "-d", str(tmp_path / "site")], capture_output=True, text=True, timeout=300, cwd=ROOT,
+                       env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
+    log = r.stdout + r.stderr
+    assert r.returncode == 0, log[-4000:]
+    warnings = [line for line in log.splitlines() if re.search(r"\bWARNING\b|\bERROR\b", line)]
+    assert not warnings, "\n".join(warnings)
+    pages = {p.relative_to(tmp_path / "site").as_posix() for p in (tmp_path / "site").glob("**/index.html")}
+    assert {"manual/medium/index.html", "api/index.html"} <= pages, sorted(pages)
+    api = (tmp_path / "site" / "api" / "index.html").read_text()
+    assert "TransferFunction" in api and "AMRCells" in api, "the API reference is empty"
