@@ -125,7 +125,7 @@ def encode_movie(images, path, fps: int = FPS) -> Path:
     except ImportError as e:
         raise ImportError("--movie needs imageio-ffmpeg (it ships its own ffmpeg): "
                           "pip install 'mi-amr[movie]'") from e
-    from .tools.images import srgb8
+    from .images import srgb8
     path = Path(path)
     frames = [srgb8(np.asarray(im, np.float32)[..., :3]) for im in images]
     h, w = frames[0].shape[:2]

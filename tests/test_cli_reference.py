@@ -11,7 +11,7 @@ import pytest
 
 import mi_amr
 from mi_amr.tools.cli import main
-from mi_amr.tools.images import read_exr, write_exr
+from mi_amr.images import read_exr, write_exr
 from mi_amr.data.io import write_exabricks
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.tools.reference import reference_medium, resample_dense
@@ -107,7 +107,8 @@ def test07_block_test_detects_a_real_difference(llvm):
 def test08_reference_scene_from_xml_matches_amr(llvm, tmp_path):
     """`reference_scene` swaps the amr medium for heterogeneous + gridvolume
     in an XML scene; with nearest reconstruction both agree in expectation."""
-    from mi_amr.tools.scene_xml import reference_scene, with_amr_parameters
+    from mi_amr.scene_xml import with_amr_parameters
+    from mi_amr.tools.reference import reference_scene
     c = random_amr(5, levels=3, quantize=5)
     write_exabricks(c, tmp_path / "cloud.cells")
     scene = (ROOT / "scenes" / "cloud.xml").read_text()

@@ -15,7 +15,7 @@ import pytest
 
 from mi_amr import distributed as D
 from mi_amr.testing import block_z_scores
-from mi_amr.tools.images import read_exr
+from mi_amr.images import read_exr
 
 from conftest import cloud_scene_xml, random_amr, volume_scene
 

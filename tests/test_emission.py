@@ -306,7 +306,7 @@ def test08_two_fields_of_the_enzo_example_in_one_command(tmp_path, capsys):
     pytest.importorskip("yt")
     from mi_amr.data.amrb import read_amrb
     from mi_amr.tools.cli import main
-    from mi_amr.tools.images import read_exr
+    from mi_amr.images import read_exr
     out = tmp_path / "glow.exr"
     output = _enzo_example(tmp_path / "enzo")
     code = main(["render", str(output), "--field", "density", "--emission", "blackbody",
@@ -385,7 +385,7 @@ def test09b_denoise_applies_to_a_runs_frames_and_movie(tmp_path):
     frames, `_render_series`)."""
     pytest.importorskip("imageio_ffmpeg")
     from mi_amr.tools.cli import main
-    from mi_amr.tools.images import read_exr as read_image
+    from mi_amr.images import read_exr as read_image
     from mi_amr.view.engine import denoiser
     if denoiser()[0] is None:
         pytest.skip(denoiser()[1])
@@ -429,7 +429,7 @@ def test10_a_movie_on_dask_workers_equals_the_local_one(tmp_path):
     local Dask cluster equal those rendered here (same seeds)."""
     pytest.importorskip("dask.distributed")
     from mi_amr.tools.cli import main
-    from mi_amr.tools.images import read_exr
+    from mi_amr.images import read_exr
     run = _series(tmp_path / "run", n=2)
     args = ["render", str(run / "t_*.npz"), "--emission", "blackbody", "--emission-field", "temperature",
             "--frames", "--res", "12", "--spp", "4", "-q"]

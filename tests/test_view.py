@@ -265,7 +265,7 @@ def _same_picture(exr, xml, spp, passes=16, block=8):
     import mitsuba as mi
 
     from mi_amr.testing import render_passes
-    from mi_amr.tools.images import read_exr
+    from mi_amr.images import read_exr
     mi.set_variant("llvm_ad_rgb")
     from mi_amr.view.engine import JIT_LOCK
     with JIT_LOCK:             # a viewer may be rendering on its thread
@@ -348,7 +348,7 @@ def test09_notebook_frame_and_command_line(served, tmp_path, capsys):
     writes the denoised image beside the noisy one."""
     pytest.importorskip("IPython")
     from mi_amr.tools.cli import main
-    from mi_amr.tools.images import read_exr
+    from mi_amr.images import read_exr
     from mi_amr.view import notebook
     _, root = served
     frame = notebook(root / "cloud.cells", res=32, out_dir=tmp_path)

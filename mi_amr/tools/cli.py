@@ -74,7 +74,7 @@ def _render_series(args):
     import numpy as np
 
     from .. import series
-    from .images import write_exr, write_png
+    from ..images import write_exr, write_png
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     outputs = series.expand_outputs(args.scene)
@@ -156,7 +156,7 @@ def cmd_render(args):
     import drjit as dr
     import numpy as np
 
-    from .images import write_exr, write_png
+    from ..images import write_exr, write_png
     is_xml = Path(args.scene).suffix.lower() == ".xml"
     data_flags = (args.field or args.tf or args.range or args.scale or args.emission or args.emission_field
                   or args.emission_range or args.emission_scale is not None)
@@ -223,7 +223,7 @@ def _denoised(images) -> list:
 
 def _write_denoised(path: Path, clean) -> Path:
     """``clean`` as PATH-denoised.exr and .png beside ``path``; the EXR's path."""
-    from .images import write_exr, write_png
+    from ..images import write_exr, write_png
     path = path.with_name(f"{path.stem}-denoised{path.suffix}")
     write_exr(path, clean)
     write_png(path.with_suffix(".png"), clean)
@@ -302,8 +302,8 @@ def cmd_reference(args):
 
     import numpy as np
 
-    from .images import write_exr, write_png
-    from .scene_xml import reference_scene
+    from ..images import write_exr, write_png
+    from .reference import reference_scene
     with tempfile.TemporaryDirectory() as tmp:
         scene, _ = reference_scene(args.scene, tmp, **_scene_params(args))
         img = np.array(mi.render(scene, spp=args.spp, seed=args.seed), dtype=np.float32)
@@ -317,8 +317,9 @@ def cmd_frametime(args):
     mi = _set_variant(args.variant)
     import tempfile
 
-    from .images import compare_images
-    from .scene_xml import reference_scene, with_amr_parameters
+    from ..images import compare_images
+    from ..scene_xml import with_amr_parameters
+    from .reference import reference_scene
     params = _scene_params(args)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -423,8 +424,8 @@ def cmd_convert(args):
 def cmd_compare(args):
     import numpy as np
 
-    from .images import read_exr, write_exr
-    from .images import compare_images
+    from ..images import read_exr, write_exr
+    from ..images import compare_images
     a, b = read_exr(args.a), read_exr(args.b)
     try:
         stats = compare_images(a, b)

@@ -45,7 +45,7 @@ def main(argv=None):
     _set_variant(args.variant)
     import numpy as np
     from .. import distributed
-    from .images import write_png
+    from ..images import write_png
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     record_path = out / "gallery.json"

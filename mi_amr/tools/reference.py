@@ -7,7 +7,9 @@ voxel, and the result becomes two ``gridvolume`` textures: ``sigma_t``
 ``albedo`` (rgb). With ``nearest`` reconstruction this is exactly the field
 of the ``amr`` medium for any TF; with ``tent`` on single-level data and a TF
 whose opacity is linear in value, ``gridvolume``'s trilinear filter makes it
-exact too.
+exact too. `reference_scene` does it to every ``amr`` medium of an XML scene
+(same ``to_world``, phase function and ``sample_emitters``), the grids
+written as ``.vol`` files.
 """
 
 from __future__ import annotations
@@ -15,7 +17,12 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
+import copy
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
 from ..data.cells import AMRCells
+from ..scene_xml import PASS_THROUGH, amr_elements, load_root, parse_scene
 from ..structures.host_reconstruction import HostReconstruction
 from ..reconstruction import Reconstruction, reconstruction_method
 from ..transfer.function import TransferFunction
@@ -120,3 +127,58 @@ def baked_grids(cells: AMRCells, tf: TransferFunction, method: str | Reconstruct
 
 
 # ---- Image statistics ----------------------------------------------------
+
+
+def reference_scene(scene_path, work_dir, resolution=None, memory_limit=None, **params):
+    """Load an XML scene with every ``amr`` medium replaced by its
+    ``heterogeneous`` + ``gridvolume`` equivalent. Grids are written as
+    ``.vol`` files into ``work_dir``. Returns ``(scene, media)`` where
+    ``media`` lists the AMR media that were replaced."""
+    from ..plugins.medium import AMRMedium
+
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    tree = parse_scene(scene_path, params)
+    root = tree.getroot()
+    defaults = [e for e in root if e.tag == "default"]
+    media = []
+    for k, med in enumerate(amr_elements(root)):
+        # Instantiate the amr medium alone (with the scene's defaults).
+        alone = copy.deepcopy(med)
+        alone.set("version", root.get("version", "3.0.0"))
+        alone.attrib.pop("id", None)
+        for i, d in enumerate(defaults):
+            alone.insert(i, copy.deepcopy(d))
+        amr = load_root(alone, scene_path, params)
+        if not isinstance(amr, AMRMedium):
+            raise ValueError(f"{scene_path}: could not instantiate amr medium #{k}")
+        media.append(amr)
+        ref = reference_medium(amr.cells, amr.tf, amr.density_scale, amr.reconstruction,
+                               amr.options.to_world, resolution,
+                               memory_limit or DEFAULT_MEMORY_LIMIT)
+        new = ET.Element("medium", type="heterogeneous")
+        if med.get("id"):
+            new.set("id", med.get("id"))
+        if med.get("name"):
+            new.set("name", med.get("name"))
+        for channel in ("sigma_t", "albedo"):
+            path = work_dir / f"amr{k}_{channel}.vol"
+            data = np.asarray(ref[channel]["data"].numpy(), dtype=np.float32)
+            mi.VolumeGrid(np.ascontiguousarray(data)).write(str(path))
+            vol = ET.SubElement(new, "volume", type="gridvolume", name=channel)
+            ET.SubElement(vol, "string", name="filename", value=str(path.resolve()))
+            ET.SubElement(vol, "string", name="filter_type", value=ref[channel]["filter_type"])
+            m = np.array(amr.options.to_world.matrix, dtype=np.float64).ravel()
+            tr = ET.SubElement(vol, "transform", name="to_world")
+            ET.SubElement(tr, "matrix", value=" ".join(repr(float(x)) for x in m))
+        ET.SubElement(new, "float", name="scale", value=repr(ref["scale"]))
+        for child in med:
+            if child.tag == "phase" or child.get("name") in PASS_THROUGH:
+                new.append(copy.deepcopy(child))
+        parent = next(p for p in root.iter() if med in list(p))
+        idx = list(parent).index(med)
+        parent.remove(med)
+        parent.insert(idx, new)
+    if not media:
+        raise ValueError(f"{scene_path}: the scene has no <medium type=\"amr\">")
+    return load_root(root, scene_path, params), media

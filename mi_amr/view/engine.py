@@ -62,7 +62,7 @@ def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:
     """A linear RGB image as the page shows it (sRGB, 8 bits, JPEG)."""
     from PIL import Image
 
-    from ..tools.images import srgb8
+    from ..images import srgb8
     buf = io.BytesIO()
     Image.fromarray(srgb8(image)).save(buf, format="JPEG", quality=quality)
     return buf.getvalue()

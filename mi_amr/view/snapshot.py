@@ -3,7 +3,7 @@
 ``NAME.xml``, the scene with the view's camera and TF, which ``mi-amr
 render`` renders to the same picture: for data the planned scene
 (`mi_amr.autoscene.write_scene_xml`), for an XML scene the source rewritten
-(`mi_amr.tools.scene_xml`). An XML scene's TF left as it was is written with
+(`mi_amr.scene_xml`). An XML scene's TF left as it was is written with
 the scene's own table values (`LoadedScene.table`).
 """
 
@@ -25,7 +25,7 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
     """The four files of a view (module docstring) in ``out_dir``: ``image``
     the accumulation's mean (linear RGB, ``spp`` samples per pixel),
     ``shown`` what the page shows; [exr, png, xml, tf.json] paths."""
-    from ..tools.images import write_exr, write_png
+    from ..images import write_exr, write_png
     out_dir = Path(out_dir).resolve()
     stem = safe_name(name)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -75,7 +75,7 @@ def _scene_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCame
     relative paths still resolve (a <path> to the source's folder)."""
     import xml.etree.ElementTree as ET
 
-    from ..tools.scene_xml import amr_elements, parse_scene, set_parameters
+    from ..scene_xml import amr_elements, parse_scene, set_parameters
     src = Path(str(loaded.source)).resolve()
     tree = parse_scene(src)
     root = tree.getroot()
