@@ -33,7 +33,7 @@ MAX_SHADOW_CROSSINGS = 4096
 #: stopped loops and crossings of an amr medium (transmittance estimates).
 COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped",
                  "shadow_lookups", "shadow_steps", "shadow_capped", "shadow_crossings")
-#: The parameters ``amrvolpath`` accepts (the README's table and the
+#: The parameters ``amrvolpath`` accepts (docs/manual/integrator.md's table and the
 #: docstring's are tested against this set: tests/test_docs.py).
 KNOWN = {"max_depth", "rr_depth", "hide_emitters", "counters",
          "residual_ratio_tracking", "decomposition_tracking"}

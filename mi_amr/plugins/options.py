@@ -31,7 +31,7 @@ MAX_TRACKING_ITERATIONS = 1 << 20
 #: Largest condition number of to_world's linear part (float32 precision).
 MAX_CONDITION = 1e7
 #: The parameters ``amr`` accepts, besides a nested phase function (the
-#: README's table and the plugin docstring's are tested against this set:
+#: docs/manual/medium.md's table and the plugin docstring's are tested against this set:
 #: tests/test_docs.py).
 KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
          "density_scale", "reconstruction", "majorant", "grid_resolution", "grid_refinement",

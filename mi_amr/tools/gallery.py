@@ -3,7 +3,7 @@
 Renders each bundled scene at front-page quality into ``docs/images/NAME.png``
 (sRGB PNG, kept under 200 kB) and records what it took in
 ``docs/images/gallery.json`` (seconds, resolution, spp, machine), which the
-README quotes.
+manual's gallery page (docs/manual/gallery.md) quotes.
 """
 
 from __future__ import annotations
