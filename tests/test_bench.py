@@ -5,7 +5,8 @@ import math
 
 import pytest
 
-from mi_amr.tools.bench import all_configs, main
+from mi_amr.bench.__main__ import main
+from mi_amr.bench.protocol import all_configs
 
 
 def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
@@ -92,7 +93,7 @@ def test03_reference_that_does_not_fit_is_reported(llvm, tmp_path):
 def test_curve_styles_tell_every_configuration_apart():
     """One colour per traversal, one line style per sampling: no two
     configurations share both; the reference and the default are heaviest."""
-    from mi_amr.tools.bench import all_configs, curve_style
+    from mi_amr.bench.protocol import all_configs, curve_style
     styles = {c: curve_style({"config": c, "resolved": "grid/hash, grid 16x16x16"})
               for c in all_configs() if c != "amrvolpath/default"}
     assert len({(s["color"], s["ls"]) for s in styles.values()}) == len(styles)
@@ -155,7 +156,7 @@ def test06_frames_are_timed_alternating_one_scene_at_a_time(llvm, monkeypatch):
     import mitsuba as mi
     import numpy as np
     from mi_amr.plugins.medium import live_media
-    from mi_amr.tools import bench
+    from mi_amr.bench import protocol as bench
     from conftest import random_amr
     cells = random_amr(3, 8, 2)
     args = argparse.Namespace(max_depth=8, res=8, spp=2, repeats=3, reconstruction="nearest",
@@ -182,7 +183,7 @@ def test07_timing_waits_until_the_process_is_idle():
     spins (as OpenBLAS's workers do after a BLAS call), and not otherwise."""
     import threading
     import time
-    from mi_amr.tools import bench
+    from mi_amr.bench import protocol as bench
     stop = time.perf_counter() + 0.3
 
     def spin():
@@ -208,7 +209,7 @@ def test08_frozen_frames_replay_the_plain_image(llvm, config):
 
     import mi_amr
     from conftest import random_amr
-    from mi_amr.tools import bench
+    from mi_amr.bench import protocol as bench
     cells = random_amr(3, 8, 2)
     args = argparse.Namespace(max_depth=8, res=8, spp=2, repeats=2, reconstruction="nearest",
                               no_value_masks=False, grid_refinement=None, memory_limit=4.0, frozen=True)

@@ -38,9 +38,10 @@ FLOORS = [
     ["mi_amr.autoscene", "mi_amr.series"],
     # the package's front (plugin registration, short-cuts)
     ["mi_amr"],
-    # services: rendering on a cluster, the viewer
-    ["mi_amr.distributed", "mi_amr.view"],
-    # what a user runs: the command line, benchmarks
+    # services: rendering on a cluster, the viewer, render jobs and their frames
+    ["mi_amr.distributed", "mi_amr.view", "mi_amr.render"],
+    # what a user runs: the command line (tools), the benchmarks (bench: protocol, scale,
+    # resample, peers, view, distributed and their shared harness)
     ["mi_amr.tools", "mi_amr.bench"],
 ]
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.tools.harness import process_cpu_seconds
+from mi_amr.bench.harness import process_cpu_seconds
 
 from conftest import random_amr
 

@@ -1,5 +1,5 @@
-"""The optional benchmark peer (Eradiate's Mitsuba fork, mi_amr/tools/peers.py
-and the standalone mi_amr/tools/peer_eradiate.py). Everything but the last
+"""The optional benchmark peer (Eradiate's Mitsuba fork, mi_amr/bench/peers.py
+and the standalone mi_amr/bench/peer_eradiate.py). Everything but the last
 test runs without the fork's environment; the end-to-end run needs
 ``make peers`` (.venv-eradiate) and is marked slow."""
 
@@ -17,8 +17,8 @@ import pytest
 import mi_amr
 import mitsuba as mi
 from mi_amr.testing import block_z_scores, render_passes
-from mi_amr.tools import peers
-from mi_amr.tools.harness import bench_scene
+from mi_amr.bench import peers
+from mi_amr.bench.harness import bench_scene
 from mi_amr.tools.reference import baked_grids, reference_medium
 
 from conftest import random_amr

@@ -1,4 +1,4 @@
-"""The cosmo data set and the resample study (mi_amr.tools.resample_bench), small and fast."""
+"""The cosmo data set and the resample study (mi_amr.bench.resample), small and fast."""
 
 import json
 import math
@@ -36,7 +36,7 @@ def test_cosmo_streamed_file_loads_back(tmp_path):
 
 
 def test_resample_grid_box_conserves_mass_and_nearest_is_exact():
-    from mi_amr.tools.resample_bench import resample_grid
+    from mi_amr.bench.resample import resample_grid
     c = make_dataset("cosmo", 20_000, levels=4)
     n = int((c.bounds[1] - c.bounds[0]).max())
     mass = float((c.value.astype(np.float64) * 8.0 ** c.level).sum()) / n ** 3
@@ -50,7 +50,7 @@ def test_resample_grid_box_conserves_mass_and_nearest_is_exact():
 
 
 def test_resample_study_end_to_end(tmp_path):
-    from mi_amr.tools.bench import main
+    from mi_amr.bench.__main__ import main
     out = tmp_path / "out"
     main(["--resample", "cosmo:3e4:4", "--out", str(out), "--data-dir", str(tmp_path / "data"), "--res", "24",
           "--truth-spp", "128", "--max-spp", "8", "--resolutions", "8", "32", "--resample-methods", "nearest",
@@ -73,8 +73,8 @@ def test_zoom_looks_at_the_densest_cell_from_outside():
     """``--zoom W``: a telephoto view of the cell holding the largest value,
     from the benchmark camera's direction and distance (outside the unit
     cube the volume fills), its field of view spanning W at that cell."""
-    from mi_amr.tools.harness import BENCH_FOV, BENCH_ORIGIN, BENCH_TARGET, zoom_camera
-    from mi_amr.tools.resample_bench import densest_point
+    from mi_amr.bench.harness import BENCH_FOV, BENCH_ORIGIN, BENCH_TARGET, zoom_camera
+    from mi_amr.bench.resample import densest_point
     cells = make_dataset("cosmo", cells=3000, levels=3, seed=2)
     p = densest_point(cells)
     lo, hi = cells.bounds
@@ -93,7 +93,7 @@ def test_seconds_near_a_floor_on_and_past_the_curve():
     """A rival's error falls as ``sqrt(floor^2 + c / t)``: the seconds to
     come within 10% of its floor are read off its curve when it gets there,
     and continued by that model past its end (flagged) when it does not."""
-    from mi_amr.tools.resample_bench import seconds_near_floor
+    from mi_amr.bench.resample import seconds_near_floor
     floor, c = 0.01, 4e-4
 
     def pts(ts):
@@ -112,7 +112,7 @@ def test_bias_floor_measures_its_own_uncertainty_under_heavy_tailed_noise():
     of its own standard errors of 0 in most seeds (a 4-sigma event is rare)
     and the squared floor agrees with the known bias within 4 standard errors
     where there is one."""
-    from mi_amr.tools.resample_bench import RESOLVED_SE, bias_floor
+    from mi_amr.bench.resample import RESOLVED_SE, bias_floor
 
     def halves(rng, mean):
         h = [mean + 0.05 * rng.standard_normal(mean.shape) * (1 + rng.pareto(2.5, mean.shape)) for _ in range(2)]

@@ -18,7 +18,7 @@ is the work tree's code.
 A case is ``DATA/TF``, ``DATA/TF/minorants`` or ``DATA/TF/volpath``: the
 20k-cell synthetic data set ``DATA`` of `mi_amr.data.datasets.make_dataset`
 (``sparse``: the 128^3 field, ``cells=128**3``) with the benchmark's view,
-TF and density scale (`mi_amr.tools.bench`), rendered by ``amrvolpath``
+TF and density scale (`mi_amr.bench.protocol`), rendered by ``amrvolpath``
 with its default estimators (plain ones on these data); with
 ``/minorants``, with residual ratio and decomposition tracking forced on;
 with ``/volpath``, by Mitsuba's stock ``volpath`` with the ray-wise
@@ -150,7 +150,7 @@ def case_scene(mi, spec: str, res: int):
 
     import mi_amr
     from mi_amr.data.datasets import make_dataset
-    from mi_amr.tools.bench import SCALES, config_scene
+    from mi_amr.bench.protocol import SCALES, config_scene
     parts = spec.split("/")
     name, tf_name, option = parts[0], parts[1], (parts[2:] or [None])[0]
     if option not in (None, "minorants", "volpath"):
@@ -171,7 +171,7 @@ def run_case(mi, spec, old, args):
     import numpy as np
 
     from mi_amr.plugins.medium import AMRMedium
-    from mi_amr.tools.harness import FROZEN_WARMUP, wait_idle
+    from mi_amr.bench.harness import FROZEN_WARMUP, wait_idle
     cls = AMRMedium.variant_class()
     scene = mi.load_dict(case_scene(mi, spec, args.res))
     integrator = scene.integrator()

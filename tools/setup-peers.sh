@@ -3,7 +3,7 @@
 # .venv-eradiate with Eradiate's Mitsuba fork (eradiate-mitsuba 0.5.0, which
 # pins drjit 1.2.0, so it cannot share .venv's Mitsuba 3.9 / Dr.Jit 1.5) and
 # numpy. `python -m mi_amr.bench --peers eradiate` runs
-# mi_amr/tools/peer_eradiate.py in it. Safe to run every time.
+# mi_amr/bench/peer_eradiate.py in it. Safe to run every time.
 set -e
 cd "$(dirname "$0")/.."
 ERADIATE_MITSUBA_VERSION=0.5.0

@@ -1,1 +1,1 @@
-"""Tools: command line, benchmark, dense references, XML scene rewriting, image I/O."""
+"""Tools a user calls: the command line, mi-amr info, the gallery, dense references (benchmarks: mi_amr.bench)."""

@@ -665,7 +665,7 @@ def build_parser():
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["bench"]:                 # hand every remaining option to the benchmark
-        from .bench import main as bench_main
+        from ..bench.__main__ import main as bench_main
         return bench_main(argv[1:])
     args = build_parser().parse_args(argv)
     try:

@@ -1,8 +1,8 @@
 """The mi-amr benchmark: render time against error, in one process.
 
     python -m mi_amr.bench [--quick] --out DIR [FILE.cells ...]
-    python -m mi_amr.bench --scale 1e5 1e6 1e7 1e8 --out DIR    (see scale_bench)
-    python -m mi_amr.bench --view DATA --out DIR               (see view_bench)
+    python -m mi_amr.bench --scale 1e5 1e6 1e7 1e8 --out DIR    (see mi_amr.bench.scale)
+    python -m mi_amr.bench --view DATA --out DIR               (see mi_amr.bench.view)
 
 For each data set (the synthetic ``cloud``, ``shell``, ``stadium`` and any
 ``.cells`` file given) x transfer function (``spiky``, ``foggy``) x
@@ -28,7 +28,7 @@ scatters also pays per real collision; the *scattering floor*
 (`scattering_floor`) is a frame that scatters as often as the default with
 tracking that costs nothing, and each row's ``floor_share`` is ``t_floor /
 t``. ``--peers eradiate`` adds rows of Eradiate's Mitsuba fork on the same
-field (`mi_amr.tools.peers`). Reconstruction is
+field (`mi_amr.bench.peers`). Reconstruction is
 ``nearest`` by default so that the dense reference renders exactly the same
 field and every configuration converges to the same image.
 """
@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -144,7 +143,7 @@ def dense_volume(cells, args):
 
     from ..data.blocks import BlockVolume
     from ..reconstruction import reconstruction_method
-    from .reference import resample_dense
+    from ..tools.reference import resample_dense
     method = reconstruction_method(args.reconstruction)
     if not method.dense_exact:          # a dense resampling is that field exactly
         raise ValueError("dense16 resamples the nearest field: run it with --reconstruction nearest")
@@ -159,7 +158,7 @@ def dense_volume(cells, args):
 def config_scene(mi, config, cells, tf, scale, args, grid_resolution=None, grid_refinement=1) -> dict:
     """The benchmark scene of one configuration, as a dict (loadable again:
     its data are shared, and host structures are cached on them)."""
-    from .reference import reference_medium
+    from ..tools.reference import reference_medium
     kind = config.split("/")
     integ = {"type": "volpath", "max_depth": args.max_depth}
     if kind[0] == "reference":
@@ -208,7 +207,7 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
     import drjit as dr
     import numpy as np
 
-    from .reference import dense_bytes
+    from ..tools.reference import dense_bytes
     check_alone(config)
     kind = config.split("/")
     t0 = time.perf_counter()
@@ -315,151 +314,45 @@ def apply_timing(rec, times, mses):
                frame_seconds=list(times))
 
 
-def main(argv=None):
-    from ..data.datasets import LAYOUTS
-    from ..reconstruction import METHODS
-    p = argparse.ArgumentParser(prog="python -m mi_amr.bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog="example:\n  python -m mi_amr.bench --quick --out out/bench-quick\n"
-                                       "  python -m mi_amr.bench --datasets cloud --tfs spiky "
-                                       "--configs reference amrvolpath/default --out out/b")
-    p.add_argument("files", nargs="*", help="extra .cells data sets")
-    p.add_argument("--out", required=True, help="results folder")
-    p.add_argument("--quick", action="store_true", help="small sizes: minutes on 2 cores")
-    p.add_argument("--cells", type=int, default=20000)
-    p.add_argument("--res", type=int, default=256, help="frame width and height (default 256: frames of real size)")
-    p.add_argument("--spp", type=int, default=16)
-    p.add_argument("--ref-spp", type=int, default=1024)
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--frozen", action=argparse.BooleanOptionalAction, default=True,
-                   help="time frames of a dr.freeze-recorded render (as an interactive viewer runs them: "
-                        "no per-frame Python trace), every configuration alike (default; --no-frozen times "
-                        "plain mi.render frames)")
-    p.add_argument("--limit", action=argparse.BooleanOptionalAction, default=True,
-                   help="time the empty-medium frame of each case with the others (the limit: a medium "
-                        "that costs nothing) and report each row's share of it, t_empty / t (default)")
-    p.add_argument("--sparse-res", type=int, default=128,
-                   help="grid size of the 'sparse' data set (the cloud field on one uniform level; its "
-                        "size does not follow --cells)")
-    p.add_argument("--max-depth", type=int, default=64)
-    p.add_argument("--datasets", nargs="*", default=["cloud", "shell", "stadium", "blocks"])
-    p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
-    p.add_argument("--data", metavar="PATH",
-                   help="run on this data set instead of the synthetic ones (.cells/.npz or anything yt "
-                        "loads; log10 values and density scale chosen as mi-amr render chooses them)")
-    p.add_argument("--field", help="field of --data (e.g. density)")
-    p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
-    p.add_argument("--peers", nargs="*", default=[], choices=["eradiate"],
-                   help="also render each case with these peers in their own environments (eradiate: "
-                        "Eradiate's Mitsuba fork, extremum_grid + eovolpath; needs make peers)")
-    p.add_argument("--reconstruction", default="nearest", choices=tuple(METHODS))
-    p.add_argument("--grid-refinement", type=int, default=None, metavar="F",
-                   help="grid_refinement of every amr medium (1: uniform grids only; default: the cost model's)")
-    p.add_argument("--no-value-masks", action="store_true",
-                   help="range majorants only (the A/B of the value masks; nearest)")
-    p.add_argument("--memory-limit", type=float, default=4.0,
-                   help="GiB allowed for the dense reference; larger data sets skip it")
-    p.add_argument("--variant", default="llvm_ad_rgb",
-                   help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb (a GPU; make test-gpu)")
-    p.add_argument("--curve-spp", type=int, nargs="*", default=[1, 2, 4, 8],
-                   help="sample counts of the error-against-time curves")
-    p.add_argument("--sweep", type=int, nargs="*", default=[8, 12, 16, 24, 32, 48, 64, 96],
-                   help="grid resolutions of the sweep (amrvolpath/grid/hash); empty: no sweep")
-    p.add_argument("--scale", type=float, nargs="+", default=None, metavar="CELLS",
-                   help="run the scale benchmark instead, at these cell counts (e.g. 1e5 1e6 1e7 1e8)")
-    p.add_argument("--scale-kinds", nargs="+", default=None,
-                   help="data kinds of the scale benchmark: blocks (16^3), mixed (8^3-32^3), cloud "
-                        "(octree-like, up to 1e7 cells); default all three")
-    p.add_argument("--layouts", nargs="+", default=None, choices=list(LAYOUTS), metavar="LAYOUT",
-                   help="scale benchmark: file layouts of the .cells data, rows of their own: blocks (the "
-                        "generator's), zfast (z fastest inside blocks), level (blocks of one physical size, "
-                        "fewer cells on coarser levels, grouped by level), space (blocks sorted by position), "
-                        "shuffled (cells in random order); default blocks")
-    p.add_argument("--scale-sources", nargs="+", default=None, choices=["cells", "amrb"],
-                   help="files the scale benchmark opens: the .cells file, its .amrb conversion (default both)")
-    p.add_argument("--scale-configs", nargs="+", default=None,
-                   help="configurations of the scale benchmark (default: amrvolpath/grid/hash)")
-    p.add_argument("--cold-kernels", action="store_true",
-                   help="scale benchmark: each process starts with an empty Dr.Jit kernel cache")
-    p.add_argument("--data-dir", default="out/data", help="where the scale benchmark keeps its .cells files")
-    p.add_argument("--resample", nargs="*", default=None, metavar="DATA",
-                   help="time against error of the amr medium against dense resamples (see resample_bench): "
-                        "cosmo:CELLS[:LEVELS], enzo or a data file (default enzo cosmo:1e7 cosmo:1e8)")
-    p.add_argument("--truth-spp", type=int, default=2048, help="--resample: samples per pixel of the truth")
-    p.add_argument("--floor-spp", type=int, default=None, help="--resample: spp of a rival's floor (truth/2)")
-    p.add_argument("--max-spp", type=int, default=512, help="--resample: the curves' highest spp")
-    p.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512, 1024],
-                   help="--resample: dense resolutions (voxels along the longest side)")
-    p.add_argument("--resample-methods", nargs="+", default=["box"], help="--resample: box and/or nearest")
-    p.add_argument("--renderers", nargs="+", default=["heterogeneous", "dense16"],
-                   help="--resample: renderers of the dense rivals")
-    p.add_argument("--check-max", type=int, default=512,
-                   help="--resample: check the finest nearest resample against the truth up to this resolution")
-    p.add_argument("--resample-memory", type=float, default=None,
-                   help="--resample: GiB a rival may use (default 80%% of the memory available at start)")
-    p.add_argument("--unfrozen", action="store_true", help="--resample: time plain mi.render frames")
-    p.add_argument("--zoom", type=float, default=None, metavar="WIDTH",
-                   help="--resample: a telephoto view of the densest cell whose field of view spans WIDTH of "
-                        "the domain (e.g. 0.05: what a scientist looking at one halo sees); default the whole "
-                        "domain")
-    p.add_argument("--view", metavar="DATA", default=None,
-                   help="how interactive mi-amr view is on DATA, measured in the page (chromium): frames/s "
-                        "while dragging, change-to-frame and change-to-denoised times (--res, --repeats)")
-    p.add_argument("--view-field", default=None, help="field of --view's data")
-    p.add_argument("--view-preview-scale", type=float, default=0.5, help="--view: the viewer's preview scale")
-    p.add_argument("--distributed", action="store_true",
-                   help="speed-up of a Dask LocalCluster over one process (256x256, 256 spp unless "
-                        "--res/--spp are given)")
-    p.add_argument("--workers", type=int, default=2, help="workers of --distributed")
-    p.add_argument("--chunk-spp", type=int, default=32, help="samples per chunk of --distributed")
-    p.add_argument("--dist-scene", default="scenes/demo.xml", help="scene of --distributed")
-    args = p.parse_args(argv)
-    if args.view:
-        from .view_bench import run
-        run(args.view, args.view_field, args.res, Path(args.out), args.repeats,
-            preview_scale=args.view_preview_scale)
-        print(f"wrote {args.out}/view.json and view.md")
-        return 0
-    if args.distributed:
-        ensure_llvm_path()
-        import mitsuba as mi
-        mi.set_variant(args.variant)
-        from .dist_bench import run_distributed
-        res = args.res
-        spp = 256 if args.spp == 16 else args.spp
-        run_distributed(args.dist_scene, args.workers, res, spp, args.chunk_spp, args.repeats, Path(args.out))
-        print(f"wrote {args.out}/distributed.json and distributed.md")
-        return 0
-    if args.scale:
-        from .scale_bench import DEFAULT_CONFIGS, DEFAULT_KINDS, DEFAULT_SOURCES, run_scale
-        res = args.res          # the first picture: 256x256 at 1 spp
-        spp = 1 if args.spp == 16 else args.spp
-        run_scale([int(n) for n in args.scale], args.scale_kinds or DEFAULT_KINDS,
-                  args.scale_configs or DEFAULT_CONFIGS, Path(args.out), Path(args.data_dir), res, spp,
-                  args.variant, args.scale_sources or DEFAULT_SOURCES, args.cold_kernels,
-                  tuple(args.layouts or ("blocks",)))
-        print(f"wrote {args.out}/scale.json, scale.md and scale.png")
-        return 0
-    if args.resample is not None:
-        from .resample_bench import main_args
-        main_args(args)
-        print(f"wrote {args.out}/resample.json, resample.md and resample.png")
-        return 0
-    if args.quick:
-        args.cells, args.res, args.spp, args.ref_spp, args.repeats = 4000, 48, 4, 128, 3
-        args.sparse_res = 32
-        args.curve_spp, args.sweep = [1, 2, 4], [8, 16, 32, 64]
+#: ``--quick``: small sizes, minutes on 2 cores.
+QUICK = dict(cells=4000, res=48, spp=4, ref_spp=128, repeats=3, sparse_res=32, curve_spp=[1, 2, 4],
+             sweep=[8, 16, 32, 64])
 
+
+def main_args(args) -> int:
+    """The protocol (``python -m mi_amr.bench [--quick] --out DIR``): every
+    data set x TF case, then the TF-change timing, the tables and curves."""
+    if args.quick:
+        vars(args).update(QUICK)
     ensure_llvm_path()
     import mitsuba as mi
     mi.set_variant(args.variant)
-    import mi_amr
-    from ..data.datasets import make_dataset
-    from ..data.io import load_cells
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    configs = args.configs or all_configs()
+    data, domains = load_data(args)
+    records, sweeps = [], []
+    t_start = time.perf_counter()
+    for name, cells in data:
+        for tf_name in args.tfs:
+            run_case(mi, args, name, tf_name, cells, domains, out, records, sweeps)
+            (out / "results.json").write_text(json.dumps(records, indent=1, default=float))
+            (out / "sweep.json").write_text(json.dumps(sweeps, indent=1, default=float))
+    tf_timing = tf_change_timing(mi, args, data[0][1] if data else None)
+    (out / "tf_change.json").write_text(json.dumps(tf_timing, indent=1, default=float))
+    write_tables(records, sweeps, out, tf_timing)
+    plot_curves(records, out)
+    plot_sweeps(sweeps, out)
+    print(f"wrote {out}/results.json, sweep.json, tables.md and the PNG curves "
+          f"({time.perf_counter() - t_start:.0f} s)")
+    return 0
+
+
+def load_data(args):
+    """``([(name, cells)], {name: TF domain})``: the synthetic data sets (or
+    ``--data`` alone, on the value scale `mi-amr render` chooses, its density
+    scale entered in `SCALES`), then the extra ``.cells`` files."""
+    from ..data.datasets import make_dataset
+    from ..data.io import load_cells
     domains = {}                                  # TF domain per data set (default: the value range)
     if args.data:
         # a user's data set alone (any format `mi-amr render` reads), on its value scale
@@ -479,92 +372,102 @@ def main(argv=None):
         data = [(n, make_dataset(n, cells=args.sparse_res ** 3 if n == "sparse" else args.cells,
                                  levels=7 if n == "stadium" else 4)) for n in args.datasets]
     data += [(Path(f).stem, load_cells(f)) for f in args.files]
-    records, sweeps = [], []
-    t_start = time.perf_counter()
-    for name, cells in data:
-        for tf_name in args.tfs:
-            tf = mi_amr.TransferFunction.preset(tf_name, domains.get(name, cells.value_range))
-            scale = SCALES.get((name, tf_name), 100.0)
-            # High-sample reference image: the default amrvolpath configuration.
-            ref_args = argparse.Namespace(**{**vars(args), "spp": args.ref_spp, "repeats": 1})
-            _, ref_img = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, ref_args)
-            # everything but the frame times, configuration by configuration
-            ref_rec, measured, scenes = None, [], {}
-            for config in configs:
-                try:
-                    scenes[config] = config_scene(mi, config, cells, tf, scale, args)
-                    rec, _ = run_config(mi, config, cells, tf, scale, args, ref_img, timed=False,
-                                        scene_dict=scenes[config])
-                except MemoryError as e:          # the dense reference does not fit
-                    print(f"{name:8s} {tf_name:6s} {config:24s} skipped: {e}", flush=True)
-                    scenes.pop(config, None)
-                    measured.append({"dataset": name, "tf": tf_name, "config": config, "cells": len(cells),
-                                     "skipped": str(e)})
-                    continue
-                rec.update(dataset=name, tf=tf_name, cells=len(cells), density_scale=scale, frozen=args.frozen)
-                measured.append(rec)
-            if args.limit and scenes:
-                scenes[EMPTY] = config_scene(mi, EMPTY, cells, tf, scale, args)
-            # the frame times, alternating configurations pass by pass
-            timing = alternate_passes(mi, scenes, args, ref_img)
-            del scenes
-            for rec in measured:
-                if "skipped" not in rec:
-                    apply_timing(rec, *timing[rec["config"]])
-                    ref_rec = rec if rec["config"] == "reference" else ref_rec
-            if EMPTY in timing:
-                empty_times = timing[EMPTY][0]
-                for rec in measured:
-                    if "skipped" not in rec:
-                        rec.update(limit_shares(rec["frame_seconds"], empty_times))
-                measured.append({"dataset": name, "tf": tf_name, "config": EMPTY, "cells": len(cells),
-                                 "density_scale": 0.0, "frozen": args.frozen, "spp": args.spp,
-                                 "seconds_per_frame": statistics.median(empty_times),
-                                 "seconds_per_spp": statistics.median(empty_times) / args.spp,
-                                 "frame_seconds": list(empty_times), **limit_shares(empty_times, empty_times)})
-                default = next((r for r in measured if r["config"] == "amrvolpath/default" and "counters" in r),
-                               None)
-                if default is not None and default["counters"]["real"] > 0:
-                    weights = tf.rgba[:, 3] + 1e-6                   # the TF's mean colour where it is opaque
-                    floor = scattering_floor(mi, args, default["counters"]["real"],
-                                             (tf.rgba[:, :3] * weights[:, None]).sum(0) / weights.sum())
-                    for rec in measured:
-                        if "skipped" not in rec:
-                            rec["floor_share"] = floor["seconds_per_frame"] / rec["seconds_per_frame"]
-                    measured.append({"dataset": name, "tf": tf_name, "config": FLOOR, "cells": 1, "spp": args.spp,
-                                     "frozen": args.frozen, "seconds_per_spp": floor["seconds_per_frame"] / args.spp,
-                                     "limit_share": statistics.median(empty_times) / floor["seconds_per_frame"],
-                                     "floor_share": 1.0, **floor})
-            for rec in measured:
-                records.append(rec)
-                if "skipped" in rec:
-                    continue
-                if rec["config"] in (EMPTY, FLOOR):
-                    print(f"{name:8s} {tf_name:6s} {rec['config']:24s} "
-                          f"{rec['seconds_per_spp'] * 1e3:8.2f} ms/spp", flush=True)
-                    continue
-                rec["efficiency_vs_reference"] = (rec["efficiency"] / ref_rec["efficiency"]
-                                                  if ref_rec and ref_rec.get("efficiency") else None)
-                config = rec["config"]
-                lpc = rec["lookups_per_collision"]
-                share = f" limit {rec['limit_share']:.2f}" if "limit_share" in rec else ""
-                print(f"{name:8s} {tf_name:6s} {config:24s} {rec['seconds_per_spp'] * 1e3:8.2f} ms/spp{share} "
-                      f"rmse {rec['rmse']:.4f} eff x{rec['efficiency_vs_reference'] or float('nan'):6.2f} "
-                      f"lookups/coll {lpc if lpc is not None else float('nan'):6.2f} "
-                      f"build {rec['build_s']:6.2f}s", flush=True)
-            records += run_peers(args.peers, name, tf_name, cells, tf, scale, args, ref_img, measured, out)
-            if args.sweep:
-                sweeps.append(grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img))
-            (out / "results.json").write_text(json.dumps(records, indent=1, default=float))
-            (out / "sweep.json").write_text(json.dumps(sweeps, indent=1, default=float))
-    tf_timing = tf_change_timing(mi, args, data[0][1] if data else None)
-    (out / "tf_change.json").write_text(json.dumps(tf_timing, indent=1, default=float))
-    write_tables(records, sweeps, out, tf_timing)
-    plot_curves(records, out)
-    plot_sweeps(sweeps, out)
-    print(f"wrote {out}/results.json, sweep.json, tables.md and the PNG curves "
-          f"({time.perf_counter() - t_start:.0f} s)")
-    return 0
+    return data, domains
+
+
+def run_case(mi, args, name, tf_name, cells, domains, out, records, sweeps):
+    """One data set x TF case: its reference image, every configuration
+    measured, frame times in alternating passes, the limit and the floor;
+    its records go to ``records`` (printed), its grid sweep to ``sweeps``."""
+    import mi_amr
+    tf = mi_amr.TransferFunction.preset(tf_name, domains.get(name, cells.value_range))
+    scale = SCALES.get((name, tf_name), 100.0)
+    # High-sample reference image: the default amrvolpath configuration.
+    ref_args = argparse.Namespace(**{**vars(args), "spp": args.ref_spp, "repeats": 1})
+    _, ref_img = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, ref_args)
+    measured, scenes = measure_configs(mi, args, name, tf_name, cells, tf, scale, ref_img)
+    if args.limit and scenes:
+        scenes[EMPTY] = config_scene(mi, EMPTY, cells, tf, scale, args)
+    # the frame times, alternating configurations pass by pass
+    timing = alternate_passes(mi, scenes, args, ref_img)
+    del scenes
+    ref_rec = None
+    for rec in measured:
+        if "skipped" not in rec:
+            apply_timing(rec, *timing[rec["config"]])
+            ref_rec = rec if rec["config"] == "reference" else ref_rec
+    if EMPTY in timing:
+        measured += limit_rows(mi, args, name, tf_name, cells, tf, measured, timing[EMPTY][0])
+    for rec in measured:
+        records.append(rec)
+        if "skipped" not in rec:
+            print_row(rec, ref_rec)
+    records += run_peers(args.peers, name, tf_name, cells, tf, scale, args, ref_img, measured, out)
+    if args.sweep:
+        sweeps.append(grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img))
+
+
+def measure_configs(mi, args, name, tf_name, cells, tf, scale, ref_img):
+    """``(records, scenes)``: everything but the frame times, configuration
+    by configuration, and the scene of each (a dense reference that does not
+    fit is a skipped record and no scene)."""
+    measured, scenes = [], {}
+    for config in args.configs or all_configs():
+        try:
+            scenes[config] = config_scene(mi, config, cells, tf, scale, args)
+            rec, _ = run_config(mi, config, cells, tf, scale, args, ref_img, timed=False,
+                                scene_dict=scenes[config])
+        except MemoryError as e:          # the dense reference does not fit
+            print(f"{name:8s} {tf_name:6s} {config:24s} skipped: {e}", flush=True)
+            scenes.pop(config, None)
+            measured.append({"dataset": name, "tf": tf_name, "config": config, "cells": len(cells),
+                             "skipped": str(e)})
+            continue
+        rec.update(dataset=name, tf=tf_name, cells=len(cells), density_scale=scale, frozen=args.frozen)
+        measured.append(rec)
+    return measured, scenes
+
+
+def limit_rows(mi, args, name, tf_name, cells, tf, measured, empty_times) -> list:
+    """The limit's row (the empty-medium frame) and, where the default
+    scatters, the scattering floor's; each measured row gets its shares."""
+    for rec in measured:
+        if "skipped" not in rec:
+            rec.update(limit_shares(rec["frame_seconds"], empty_times))
+    rows = [{"dataset": name, "tf": tf_name, "config": EMPTY, "cells": len(cells),
+             "density_scale": 0.0, "frozen": args.frozen, "spp": args.spp,
+             "seconds_per_frame": statistics.median(empty_times),
+             "seconds_per_spp": statistics.median(empty_times) / args.spp,
+             "frame_seconds": list(empty_times), **limit_shares(empty_times, empty_times)}]
+    default = next((r for r in measured if r["config"] == "amrvolpath/default" and "counters" in r), None)
+    if default is not None and default["counters"]["real"] > 0:
+        weights = tf.rgba[:, 3] + 1e-6                   # the TF's mean colour where it is opaque
+        floor = scattering_floor(mi, args, default["counters"]["real"],
+                                 (tf.rgba[:, :3] * weights[:, None]).sum(0) / weights.sum())
+        for rec in measured + rows:
+            if "skipped" not in rec:
+                rec["floor_share"] = floor["seconds_per_frame"] / rec["seconds_per_frame"]
+        rows.append({"dataset": name, "tf": tf_name, "config": FLOOR, "cells": 1, "spp": args.spp,
+                     "frozen": args.frozen, "seconds_per_spp": floor["seconds_per_frame"] / args.spp,
+                     "limit_share": statistics.median(empty_times) / floor["seconds_per_frame"],
+                     "floor_share": 1.0, **floor})
+    return rows
+
+
+def print_row(rec, ref_rec):
+    """Print one measured row (and set its efficiency against the reference)."""
+    name, tf_name, config = rec["dataset"], rec["tf"], rec["config"]
+    if config in (EMPTY, FLOOR):
+        print(f"{name:8s} {tf_name:6s} {config:24s} {rec['seconds_per_spp'] * 1e3:8.2f} ms/spp", flush=True)
+        return
+    rec["efficiency_vs_reference"] = (rec["efficiency"] / ref_rec["efficiency"]
+                                      if ref_rec and ref_rec.get("efficiency") else None)
+    lpc = rec["lookups_per_collision"]
+    share = f" limit {rec['limit_share']:.2f}" if "limit_share" in rec else ""
+    print(f"{name:8s} {tf_name:6s} {config:24s} {rec['seconds_per_spp'] * 1e3:8.2f} ms/spp{share} "
+          f"rmse {rec['rmse']:.4f} eff x{rec['efficiency_vs_reference'] or float('nan'):6.2f} "
+          f"lookups/coll {lpc if lpc is not None else float('nan'):6.2f} "
+          f"build {rec['build_s']:6.2f}s", flush=True)
 
 
 def tf_change_timing(mi, args, cells):
@@ -909,7 +812,3 @@ def write_tables(records, sweeps, out: Path, tf_timing=None):
                           f"{z['recorded_on_change']} new recordings."]
         lines.append("")
     (out / "tables.md").write_text("\n".join(lines))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

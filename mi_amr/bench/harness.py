@@ -1,7 +1,7 @@
 """The benchmarks' shared harness: the benchmark scene and camera, frames
 timed alone and idle, frozen frames.
 
-Every benchmark (`mi_amr.tools.bench` and the scale, resample, view and
+Every benchmark (`mi_amr.bench.protocol` and the scale, resample, view and
 peer studies) renders through these, so that they time the same thing the
 same way (docs/performance/protocol.md).
 """

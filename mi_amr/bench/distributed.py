@@ -64,3 +64,16 @@ def run_distributed(scene: str, workers: int, res: int, spp: int, chunk_spp: int
               f"(range {min(sp):.2f}-{max(sp):.2f})."]
     (out / "distributed.md").write_text("\n".join(lines) + "\n")
     return summary
+
+
+def main_args(args) -> int:
+    """Entry from `mi_amr.bench.__main__` (``--distributed``): 256 spp
+    unless ``--spp`` is given."""
+    from .._llvm import ensure_llvm_path
+    ensure_llvm_path()
+    import mitsuba as mi
+    mi.set_variant(args.variant)
+    spp = 256 if args.spp == 16 else args.spp
+    run_distributed(args.dist_scene, args.workers, args.res, spp, args.chunk_spp, args.repeats, Path(args.out))
+    print(f"wrote {args.out}/distributed.json and distributed.md")
+    return 0

@@ -1,17 +1,17 @@
 """Benchmark peer: Eradiate's Mitsuba fork on the benchmark's dense field.
 
-    .venv-eradiate/bin/python mi_amr/tools/peer_eradiate.py JOB.npz OUT_DIR
+    .venv-eradiate/bin/python mi_amr/bench/peer_eradiate.py JOB.npz OUT_DIR
 
 A standalone script for the virtual environment that ``make peers``
 (tools/setup-peers.sh) makes: ``eradiate-mitsuba`` 0.5.0 pins Dr.Jit 1.2.0,
 so it cannot share a process (or an environment) with mi-amr's Mitsuba. It
 imports numpy and the fork's ``mitsuba``/``drjit`` only, never ``mi_amr``.
 
-The job (written by `mi_amr.tools.peers.write_job`) holds the reference's
+The job (written by `mi_amr.bench.peers.write_job`) holds the reference's
 dense grids with the transfer function baked in (``sigma_t`` [nz, ny, nx, 1],
 ``albedo`` [nz, ny, nx, 3], float32: what `reference_medium` hands to
 Mitsuba's ``heterogeneous`` + ``gridvolume``, filter ``nearest``) and the
-parameters of the benchmark scene (`mi_amr.tools.harness.bench_scene`).
+parameters of the benchmark scene (`mi_amr.bench.harness.bench_scene`).
 Configurations:
 
 ``heterogeneous``
@@ -26,7 +26,7 @@ Configurations:
     the extremum structure (delta tracking per segment, residual ratio
     tracking for shadow rays).
 
-Timing mirrors `mi_amr.tools.bench.alternate_passes`: per round, each
+Timing mirrors `mi_amr.bench.protocol.alternate_passes`: per round, each
 configuration in turn loads its scene, renders untimed warm-up frames, waits
 until the process is idle and times one frame (seed = round); one scene is
 alive at a time. Frames are ``dr.freeze``-recorded ``mi.render`` calls when
@@ -50,11 +50,11 @@ from pathlib import Path
 
 import numpy as np
 
-#: Version of the job file layout (`mi_amr.tools.peers.write_job`).
+#: Version of the job file layout (`mi_amr.bench.peers.write_job`).
 JOB_VERSION = 1
 #: What a job file must hold besides the two grids.
 JOB_KEYS = ("density_scale", "resolution", "spp", "max_depth", "rounds", "configs", "frozen")
-#: Untimed frames before a timed one (as `mi_amr.tools.harness.FROZEN_WARMUP`).
+#: Untimed frames before a timed one (as `mi_amr.bench.harness.FROZEN_WARMUP`).
 FROZEN_WARMUP = 3
 #: The fork's variant closest to the benchmark's ``llvm_ad_rgb``: the same.
 DEFAULT_VARIANT = "llvm_ad_rgb"
@@ -97,7 +97,7 @@ def config_parts(config: str):
 
 def load_scene(mi, job, config, tensors):
     """``(scene, extremum structure or None)``: the benchmark scene
-    (`mi_amr.tools.harness.bench_scene`) with the configuration's medium;
+    (`mi_amr.bench.harness.bench_scene`) with the configuration's medium;
     ``tensors``: the (sigma_t, albedo) TensorXf."""
     T = mi.ScalarTransform4f
     extremum_res, integrator = config_parts(config)
@@ -146,7 +146,7 @@ def process_cpu_seconds() -> float:
 
 
 def wait_idle(slice_s: float = 0.02, busy_share: float = 0.25, limit_s: float = 2.0) -> float:
-    """As `mi_amr.tools.harness.wait_idle`: wait until this process uses less
+    """As `mi_amr.bench.harness.wait_idle`: wait until this process uses less
     than ``busy_share`` of a core over a ``slice_s`` slice (at most ``limit_s``)."""
     t_start = time.perf_counter()
     while True:
@@ -161,7 +161,7 @@ def wait_idle(slice_s: float = 0.02, busy_share: float = 0.25, limit_s: float = 
 
 def frame_function(mi, dr, spp: int, frozen: bool):
     """``frame(scene, seed)`` -> float64 image, plain or ``dr.freeze``-recorded
-    (as `mi_amr.tools.harness.frame_function`)."""
+    (as `mi_amr.bench.harness.frame_function`)."""
     if not frozen:
         return lambda scene, seed: np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float64)
 

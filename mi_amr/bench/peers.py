@@ -5,10 +5,10 @@ also with Eradiate's Mitsuba fork (``eradiate-mitsuba`` 0.5.0: its
 ``heterogeneous`` medium with a nested ``extremum_grid`` majorant grid in its
 ``eovolpath`` integrator). The fork pins Dr.Jit 1.2.0, so it runs in its own
 virtual environment (``make peers`` -> ``.venv-eradiate``) as a separate
-process, `mi_amr/tools/peer_eradiate.py`, fed a job file: the reference's
+process, `mi_amr/bench/peer_eradiate.py`, fed a job file: the reference's
 dense grids with the TF baked in (`reference.baked_grids`) and the
 benchmark's scene parameters. Its frames are timed like ours
-(`bench.alternate_passes`: rounds of A B C, warm-up frames, one timed frame
+(`protocol.alternate_passes`: rounds of A B C, warm-up frames, one timed frame
 per pass, one scene alive) but in that other process, so they are not
 interleaved with our configurations' frames: compare within the peer
 (``efficiency_vs_own_heterogeneous``) first, and across processes
@@ -36,7 +36,7 @@ ERADIATE_SCRIPT = Path(__file__).with_name("peer_eradiate.py")
 ERADIATE_CONFIGS = ("heterogeneous", "extremum-auto", "extremum-16", "extremum-32", "extremum-64")
 #: Job file layout version (`peer_eradiate.JOB_VERSION`).
 JOB_VERSION = 1
-#: The benchmark view of `bench.bench_scene`, as plain numbers for the peer
+#: The benchmark view of `harness.bench_scene`, as plain numbers for the peer
 #: (tests/test_peers.py checks that the two agree).
 SCENE = {"origin": [1.7, 1.25, 2.4], "target": [0.5, 0.47, 0.5], "up": [0, 1, 0], "fov": 38,
          "env": [0.5, 0.55, 0.65], "sun_direction": [-0.5, -1.0, -0.35], "sun_irradiance": 2.5}
@@ -103,7 +103,7 @@ def peer_records(result: dict, out: Path, ref_img, reference=None, base: dict | 
                  grid_bytes: int = 0) -> list[dict]:
     """Benchmark records of a peer run: per configuration the median frame
     time, the RMSE over its timed frames against ``ref_img`` (the mean
-    per-frame MSE, as `bench.apply_timing`), ``1 / (MSE x seconds)``, and
+    per-frame MSE, as `protocol.apply_timing`), ``1 / (MSE x seconds)``, and
     that efficiency against ``reference`` (our ``reference`` record of the
     case) and against the peer's own ``heterogeneous``."""
     recs = []
@@ -147,7 +147,7 @@ def run_peers(peers, name, tf_name, cells, tf, scale, args, ref_img, measured, o
     if not peers:
         return []
     from ..reconstruction import reconstruction_method
-    from .reference import baked_grids
+    from ..tools.reference import baked_grids
     recs = []
     for peer in peers:
         if peer != "eradiate":

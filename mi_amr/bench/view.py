@@ -110,3 +110,10 @@ def run(data, field, res, out_dir, repeats=3, seconds=4.0, preview_scale=0.5):
     (out_dir / "view.json").write_text(json.dumps(result, indent=1))
     (out_dir / "view.md").write_text(report(result))
     print(report(result))
+
+
+def main_args(args) -> int:
+    """Entry from `mi_amr.bench.__main__` (``--view``)."""
+    run(args.view, args.view_field, args.res, Path(args.out), args.repeats, preview_scale=args.view_preview_scale)
+    print(f"wrote {args.out}/view.json and view.md")
+    return 0

@@ -192,8 +192,20 @@ def run_scale(sizes, kinds, configs, out: Path, data_dir: Path, res: int, spp: i
     return records
 
 
+def main_args(args) -> int:
+    """Entry from `mi_amr.bench.__main__` (``--scale``): the first picture,
+    256x256 at 1 spp unless ``--res``/``--spp`` are given."""
+    spp = 1 if args.spp == 16 else args.spp
+    run_scale([int(n) for n in args.scale], args.scale_kinds or DEFAULT_KINDS,
+              args.scale_configs or DEFAULT_CONFIGS, Path(args.out), Path(args.data_dir), args.res, spp,
+              args.variant, args.scale_sources or DEFAULT_SOURCES, args.cold_kernels,
+              tuple(args.layouts or ("blocks",)))
+    print(f"wrote {args.out}/scale.json, scale.md and scale.png")
+    return 0
+
+
 def _run_one(path, config, res, spp, variant, cold_kernels) -> dict:
-    cmd = [sys.executable, "-m", "mi_amr.tools.scale_bench", "--one", str(path), config, str(res), str(spp), variant]
+    cmd = [sys.executable, "-m", "mi_amr.bench.scale", "--one", str(path), config, str(res), str(spp), variant]
     with tempfile.TemporaryDirectory(prefix="mi-amr-kernels-") as home:
         env = dict(os.environ, HOME=home) if cold_kernels else None
         r = subprocess.run(cmd, capture_output=True, text=True, env=env)

@@ -617,7 +617,7 @@ def plot_resample(records, out: Path):
 
 
 def main_args(args):
-    """Entry from `mi_amr.tools.bench.main` (``--resample``)."""
+    """Entry from `mi_amr.bench.__main__` (``--resample``)."""
     from .._llvm import ensure_llvm_path
     ensure_llvm_path()
     import mitsuba as mi
@@ -635,7 +635,9 @@ def main_args(args):
         if bad:
             raise SystemExit(f"{name}: unknown {', '.join(bad)} (choose from {', '.join(allowed)})")
     specs = args.resample or list(DEFAULT_DATA)
-    return run_resample(specs, Path(args.out), study)
+    run_resample(specs, Path(args.out), study)
+    print(f"wrote {args.out}/resample.json, resample.md and resample.png")
+    return 0
 
 
 if __name__ == "__main__":

@@ -1,0 +1,154 @@
+"""``python -m mi_amr.bench``: the benchmarks' command line (also ``mi-amr bench``).
+
+`main` is `parse` (the options of every study), `dispatch` (which study the
+options ask for) and that study's ``main_args``: the protocol
+(`mi_amr.bench.protocol`, the default), ``--scale`` (`mi_amr.bench.scale`),
+``--resample`` (`mi_amr.bench.resample`), ``--view`` (`mi_amr.bench.view`)
+or ``--distributed`` (`mi_amr.bench.distributed`).
+"""
+
+import argparse
+
+
+def main(argv=None) -> int:
+    return dispatch(parse(argv))
+
+
+def dispatch(args) -> int:
+    """Run the study the options ask for; its exit status."""
+    if args.view:
+        from .view import main_args
+    elif args.distributed:
+        from .distributed import main_args
+    elif args.scale:
+        from .scale import main_args
+    elif args.resample is not None:
+        from .resample import main_args
+    else:
+        from .protocol import main_args
+    return main_args(args)
+
+
+def parse(argv=None) -> argparse.Namespace:
+    """The options of ``python -m mi_amr.bench`` (``argv``: the process's)."""
+    from . import protocol
+    p = argparse.ArgumentParser(prog="python -m mi_amr.bench", description=protocol.__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="example:\n  python -m mi_amr.bench --quick --out out/bench-quick\n"
+                                       "  python -m mi_amr.bench --datasets cloud --tfs spiky "
+                                       "--configs reference amrvolpath/default --out out/b")
+    for options in (protocol_options, scale_options, resample_options, view_options, distributed_options):
+        options(p)
+    return p.parse_args(argv)
+
+
+def protocol_options(p):
+    from ..reconstruction import METHODS
+    from .protocol import all_configs
+    p.add_argument("files", nargs="*", help="extra .cells data sets")
+    p.add_argument("--out", required=True, help="results folder")
+    p.add_argument("--quick", action="store_true", help="small sizes: minutes on 2 cores")
+    p.add_argument("--cells", type=int, default=20000)
+    p.add_argument("--res", type=int, default=256, help="frame width and height (default 256: frames of real size)")
+    p.add_argument("--spp", type=int, default=16)
+    p.add_argument("--ref-spp", type=int, default=1024)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--frozen", action=argparse.BooleanOptionalAction, default=True,
+                   help="time frames of a dr.freeze-recorded render (as an interactive viewer runs them: "
+                        "no per-frame Python trace), every configuration alike (default; --no-frozen times "
+                        "plain mi.render frames)")
+    p.add_argument("--limit", action=argparse.BooleanOptionalAction, default=True,
+                   help="time the empty-medium frame of each case with the others (the limit: a medium "
+                        "that costs nothing) and report each row's share of it, t_empty / t (default)")
+    p.add_argument("--sparse-res", type=int, default=128,
+                   help="grid size of the 'sparse' data set (the cloud field on one uniform level; its "
+                        "size does not follow --cells)")
+    p.add_argument("--max-depth", type=int, default=64)
+    p.add_argument("--datasets", nargs="*", default=["cloud", "shell", "stadium", "blocks"])
+    p.add_argument("--tfs", nargs="*", default=["spiky", "foggy"])
+    p.add_argument("--data", metavar="PATH",
+                   help="run on this data set instead of the synthetic ones (.cells/.npz or anything yt "
+                        "loads; log10 values and density scale chosen as mi-amr render chooses them)")
+    p.add_argument("--field", help="field of --data (e.g. density)")
+    p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
+    p.add_argument("--peers", nargs="*", default=[], choices=["eradiate"],
+                   help="also render each case with these peers in their own environments (eradiate: "
+                        "Eradiate's Mitsuba fork, extremum_grid + eovolpath; needs make peers)")
+    p.add_argument("--reconstruction", default="nearest", choices=tuple(METHODS))
+    p.add_argument("--grid-refinement", type=int, default=None, metavar="F",
+                   help="grid_refinement of every amr medium (1: uniform grids only; default: the cost model's)")
+    p.add_argument("--no-value-masks", action="store_true",
+                   help="range majorants only (the A/B of the value masks; nearest)")
+    p.add_argument("--memory-limit", type=float, default=4.0,
+                   help="GiB allowed for the dense reference; larger data sets skip it")
+    p.add_argument("--variant", default="llvm_ad_rgb",
+                   help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb (a GPU; make test-gpu)")
+    p.add_argument("--curve-spp", type=int, nargs="*", default=[1, 2, 4, 8],
+                   help="sample counts of the error-against-time curves")
+    p.add_argument("--sweep", type=int, nargs="*", default=[8, 12, 16, 24, 32, 48, 64, 96],
+                   help="grid resolutions of the sweep (amrvolpath/grid/hash); empty: no sweep")
+
+
+def scale_options(p):
+    from ..data.datasets import LAYOUTS
+    p.add_argument("--scale", type=float, nargs="+", default=None, metavar="CELLS",
+                   help="run the scale benchmark instead, at these cell counts (e.g. 1e5 1e6 1e7 1e8)")
+    p.add_argument("--scale-kinds", nargs="+", default=None,
+                   help="data kinds of the scale benchmark: blocks (16^3), mixed (8^3-32^3), cloud "
+                        "(octree-like, up to 1e7 cells); default all three")
+    p.add_argument("--layouts", nargs="+", default=None, choices=list(LAYOUTS), metavar="LAYOUT",
+                   help="scale benchmark: file layouts of the .cells data, rows of their own: blocks (the "
+                        "generator's), zfast (z fastest inside blocks), level (blocks of one physical size, "
+                        "fewer cells on coarser levels, grouped by level), space (blocks sorted by position), "
+                        "shuffled (cells in random order); default blocks")
+    p.add_argument("--scale-sources", nargs="+", default=None, choices=["cells", "amrb"],
+                   help="files the scale benchmark opens: the .cells file, its .amrb conversion (default both)")
+    p.add_argument("--scale-configs", nargs="+", default=None,
+                   help="configurations of the scale benchmark (default: amrvolpath/grid/hash)")
+    p.add_argument("--cold-kernels", action="store_true",
+                   help="scale benchmark: each process starts with an empty Dr.Jit kernel cache")
+    p.add_argument("--data-dir", default="out/data", help="where the scale benchmark keeps its .cells files")
+
+
+def resample_options(p):
+    p.add_argument("--resample", nargs="*", default=None, metavar="DATA",
+                   help="time against error of the amr medium against dense resamples (see mi_amr.bench.resample): "
+                        "cosmo:CELLS[:LEVELS], enzo or a data file (default enzo cosmo:1e7 cosmo:1e8)")
+    p.add_argument("--truth-spp", type=int, default=2048, help="--resample: samples per pixel of the truth")
+    p.add_argument("--floor-spp", type=int, default=None, help="--resample: spp of a rival's floor (truth/2)")
+    p.add_argument("--max-spp", type=int, default=512, help="--resample: the curves' highest spp")
+    p.add_argument("--resolutions", type=int, nargs="+", default=[128, 256, 512, 1024],
+                   help="--resample: dense resolutions (voxels along the longest side)")
+    p.add_argument("--resample-methods", nargs="+", default=["box"], help="--resample: box and/or nearest")
+    p.add_argument("--renderers", nargs="+", default=["heterogeneous", "dense16"],
+                   help="--resample: renderers of the dense rivals")
+    p.add_argument("--check-max", type=int, default=512,
+                   help="--resample: check the finest nearest resample against the truth up to this resolution")
+    p.add_argument("--resample-memory", type=float, default=None,
+                   help="--resample: GiB a rival may use (default 80%% of the memory available at start)")
+    p.add_argument("--unfrozen", action="store_true", help="--resample: time plain mi.render frames")
+    p.add_argument("--zoom", type=float, default=None, metavar="WIDTH",
+                   help="--resample: a telephoto view of the densest cell whose field of view spans WIDTH of "
+                        "the domain (e.g. 0.05: what a scientist looking at one halo sees); default the whole "
+                        "domain")
+
+
+def view_options(p):
+    p.add_argument("--view", metavar="DATA", default=None,
+                   help="how interactive mi-amr view is on DATA, measured in the page (chromium): frames/s "
+                        "while dragging, change-to-frame and change-to-denoised times (--res, --repeats)")
+    p.add_argument("--view-field", default=None, help="field of --view's data")
+    p.add_argument("--view-preview-scale", type=float, default=0.5, help="--view: the viewer's preview scale")
+
+
+def distributed_options(p):
+    p.add_argument("--distributed", action="store_true",
+                   help="speed-up of a Dask LocalCluster over one process (256x256, 256 spp unless "
+                        "--res/--spp are given)")
+    p.add_argument("--workers", type=int, default=2, help="workers of --distributed")
+    p.add_argument("--chunk-spp", type=int, default=32, help="samples per chunk of --distributed")
+    p.add_argument("--dist-scene", default="scenes/demo.xml", help="scene of --distributed")
+
+
+if __name__ == "__main__":
+    main()
