@@ -17,6 +17,7 @@ from .data.convert import dense_to_amr
 from .data.io import load_cells, read_exabricks, read_npz, save_cells, write_exabricks, write_npz
 from .transfer.function import TransferFunction
 from .data import datasets  # noqa: E402
+from . import native_file  # noqa: E402,F401  (gives the one .amrb writer its macrocell grids)
 
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",

@@ -61,7 +61,7 @@ def store_outputs(outputs, field, folder, fields=(), log=print):
     message)]`` for those that could not be read (each named through
     ``log`` as it fails)."""
     from .autoscene import open_data
-    from .data.amrb import write_amrb
+    from .data.amrb import save_amrb
     from .data.blocks import BlockVolume
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -73,7 +73,7 @@ def store_outputs(outputs, field, folder, fields=(), log=print):
             volume, _, _ = open_data(src, field, fields)
             if not isinstance(volume, BlockVolume):
                 volume = BlockVolume.from_cells(volume)
-            path = write_amrb(volume, folder / f"{k:03d}_{Path(src).name}.amrb")
+            path = save_amrb(volume, folder / f"{k:03d}_{Path(src).name}.amrb")
             stored.append((src, path))
         except Exception as e:                   # named, and the others go on
             message = f"{type(e).__name__}: {e}"

@@ -79,6 +79,29 @@ def _chunks(nbytes: int, chunk: int):
     return [(s, min(chunk, nbytes - s)) for s in range(0, nbytes, chunk)]
 
 
+#: Builds the macrocell grids a medium would build first, for `save_amrb`:
+#: ``volume -> {method: grid}``. The builder lives a floor above the data
+#: (`mi_amr.structures.cost_model.file_grids`); `mi_amr.native_file`
+#: installs it when the package is imported (`use_grid_builder`).
+_GRID_BUILDER = None
+
+
+def use_grid_builder(builder) -> None:
+    """Make ``builder`` (``volume -> grids``) the one `save_amrb` stores."""
+    global _GRID_BUILDER
+    _GRID_BUILDER = builder
+
+
+def save_amrb(data, path) -> Path:
+    """The one writer of ``.amrb`` files (`mi_amr.data.io.save_cells`,
+    ``mi-amr convert``, `mi_amr.native_file.save_native`): ``data`` (an
+    `AMRCells` or a `BlockVolume`) as blocks, with the macrocell grids of
+    every reconstruction method, so that a medium opened from the file
+    builds none; returns the path."""
+    volume = data if isinstance(data, BlockVolume) else BlockVolume.from_cells(data)
+    return write_amrb(volume, path, grids=None if _GRID_BUILDER is None else _GRID_BUILDER(volume))
+
+
 def write_amrb(volume: BlockVolume, path, grids: dict | None = None) -> Path:
     """Write ``volume`` to ``path`` (``.amrb``) atomically: streamed chunk by
     chunk into ``path.tmp-PID``, flushed, then renamed over ``path``.

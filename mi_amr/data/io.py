@@ -300,11 +300,12 @@ def load_volume(path, scalars=None, *, overlap: str = "error", method: str = "te
 
 def save_cells(cells: AMRCells | BlockVolume, path) -> Path:
     """Write AMR data to ``.cells`` (+ ``.scalars``), ``.npz`` or ``.amrb``
-    (the resident blocks, `mi_amr.data.amrb`) by extension."""
+    (the resident blocks with their macrocell grids: `mi_amr.data.amrb.save_amrb`)
+    by extension."""
     path = Path(path)
     if path.suffix == ".amrb":
-        from .amrb import write_amrb
-        return write_amrb(cells if isinstance(cells, BlockVolume) else BlockVolume.from_cells(cells), path)
+        from .amrb import save_amrb
+        return save_amrb(cells, path)
     if isinstance(cells, BlockVolume):
         cells = cells.to_cells()
     if path.suffix == ".npz":
