@@ -492,29 +492,43 @@ def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: st
     import mitsuba as mi
     plan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **options)
     T = mi.ScalarTransform4f
+
+    def matrix(m):       # the numbers `write_scene_xml` writes, so that both render the same image
+        return T(mi.ScalarMatrix4f(_as_written(m).reshape(4, 4).astype(np.float32)))
+    T4d = getattr(mi, "ScalarTransform4d", T)            # the XML's look-at is computed in double precision
+    camera = T4d().look_at(*(_as_written(v).tolist() for v in (plan.origin, plan.target, plan.up)))
     medium = {"type": "amr", "data": plan.data, "transfer_function": plan.tf,
               "tf_min": plan.tf_range[0], "tf_max": plan.tf_range[1], "value_transform": plan.transform,
-              "density_scale": plan.density_scale,
-              "to_world": T(mi.ScalarMatrix4f(plan.to_world_matrix().astype(np.float32)))}
+              "density_scale": plan.density_scale, "to_world": matrix(plan.to_world_matrix())}
     medium.update(emission_parameters(plan))
     scene = {
         "type": "scene",
         "integrator": {"type": integrator, "max_depth": 64},
         "sensor": {"type": "perspective", "fov": plan.fov,
-                   "to_world": T().look_at(np.asarray(plan.origin, float).tolist(), list(plan.target), list(plan.up)),
+                   "to_world": T(mi.ScalarMatrix4f(np.array(camera.matrix, dtype=np.float64).astype(np.float32))),
                    "sampler": {"type": "independent", "sample_count": spp},
                    "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
-        "volume": {"type": "cube", "to_world": T(mi.ScalarMatrix4f(plan.to_world_matrix().astype(np.float32)))
-                   @ T().translate([0.5, 0.5, 0.5]) @ T().scale(0.5),
+        "volume": {"type": "cube", "to_world": matrix(_cube_matrix(plan)),
                    "bsdf": {"type": "null"}, "interior": medium},
     }
     if plan.lit:
         scene["sky"] = {"type": "sunsky", "sun_direction": SUN_DIRECTION, "turbidity": 3.0,
                         "sun_scale": 2.5, "sky_scale": 6.0}
         scene["floor"] = {"type": "rectangle",
-                          "to_world": T().translate([0, 0, plan.floor_height()]) @ T().scale(1000),
+                          "to_world": T().translate([0, 0, float(f"{plan.floor_height():.6g}")]) @ T().scale(1000),
                           "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.45}}}
     return scene
+
+
+def _as_written(values) -> np.ndarray:
+    """``values`` as `write_scene_xml` writes them (9 significant digits)."""
+    return np.array([float(f"{float(x):.9g}") for x in np.ravel(values)])
+
+
+def _cube_matrix(plan: ScenePlan) -> np.ndarray:
+    """``to_world`` of the cube that bounds the medium (Mitsuba's cube
+    spans -1..1)."""
+    return plan.to_world_matrix() @ np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
 
 
 def emission_parameters(plan: ScenePlan) -> dict:
@@ -536,8 +550,7 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
     path = Path(path)
     m = plan.to_world_matrix()
     matrix = " ".join(f"{x:.9g}" for x in m.ravel())
-    cube = m @ np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
-    cube_matrix = " ".join(f"{x:.9g}" for x in cube.ravel())
+    cube_matrix = " ".join(f"{x:.9g}" for x in _cube_matrix(plan).ravel())
     o, t, u = (", ".join(f"{float(x):.9g}" for x in v) for v in (plan.origin, plan.target, plan.up))
     notes = "\n         ".join(plan.notes)
     glow = "".join(f"\n        <{'float' if isinstance(v, float) else 'string'} name=\"{k}\" value="
