@@ -28,7 +28,7 @@ box). Simulation codes write *block-structured* data instead, and so does
   parts, values (g/cm^3-like, from about 1e-32) spanning several decades,
   blocks refined top-down where the density is high. Its domain is a
   power of two of finest cells per side, so dense resamples at 2^k voxels
-  per side align with the cells (`mi_amr.tools.resample_bench`).
+  per side align with the cells (`mi_amr.bench.resample`).
 
 One data set has a single level (`uniform_dataset`; ``levels`` does not
 apply):
