@@ -4,359 +4,34 @@ compare, dataset."""
 from __future__ import annotations
 
 import argparse
-import glob
 import json
-import os
 import sys
-import time
-from pathlib import Path
 
 from .._llvm import ensure_llvm_path
 
 
-def _set_variant(variant: str):
-    ensure_llvm_path()
-    import mitsuba as mi
-    if variant not in mi.variants():
-        raise SystemExit(f"mi-amr: variant {variant!r} is not available "
-                         f"(available: {', '.join(mi.variants())})")
-    mi.set_variant(variant)
-    import mi_amr  # noqa: F401  (registers the plugins for this variant)
-    from ..plugins.medium import require_jit_rgb_variant
-    try:
-        require_jit_rgb_variant("mi-amr render")
-    except RuntimeError as e:
-        raise SystemExit(f"mi-amr: {e}")
-    return mi
-
-
-# ---- render ----------------------------------------------------------------
-def _scene_from_data(args):
-    """``mi-amr render DATA --field NAME``: plan a scene from the data alone
-    (`mi_amr.autoscene`), write it as OUT.xml beside the image (yt data are
-    converted to OUT.cells first, so that the XML can load them) and return
-    its path."""
-    from ..autoscene import DEFAULT_TF, field_scalars, plan_scene, write_scene_xml
-    from ..data.io import save_cells
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    plan = plan_scene(args.scene, args.field, **_plan_options(args))
-    data = Path(args.scene)
-    if data.suffix in (".cells", ".npz", ".amrb") and data.is_file():
-        data_file = data.resolve()
-        if field_scalars(data, args.field) is not None:     # the XML names .cells + scalars: convert to one file
-            data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
-    else:      # a native file: it holds further fields (emission) and reopens at disk speed
-        data_file = save_cells(plan.data, out.with_suffix(".amrb" if plan.data.fields else ".cells")).resolve()
-    xml = write_scene_xml(plan, data_file, out.with_suffix(".xml"), res=args.res, spp=args.spp)
-    if not args.quiet:
-        for note in plan.notes:
-            print(note)
-        print(f"wrote {xml} (edit it and run: mi-amr render {xml} -o {out})")
-    return xml
-
-
-def _plan_options(args) -> dict:
-    """`mi_amr.autoscene.plan_scene` options from the data flags."""
-    from ..autoscene import DEFAULT_TF, GLOW_TF
-    return dict(tf=args.tf or (GLOW_TF if args.emission else DEFAULT_TF), log={"log": True, "linear": False}.get(args.scale),
-                value_range=tuple(args.range) if args.range else None,
-                emission=args.emission, emission_field=args.emission_field,
-                emission_range=tuple(args.emission_range) if args.emission_range else None,
-                emission_scale=args.emission_scale)
-
-
-def _render_series(args):
-    """Data outputs named by a pattern (or ``--movie``): one plan for all
-    (`mi_amr.series`), a frame per output, numbered EXR/PNG frames and/or a
-    movie. Outputs that cannot be read are named and left out; the exit
-    status is 1 when any was."""
-    import numpy as np
-
-    from .. import series
-    from ..images import write_exr, write_png
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    outputs = series.expand_outputs(args.scene)
-    folder = out.with_name(f"{out.stem}_outputs")
-    say = (lambda *a: None) if args.quiet else print
-    extra = (args.emission_field,) if args.emission and args.emission_field else ()
-    stored, failed = series.store_outputs(outputs, args.field, folder, extra,
-                                          log=lambda m: print(m, file=sys.stderr))
-    if not stored:
-        raise SystemExit(f"mi-amr: none of the {len(outputs)} outputs could be read")
-    plan = series.plan_series(stored, **_plan_options(args))
-    for note in plan.notes:
-        say(note)
-    scenes = series.frame_scenes(plan, stored, folder, args.res, args.spp, args.orbit)
-    t0 = time.perf_counter()
-    images = _render_all(args, [(str(s), {}) for s in scenes])
-    seconds = time.perf_counter() - t0
-    images = [np.array(im, dtype=np.float32) for im in images]
-    for (src, _), img in zip(stored, images):
-        if not np.all(np.isfinite(img)):
-            raise SystemExit(f"mi-amr: the frame of {src} contains {int((~np.isfinite(img)).sum())} non-finite values")
-    clean = _denoised(images) if args.denoise else None       # the movie shows the denoised frames
-    if args.movie:
-        movie = series.encode_movie(clean or images, args.movie, args.fps)
-        say(f"wrote {movie} ({len(images)} {'denoised ' if clean else ''}frames at {args.fps} fps)")
-    if args.frames or not args.movie:
-        for k, img in enumerate(images):
-            path = out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
-            write_exr(path, img)
-            write_png(path.with_suffix(".png"), img)
-            if clean:
-                _write_denoised(path, clean[k])
-        say(f"wrote {out.stem}_000{out.suffix} ... {out.stem}_{len(images) - 1:03d}{out.suffix} (+ .png"
-            f"{', -denoised' if clean else ''})")
-    say(f"{len(images)} frame(s) of {len(outputs)} outputs in {seconds:.2f} s; scenes and data in {folder}")
-    series.report_failed(failed)
-    return 1 if failed else 0
-
-
-def _render_all(args, jobs):
-    """Render ``(XML scene, -D parameters)`` jobs: on a Dask cluster with
-    ``--workers``/``--scheduler`` (frame-parallel), else one after the other
-    here. Returns the images."""
-    from .. import distributed
-    spp = args.spp
-    workers = args.workers
-    chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
-    name = Path(jobs[0][0]).name
-    if workers or args.scheduler:
-        client = None
-        if args.scheduler:
-            from dask.distributed import Client
-            client = Client(args.scheduler)
-        elif workers:
-            client = distributed.local_cluster(workers)
-        try:
-            threads = max(1, (os.cpu_count() or 1) // workers) if workers and not args.scheduler else None
-            return distributed.render_frames(jobs, spp, client, chunk_spp, args.seed, progress=not args.quiet,
-                                             desc=name, drjit_threads=threads)
-        finally:
-            cluster = getattr(client, "cluster", None)
-            client.close()
-            if cluster is not None and not args.scheduler:
-                cluster.close()
-    return [distributed.render_local(scene, spp, chunk_spp, args.seed, params=p, progress=not args.quiet,
-                                     desc=Path(scene).name) for scene, p in jobs]
-
-
+# Each subcommand is a call: ``render`` is `mi_amr.render`, ``info``
+# `mi_amr.tools.info`, the others `mi_amr.tools.commands`.
 def cmd_render(args):
-    if args.output is None:
-        if not args.movie:
-            raise ValueError("-o/--output is needed (the .exr to write; with --movie OUT.mp4 it may be left out)")
-        args.output = str(Path(args.movie).with_suffix(".exr"))      # frames and scenes beside the movie
-    if args.denoise:                          # before any work: is the denoiser there?
-        from ..view.engine import denoiser
-        if denoiser()[0] is None:
-            raise ValueError(f"--denoise: {denoiser()[1]}")
-    _set_variant(args.variant)
-    import drjit as dr
-    import numpy as np
-
-    from ..images import write_exr, write_png
-    is_xml = Path(args.scene).suffix.lower() == ".xml"
-    data_flags = (args.field or args.tf or args.range or args.scale or args.emission or args.emission_field
-                  or args.emission_range or args.emission_scale is not None)
-    if is_xml and data_flags:
-        raise SystemExit("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
-                         "not XML scenes (set those in the scene)")
-    if is_xml and args.movie:
-        raise SystemExit("mi-amr: --movie renders a run's outputs (a data pattern such as 'DD00??/DD00??'), "
-                         "not an XML scene; for -D variations use --frames")
-    if (args.emission_field or args.emission_range or args.emission_scale is not None) and not args.emission:
-        raise SystemExit("mi-amr: --emission-field, --emission-range and --emission-scale need --emission "
-                         "(an emission TF such as blackbody)")
-    if not is_xml and (args.movie or glob.has_magic(args.scene)):
-        return _render_series(args)
-    if args.orbit:
-        raise SystemExit("mi-amr: --orbit turns the camera over a run's outputs (with --movie or a pattern)")
-    if not is_xml:
-        args.scene = str(_scene_from_data(args))
-    frames, varying = _frames(args)
-    spp = args.spp
-    t0 = time.perf_counter()
-    images = _render_all(args, [(args.scene, p) for p in frames])
-    seconds = time.perf_counter() - t0
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    for k, (params, image) in enumerate(zip(frames, images)):
-        img = np.array(image, dtype=np.float32)
-        if not np.all(np.isfinite(img)):
-            raise SystemExit(f"mi-amr: the rendered image contains {int((~np.isfinite(img)).sum())} "
-                             "non-finite values")
-        path = out if len(frames) == 1 else out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
-        write_exr(path, img)
-        write_png(path.with_suffix(".png"), img)
-        if not args.quiet:
-            what = " ".join(f"{a}={b}" for a, b in params.items() if a in varying)
-            print(f"wrote {path} and {path.with_suffix('.png')} ({img.shape[1]}x{img.shape[0]}, "
-                  f"{spp} spp{', ' + what if what else ''})")
-    if args.denoise:
-        _denoise_images(args, frames, images)
-    if not args.quiet:
-        print(f"{len(frames)} frame(s) in {seconds:.2f} s")
-    dr.sync_thread()
-
-
-def _denoise_images(args, frames, images):
-    """``--denoise``: OUT-denoised.exr/.png beside each image."""
-    out = Path(args.output)
-    for k, clean in enumerate(_denoised(images)):
-        path = _write_denoised(out if len(frames) == 1 else out.with_name(f"{out.stem}_{k:03d}{out.suffix}"), clean)
-        if not args.quiet:
-            print(f"wrote {path} and {path.with_suffix('.png')} (denoised)")
-
-
-def _denoised(images) -> list:
-    """The images (linear RGB) through Intel Open Image Denoise."""
-    import numpy as np
-
-    from ..view.engine import denoiser
-    denoise, missing = denoiser()
-    if denoise is None:
-        raise ValueError(f"--denoise: {missing}")
-    return [denoise(np.asarray(image, dtype=np.float32)[..., :3]) for image in images]
-
-
-def _write_denoised(path: Path, clean) -> Path:
-    """``clean`` as PATH-denoised.exr and .png beside ``path``; the EXR's path."""
-    from ..images import write_exr, write_png
-    path = path.with_name(f"{path.stem}-denoised{path.suffix}")
-    write_exr(path, clean)
-    write_png(path.with_suffix(".png"), clean)
-    return path
+    from ..render import render
+    return render(args)
 
 
 def cmd_view(args):
-    import webbrowser
-
-    from ..view.engine import ViewEngine
-    from ..view.server import ViewServer, warn_if_exposed
-    if Path(args.scene).suffix.lower() == ".xml" and args.field:
-        raise ValueError("--field is for data, not XML scenes")
-    if not Path(args.scene).exists():
-        raise FileNotFoundError(f"{args.scene}: no such file or directory")
-    _set_variant(args.variant)
-    engine = ViewEngine(args.scene, args.field, res=args.res, max_spp=args.max_spp,
-                        preview_scale=args.preview_scale, variant=args.variant)
-    server = ViewServer(engine, args.host, args.port, out_dir=args.out)
-    warn_if_exposed(args.host)
-    engine.start()
-    print(f"mi-amr view: {server.url}", flush=True)
-    print("(Ctrl-C stops the viewer)", flush=True)
-    if not args.no_browser:
-        webbrowser.open(server.url)
-    try:
-        server.run()
-    finally:
-        engine.stop()
-
-
-def _frames(args) -> tuple[list[dict], list[str]]:
-    """The ``-D`` parameters of each frame, and the names that vary: one
-    frame, or with ``--frames`` every combination of the comma-separated
-    values (first name slowest)."""
-    import itertools
-    params = _scene_params(args)
-    if not args.frames:
-        return [params], []
-    lists = {k: v.split(",") for k, v in params.items()}
-    varying = [k for k, v in lists.items() if len(v) > 1]
-    if not varying:
-        raise SystemExit("mi-amr: --frames needs a -D NAME=V1,V2,... with several values")
-    return [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())], varying
-
-
-# ---- reference / frametime -------------------------------------------------
-def _scene_params(args):
-    params = {}
-    for item in getattr(args, "define", None) or []:
-        if "=" not in item:
-            raise SystemExit(f"mi-amr: -D expects NAME=VALUE, got {item!r}")
-        k, v = item.split("=", 1)
-        params[k] = v
-    return params
-
-
-def _timed_render(mi, scene, spp, repeats, seed=0):
-    """Median wall time of ``repeats`` renders after a warm-up render that
-    compiles the kernels; returns (seconds, compile_seconds, image)."""
-    import numpy as np
-    t0 = time.perf_counter()
-    np.array(mi.render(scene, spp=1, seed=seed + 10_000))
-    compile_s = time.perf_counter() - t0
-    times, img = [], None
-    for r in range(repeats):
-        t0 = time.perf_counter()
-        img = np.array(mi.render(scene, spp=spp, seed=seed + r))
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), compile_s, img
+    from .commands import view
+    return view(args)
 
 
 def cmd_reference(args):
-    mi = _set_variant(args.variant)
-    import tempfile
-
-    import numpy as np
-
-    from ..images import write_exr, write_png
-    from .reference import reference_scene
-    with tempfile.TemporaryDirectory() as tmp:
-        scene, _ = reference_scene(args.scene, tmp, **_scene_params(args))
-        img = np.array(mi.render(scene, spp=args.spp, seed=args.seed), dtype=np.float32)
-    write_exr(args.output, img)
-    write_png(Path(args.output).with_suffix(".png"), img)
-    if not args.quiet:
-        print(f"wrote {args.output} (heterogeneous + gridvolume reference, {args.spp} spp)")
+    from .commands import reference
+    return reference(args)
 
 
 def cmd_frametime(args):
-    mi = _set_variant(args.variant)
-    import tempfile
-
-    from ..images import compare_images
-    from ..scene_xml import with_amr_parameters
-    from .reference import reference_scene
-    params = _scene_params(args)
-    rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        configs = [("amr majorant=ray", lambda: with_amr_parameters(args.scene, {"majorant": "ray"}, **params)),
-                   ("amr majorant=global", lambda: with_amr_parameters(args.scene, {"majorant": "global"}, **params)),
-                   ("heterogeneous reference", lambda: reference_scene(args.scene, tmp, **params)[0])]
-        images = {}
-        for name, load in configs:
-            t0 = time.perf_counter()
-            scene = load()
-            load_s = time.perf_counter() - t0
-            sec, comp, img = _timed_render(mi, scene, args.spp, args.repeats, seed=args.seed + 1000 * len(rows))
-            images[name] = img
-            rows.append({"config": name, "load_s": load_s, "compile_s": comp, "frame_s": sec})
-    ref_t = rows[-1]["frame_s"]
-    ref_img = images["heterogeneous reference"]
-    if not args.quiet:
-        print(f"{args.scene}: {args.spp} spp per frame, median of {args.repeats} frames "
-              f"(after a warm-up frame that compiles the kernels)")
-    print(f"{'configuration':26s} {'load s':>8s} {'compile s':>10s} {'frame s':>9s} "
-          f"{'vs reference':>13s} {'mean radiance':>14s}")
-    for r in rows:
-        r["speedup_vs_reference"] = ref_t / r["frame_s"]
-        r["mean"] = float(images[r["config"]].mean())
-        print(f"{r['config']:26s} {r['load_s']:8.2f} {r['compile_s']:10.2f} {r['frame_s']:9.3f} "
-              f"{r['speedup_vs_reference']:12.2f}x {r['mean']:14.5f}")
-    for name in ("amr majorant=ray", "amr majorant=global"):
-        if args.quiet:
-            break
-        st = compare_images(images[name], ref_img)
-        print(f"relative RMSE of {name} vs reference at {args.spp} spp (noise of both + bias; "
-              f"independent seeds): {st['relative_rmse']:.3%}")
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=2))
+    from .commands import frametime
+    return frametime(args)
 
 
-# ---- info ------------------------------------------------------------------
 def cmd_info(args):
     """Levels, cells, domain, fields (ranges, shares of zeros and negatives)
     and the memory of an ``amr`` medium over the data (`mi_amr.tools.info`);
@@ -364,111 +39,22 @@ def cmd_info(args):
     ensure_llvm_path()
     from .info import describe, format_info
     info = describe(args.file, args.field, args.scalars)
-    if args.json:
-        print(json.dumps(info))
-    else:
-        print(format_info(info))
+    print(json.dumps(info) if args.json else format_info(info))
 
 
-# ---- convert ---------------------------------------------------------------
 def cmd_convert(args):
-    ensure_llvm_path()
-    import numpy as np
-
-    from ..data.convert import dense_to_amr
-    from ..data.io import load_cells, load_volume, save_cells
-    src = Path(args.input)
-    if src.suffix in (".cells", ".npz", ".amrb") and Path(args.output).suffix == ".amrb":
-        cells = load_volume(src, overlap=args.overlap)      # streamed into blocks, never per-cell records
-    elif src.suffix in (".cells", ".npz", ".amrb"):
-        cells = load_cells(src, overlap=args.overlap)
-    elif src.suffix in (".npy", ".raw"):
-        if src.suffix == ".npy":
-            vol = np.load(src, allow_pickle=False)
-        else:
-            if not args.shape:
-                raise SystemExit("mi-amr convert: a .raw volume needs --shape X Y Z")
-            nx, ny, nz = args.shape
-            expected = nx * ny * nz * np.dtype(args.dtype).itemsize
-            size = src.stat().st_size
-            if size != expected:
-                raise SystemExit(f"mi-amr convert: {src} has {size} bytes, but --shape "
-                                 f"{nx} {ny} {nz} with {args.dtype} needs {expected}")
-            vol = np.fromfile(src, dtype=args.dtype).reshape(nz, ny, nx)
-        cells = dense_to_amr(vol, args.threshold, args.max_level, source=str(src))
-    elif args.field:
-        from ..autoscene import _yt_load
-        from ..data.yt_import import from_yt_blocks
-        try:
-            ds = _yt_load(src)
-        except ImportError as e:
-            raise SystemExit(f"mi-amr convert: {e}")
-        field = tuple(args.field.split(",")) if "," in args.field else args.field
-        cells = from_yt_blocks(ds, field, overlap=args.overlap)        # grids straight into blocks
-    else:
-        raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' (expected .cells, "
-                         ".npz, .amrb, .npy or .raw, or a yt-loadable dataset with --field)")
-    if args.log:
-        from ..data.transform import apply_value_transform
-        cells, floor = apply_value_transform(cells, "log10")
-        print(f"values replaced by log10(max(v, {floor:.6g})): {floor:.6g} is the smallest positive value")
-    if Path(args.output).suffix == ".amrb":
-        from ..native_file import save_native
-        out = save_native(cells, args.output)          # with the grids a medium builds first
-    else:
-        out = save_cells(cells, args.output)
-    print(f"wrote {out}: {cells}")
+    from .commands import convert
+    return convert(args)
 
 
-# ---- compare ---------------------------------------------------------------
 def cmd_compare(args):
-    import numpy as np
-
-    from ..images import read_exr, write_exr
-    from ..images import compare_images
-    a, b = read_exr(args.a), read_exr(args.b)
-    try:
-        stats = compare_images(a, b)
-    except ValueError as e:
-        raise SystemExit(f"mi-amr compare: {e}")
-    if args.diff:
-        write_exr(args.diff, np.abs(a - b))
-    if args.json:
-        print(json.dumps(stats, indent=2))
-        return
-    print(f"A: {args.a}\nB: {args.b} (reference)")
-    print(f"RMSE {stats['rmse']:.6g}   relative RMSE {stats['relative_rmse']:.4%}   "
-          f"MAE {stats['mae']:.6g}   max |A-B| {stats['max_abs']:.6g}")
-    print(f"mean A {stats['mean_a']:.6g}   mean B {stats['mean_b']:.6g}")
-    for name, c in zip("RGBA", stats["channels"]):
-        print(f"  {name}: RMSE {c['rmse']:.6g}  mean A {c['mean_a']:.6g}  mean B {c['mean_b']:.6g}  "
-              f"max |A-B| {c['max_abs']:.6g}")
-    if stats["nonfinite_a"] or stats["nonfinite_b"]:
-        print(f"non-finite pixels: A {stats['nonfinite_a']}, B {stats['nonfinite_b']}")
-    if args.diff:
-        print(f"difference image: {args.diff}")
+    from .commands import compare
+    return compare(args)
 
 
-# ---- dataset ---------------------------------------------------------------
 def cmd_dataset(args):
-    ensure_llvm_path()
-    from ..data.datasets import BLOCK_DATASETS, make_dataset, write_block_dataset
-    from ..data.io import save_cells
-    if args.name in BLOCK_DATASETS and Path(args.output).suffix == ".cells":
-        # streamed block by block: no per-cell array of the whole data set
-        from ..progress import progress
-        with progress(int(args.cells), f"writing {args.output}") as bar:
-            out = write_block_dataset(args.output, int(args.cells), args.levels, args.seed, args.nxb, bar,
-                                      name=args.name, layout=args.layout)
-        print(f"wrote {out}: {out.stat().st_size // 16} cells in blocks ({args.layout} layout)")
-        return
-    if args.nxb is not None:
-        raise SystemExit("mi-amr dataset: --nxb applies to 'blocks' and 'cosmo' written as .cells")
-    if args.layout != "blocks":
-        raise SystemExit("mi-amr dataset: --layout applies to 'blocks' and 'cosmo' written as .cells")
-    cells = make_dataset(args.name, args.cells, args.levels, args.seed)
-    out = save_cells(cells, args.output)
-    print(f"wrote {out}: {cells}")
+    from .commands import dataset
+    return dataset(args)
 
 
 def _count(text: str) -> int:

@@ -41,7 +41,7 @@ def main(argv=None):
     p.add_argument("--out", default="docs/images")
     p.add_argument("-q", "--quiet", action="store_true")
     args = p.parse_args(argv)
-    from .cli import _set_variant
+    from ..render import set_variant as _set_variant
     _set_variant(args.variant)
     import numpy as np
     from .. import distributed

@@ -1,0 +1,295 @@
+"""What ``mi-amr render`` does, below the command line: render jobs and the
+frames they write.
+
+Three jobs (`render`): an XML scene (with ``-D`` variations as frames), data
+planned into a scene (`mi_amr.autoscene`: the planned data are rendered as
+they lie in memory, and the XML written beside the image for the user names
+a file written once, never loaded again here), and a run's outputs as
+frames and a movie (`mi_amr.series`). Every image goes out through
+`write_frame` (finite check, EXR + PNG preview), the ``--denoise`` copies
+too (`denoised_path`). ``args`` is the parsed command line of
+``mi-amr render`` (`mi_amr.tools.cli`).
+"""
+
+from __future__ import annotations
+
+import glob
+import itertools
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
+                      "not XML scenes (set those in the scene)")
+
+
+def set_variant(variant: str):
+    """Select a Mitsuba variant (a one-line exit when it is missing or not a
+    JIT RGB one) with the mi-amr plugins registered; returns ``mitsuba``."""
+    from ._llvm import ensure_llvm_path
+    ensure_llvm_path()
+    import mitsuba as mi
+    if variant not in mi.variants():
+        raise SystemExit(f"mi-amr: variant {variant!r} is not available "
+                         f"(available: {', '.join(mi.variants())})")
+    mi.set_variant(variant)
+    import mi_amr  # noqa: F401  (registers the plugins for this variant)
+    from .plugins.medium import require_jit_rgb_variant
+    try:
+        require_jit_rgb_variant("mi-amr render")
+    except RuntimeError as e:
+        raise SystemExit(f"mi-amr: {e}")
+    return mi
+
+
+# ---- frames ----------------------------------------------------------------
+def check_finite(image, what: str = "the rendered image") -> np.ndarray:
+    """``image`` as float32, or a one-line exit naming its non-finite values."""
+    img = np.array(image, dtype=np.float32)
+    if not np.all(np.isfinite(img)):
+        raise SystemExit(f"mi-amr: {what} contains {int((~np.isfinite(img)).sum())} non-finite values")
+    return img
+
+
+def write_frame(path, image, what: str = "the rendered image") -> np.ndarray:
+    """The one writer of rendered images: ``image`` checked finite, as
+    ``path`` (EXR) and its PNG preview beside it; returns the float32 image."""
+    from .images import write_exr, write_png
+    img = check_finite(image, what)
+    path = Path(path)
+    write_exr(path, img)
+    write_png(path.with_suffix(".png"), img)
+    return img
+
+
+def denoised_path(path) -> Path:
+    """``OUT-denoised.exr`` beside ``OUT.exr``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}-denoised{path.suffix}")
+
+
+def frame_path(out, k: int, n: int) -> Path:
+    """``OUT`` for a single frame, else ``OUT_000``, ``OUT_001``, ..."""
+    out = Path(out)
+    return out if n == 1 else out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
+
+
+def require_denoiser():
+    """``--denoise``: fail before any work when the denoiser is missing."""
+    from .view.engine import denoiser
+    if denoiser()[0] is None:
+        raise ValueError(f"--denoise: {denoiser()[1]}")
+
+
+def denoised(images) -> list:
+    """The images (linear RGB) through Intel Open Image Denoise."""
+    from .view.engine import denoiser
+    denoise, missing = denoiser()
+    if denoise is None:
+        raise ValueError(f"--denoise: {missing}")
+    return [denoise(np.asarray(image, dtype=np.float32)[..., :3]) for image in images]
+
+
+# ---- rendering -------------------------------------------------------------
+def scene_params(defines) -> dict:
+    """``-D NAME=VALUE`` items as a dict."""
+    params = {}
+    for item in defines or []:
+        if "=" not in item:
+            raise SystemExit(f"mi-amr: -D expects NAME=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        params[k] = v
+    return params
+
+
+def frames(args) -> tuple[list[dict], list[str]]:
+    """The ``-D`` parameters of each frame, and the names that vary: one
+    frame, or with ``--frames`` every combination of the comma-separated
+    values (first name slowest)."""
+    params = scene_params(args.define)
+    if not args.frames:
+        return [params], []
+    lists = {k: v.split(",") for k, v in params.items()}
+    varying = [k for k, v in lists.items() if len(v) > 1]
+    if not varying:
+        raise SystemExit("mi-amr: --frames needs a -D NAME=V1,V2,... with several values")
+    return [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())], varying
+
+
+def render_jobs(args, jobs, desc: str | None = None) -> list:
+    """Render ``(scene, -D parameters)`` jobs (an XML path, or a scene
+    dictionary): on a Dask cluster with ``--workers``/``--scheduler``
+    (frame-parallel), else one after the other here. Returns the images."""
+    from . import distributed
+    spp, workers = args.spp, args.workers
+    chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
+    name = desc or Path(jobs[0][0]).name
+    if workers or args.scheduler:
+        client = None
+        if args.scheduler:
+            from dask.distributed import Client
+            client = Client(args.scheduler)
+        elif workers:
+            client = distributed.local_cluster(workers)
+        try:
+            threads = max(1, (os.cpu_count() or 1) // workers) if workers and not args.scheduler else None
+            return distributed.render_frames(jobs, spp, client, chunk_spp, args.seed, progress=not args.quiet,
+                                             desc=name, drjit_threads=threads)
+        finally:
+            cluster = getattr(client, "cluster", None)
+            client.close()
+            if cluster is not None and not args.scheduler:
+                cluster.close()
+    return [distributed.render_local(scene, spp, chunk_spp, args.seed, params=p, progress=not args.quiet,
+                                     desc=desc or Path(scene).name) for scene, p in jobs]
+
+
+# ---- data planned into a scene --------------------------------------------
+def plan_options(args) -> dict:
+    """`mi_amr.autoscene.plan_scene` options from the data flags."""
+    from .autoscene import DEFAULT_TF, GLOW_TF
+    return dict(tf=args.tf or (GLOW_TF if args.emission else DEFAULT_TF),
+                log={"log": True, "linear": False}.get(args.scale),
+                value_range=tuple(args.range) if args.range else None,
+                emission=args.emission, emission_field=args.emission_field,
+                emission_range=tuple(args.emission_range) if args.emission_range else None,
+                emission_scale=args.emission_scale)
+
+
+def plan_data(args):
+    """``mi-amr render DATA --field NAME``: plan a scene from the data, read
+    once (`mi_amr.autoscene.plan_scene`), and write it as OUT.xml beside the
+    image for the user. The XML names the data file itself, or (yt data, a
+    field's own .scalars) the planned data written once as OUT.amrb/.cells.
+    Returns ``(plan, xml path)``."""
+    from .autoscene import field_scalars, plan_scene, write_scene_xml
+    from .data.io import save_cells
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    plan = plan_scene(args.scene, args.field, **plan_options(args))
+    data = Path(args.scene)
+    if data.suffix in (".cells", ".npz", ".amrb") and data.is_file():
+        data_file = data.resolve()
+        if field_scalars(data, args.field) is not None:     # the XML names .cells + scalars: convert to one file
+            data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
+    else:      # a native file: it holds further fields (emission) and reopens at disk speed
+        data_file = save_cells(plan.data, out.with_suffix(".amrb" if plan.data.fields else ".cells")).resolve()
+    xml = write_scene_xml(plan, data_file, out.with_suffix(".xml"), res=args.res, spp=args.spp)
+    if not args.quiet:
+        for note in plan.notes:
+            print(note)
+        print(f"wrote {xml} (edit it and run: mi-amr render {xml} -o {out})")
+    return plan, xml
+
+
+def data_jobs(args, plan, xml, frame_params) -> list:
+    """The jobs of planned data: here, the plan's scene dictionary over the
+    data in memory (``-D res`` and ``spp`` apply to it as to the XML); on a
+    cluster, or for other ``-D`` names, the XML (workers load its file)."""
+    from .autoscene import scene_for
+    if args.workers or args.scheduler or any(set(p) - {"res", "spp"} for p in frame_params):
+        return [(str(xml), p) for p in frame_params]
+    return [(scene_for(plan, res=int(p.get("res", args.res)), spp=int(p.get("spp", args.spp))), {})
+            for p in frame_params]
+
+
+# ---- the jobs --------------------------------------------------------------
+def render(args):
+    """``mi-amr render``: an XML scene, data planned into a scene, or a run's
+    outputs (`render_series`); returns the exit status (None: 0)."""
+    if args.output is None:
+        if not args.movie:
+            raise ValueError("-o/--output is needed (the .exr to write; with --movie OUT.mp4 it may be left out)")
+        args.output = str(Path(args.movie).with_suffix(".exr"))      # frames and scenes beside the movie
+    if args.denoise:                          # before any work: is the denoiser there?
+        require_denoiser()
+    set_variant(args.variant)
+    import drjit as dr
+    is_xml = Path(args.scene).suffix.lower() == ".xml"
+    data_flags = (args.field or args.tf or args.range or args.scale or args.emission or args.emission_field
+                  or args.emission_range or args.emission_scale is not None)
+    if is_xml and data_flags:
+        raise SystemExit(DATA_FLAGS_MESSAGE)
+    if is_xml and args.movie:
+        raise SystemExit("mi-amr: --movie renders a run's outputs (a data pattern such as 'DD00??/DD00??'), "
+                         "not an XML scene; for -D variations use --frames")
+    if (args.emission_field or args.emission_range or args.emission_scale is not None) and not args.emission:
+        raise SystemExit("mi-amr: --emission-field, --emission-range and --emission-scale need --emission "
+                         "(an emission TF such as blackbody)")
+    if not is_xml and (args.movie or glob.has_magic(args.scene)):
+        return render_series(args)
+    if args.orbit:
+        raise SystemExit("mi-amr: --orbit turns the camera over a run's outputs (with --movie or a pattern)")
+    params, varying = None, None
+    if is_xml:
+        params, varying = frames(args)
+        jobs, desc = [(args.scene, p) for p in params], None
+    else:
+        plan, xml = plan_data(args)
+        params, varying = frames(args)
+        jobs, desc = data_jobs(args, plan, xml, params), Path(xml).name
+    t0 = time.perf_counter()
+    images = render_jobs(args, jobs, desc)
+    seconds = time.perf_counter() - t0
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for k, (p, image) in enumerate(zip(params, images)):
+        path = frame_path(out, k, len(params))
+        img = write_frame(path, image)
+        if not args.quiet:
+            what = " ".join(f"{a}={b}" for a, b in p.items() if a in varying)
+            print(f"wrote {path} and {path.with_suffix('.png')} ({img.shape[1]}x{img.shape[0]}, "
+                  f"{args.spp} spp{', ' + what if what else ''})")
+    if args.denoise:
+        for k, clean in enumerate(denoised(images)):
+            path = denoised_path(frame_path(out, k, len(params)))
+            write_frame(path, clean)
+            if not args.quiet:
+                print(f"wrote {path} and {path.with_suffix('.png')} (denoised)")
+    if not args.quiet:
+        print(f"{len(params)} frame(s) in {seconds:.2f} s")
+    dr.sync_thread()
+
+
+def render_series(args):
+    """Data outputs named by a pattern (or ``--movie``): one plan for all
+    (`mi_amr.series`), a frame per output, numbered EXR/PNG frames and/or a
+    movie. Outputs that cannot be read are named and left out; the exit
+    status is 1 when any was."""
+    from . import series
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    outputs = series.expand_outputs(args.scene)
+    folder = out.with_name(f"{out.stem}_outputs")
+    say = (lambda *a: None) if args.quiet else print
+    extra = (args.emission_field,) if args.emission and args.emission_field else ()
+    stored, failed = series.store_outputs(outputs, args.field, folder, extra,
+                                          log=lambda m: print(m, file=sys.stderr))
+    if not stored:
+        raise SystemExit(f"mi-amr: none of the {len(outputs)} outputs could be read")
+    plan = series.plan_series(stored, **plan_options(args))
+    for note in plan.notes:
+        say(note)
+    scenes = series.frame_scenes(plan, stored, folder, args.res, args.spp, args.orbit)
+    t0 = time.perf_counter()
+    images = render_jobs(args, [(str(s), {}) for s in scenes])
+    seconds = time.perf_counter() - t0
+    images = [check_finite(im, f"the frame of {src}") for (src, _), im in zip(stored, images)]
+    clean = denoised(images) if args.denoise else None       # the movie shows the denoised frames
+    if args.movie:
+        movie = series.encode_movie(clean or images, args.movie, args.fps)
+        say(f"wrote {movie} ({len(images)} {'denoised ' if clean else ''}frames at {args.fps} fps)")
+    if args.frames or not args.movie:
+        for k, img in enumerate(images):
+            path = out.with_name(f"{out.stem}_{k:03d}{out.suffix}")
+            write_frame(path, img)
+            if clean:
+                write_frame(denoised_path(path), clean[k])
+        say(f"wrote {out.stem}_000{out.suffix} ... {out.stem}_{len(images) - 1:03d}{out.suffix} (+ .png"
+            f"{', -denoised' if clean else ''})")
+    say(f"{len(images)} frame(s) of {len(outputs)} outputs in {seconds:.2f} s; scenes and data in {folder}")
+    series.report_failed(failed)
+    return 1 if failed else 0

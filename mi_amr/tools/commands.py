@@ -1,0 +1,203 @@
+"""The bodies of the ``mi-amr`` subcommands other than ``render`` (which
+is `mi_amr.render`) and ``info`` (`mi_amr.tools.info`): view, reference,
+frametime, convert, compare, dataset. Each takes the parsed arguments of its
+subcommand (`mi_amr.tools.cli`)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from .._llvm import ensure_llvm_path
+from ..render import scene_params, set_variant
+
+
+def view(args):
+    import webbrowser
+
+    from ..view.engine import ViewEngine
+    from ..view.server import ViewServer, warn_if_exposed
+    if Path(args.scene).suffix.lower() == ".xml" and args.field:
+        raise ValueError("--field is for data, not XML scenes")
+    if not Path(args.scene).exists():
+        raise FileNotFoundError(f"{args.scene}: no such file or directory")
+    set_variant(args.variant)
+    engine = ViewEngine(args.scene, args.field, res=args.res, max_spp=args.max_spp,
+                        preview_scale=args.preview_scale, variant=args.variant)
+    server = ViewServer(engine, args.host, args.port, out_dir=args.out)
+    warn_if_exposed(args.host)
+    engine.start()
+    print(f"mi-amr view: {server.url}", flush=True)
+    print("(Ctrl-C stops the viewer)", flush=True)
+    if not args.no_browser:
+        webbrowser.open(server.url)
+    try:
+        server.run()
+    finally:
+        engine.stop()
+
+
+def timed_render(mi, scene, spp, repeats, seed=0):
+    """Median wall time of ``repeats`` renders after a warm-up render that
+    compiles the kernels; returns (seconds, compile_seconds, image)."""
+    import numpy as np
+    t0 = time.perf_counter()
+    np.array(mi.render(scene, spp=1, seed=seed + 10_000))
+    compile_s = time.perf_counter() - t0
+    times, img = [], None
+    for r in range(repeats):
+        t0 = time.perf_counter()
+        img = np.array(mi.render(scene, spp=spp, seed=seed + r))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), compile_s, img
+
+
+def reference(args):
+    mi = set_variant(args.variant)
+    import tempfile
+
+    from ..render import write_frame
+    from .reference import reference_scene
+    with tempfile.TemporaryDirectory() as tmp:
+        scene, _ = reference_scene(args.scene, tmp, **scene_params(args.define))
+        write_frame(args.output, mi.render(scene, spp=args.spp, seed=args.seed))
+    if not args.quiet:
+        print(f"wrote {args.output} (heterogeneous + gridvolume reference, {args.spp} spp)")
+
+
+def frametime(args):
+    mi = set_variant(args.variant)
+    import tempfile
+
+    from ..images import compare_images
+    from ..scene_xml import with_amr_parameters
+    from .reference import reference_scene
+    params = scene_params(args.define)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        configs = [("amr majorant=ray", lambda: with_amr_parameters(args.scene, {"majorant": "ray"}, **params)),
+                   ("amr majorant=global", lambda: with_amr_parameters(args.scene, {"majorant": "global"}, **params)),
+                   ("heterogeneous reference", lambda: reference_scene(args.scene, tmp, **params)[0])]
+        images = {}
+        for name, load in configs:
+            t0 = time.perf_counter()
+            scene = load()
+            load_s = time.perf_counter() - t0
+            sec, comp, img = timed_render(mi, scene, args.spp, args.repeats, seed=args.seed + 1000 * len(rows))
+            images[name] = img
+            rows.append({"config": name, "load_s": load_s, "compile_s": comp, "frame_s": sec})
+    ref_t = rows[-1]["frame_s"]
+    ref_img = images["heterogeneous reference"]
+    if not args.quiet:
+        print(f"{args.scene}: {args.spp} spp per frame, median of {args.repeats} frames "
+              f"(after a warm-up frame that compiles the kernels)")
+    print(f"{'configuration':26s} {'load s':>8s} {'compile s':>10s} {'frame s':>9s} "
+          f"{'vs reference':>13s} {'mean radiance':>14s}")
+    for r in rows:
+        r["speedup_vs_reference"] = ref_t / r["frame_s"]
+        r["mean"] = float(images[r["config"]].mean())
+        print(f"{r['config']:26s} {r['load_s']:8.2f} {r['compile_s']:10.2f} {r['frame_s']:9.3f} "
+              f"{r['speedup_vs_reference']:12.2f}x {r['mean']:14.5f}")
+    for name in ("amr majorant=ray", "amr majorant=global"):
+        if args.quiet:
+            break
+        st = compare_images(images[name], ref_img)
+        print(f"relative RMSE of {name} vs reference at {args.spp} spp (noise of both + bias; "
+              f"independent seeds): {st['relative_rmse']:.3%}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
+
+
+def convert(args):
+    ensure_llvm_path()
+    import numpy as np
+
+    from ..data.convert import dense_to_amr
+    from ..data.io import load_cells, load_volume, save_cells
+    src = Path(args.input)
+    if src.suffix in (".cells", ".npz", ".amrb") and Path(args.output).suffix == ".amrb":
+        cells = load_volume(src, overlap=args.overlap)      # streamed into blocks, never per-cell records
+    elif src.suffix in (".cells", ".npz", ".amrb"):
+        cells = load_cells(src, overlap=args.overlap)
+    elif src.suffix in (".npy", ".raw"):
+        if src.suffix == ".npy":
+            vol = np.load(src, allow_pickle=False)
+        else:
+            if not args.shape:
+                raise SystemExit("mi-amr convert: a .raw volume needs --shape X Y Z")
+            nx, ny, nz = args.shape
+            expected = nx * ny * nz * np.dtype(args.dtype).itemsize
+            size = src.stat().st_size
+            if size != expected:
+                raise SystemExit(f"mi-amr convert: {src} has {size} bytes, but --shape "
+                                 f"{nx} {ny} {nz} with {args.dtype} needs {expected}")
+            vol = np.fromfile(src, dtype=args.dtype).reshape(nz, ny, nx)
+        cells = dense_to_amr(vol, args.threshold, args.max_level, source=str(src))
+    elif args.field:
+        from ..autoscene import _yt_load
+        from ..data.yt_import import from_yt_blocks
+        try:
+            ds = _yt_load(src)
+        except ImportError as e:
+            raise SystemExit(f"mi-amr convert: {e}")
+        field = tuple(args.field.split(",")) if "," in args.field else args.field
+        cells = from_yt_blocks(ds, field, overlap=args.overlap)        # grids straight into blocks
+    else:
+        raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' (expected .cells, "
+                         ".npz, .amrb, .npy or .raw, or a yt-loadable dataset with --field)")
+    if args.log:
+        from ..data.transform import apply_value_transform
+        cells, floor = apply_value_transform(cells, "log10")
+        print(f"values replaced by log10(max(v, {floor:.6g})): {floor:.6g} is the smallest positive value")
+    out = save_cells(cells, args.output)     # .amrb: with the grids a medium builds first
+    print(f"wrote {out}: {cells}")
+
+
+def compare(args):
+    import numpy as np
+
+    from ..images import read_exr, write_exr
+    from ..images import compare_images
+    a, b = read_exr(args.a), read_exr(args.b)
+    try:
+        stats = compare_images(a, b)
+    except ValueError as e:
+        raise SystemExit(f"mi-amr compare: {e}")
+    if args.diff:
+        write_exr(args.diff, np.abs(a - b))
+    if args.json:
+        print(json.dumps(stats, indent=2))
+        return
+    print(f"A: {args.a}\nB: {args.b} (reference)")
+    print(f"RMSE {stats['rmse']:.6g}   relative RMSE {stats['relative_rmse']:.4%}   "
+          f"MAE {stats['mae']:.6g}   max |A-B| {stats['max_abs']:.6g}")
+    print(f"mean A {stats['mean_a']:.6g}   mean B {stats['mean_b']:.6g}")
+    for name, c in zip("RGBA", stats["channels"]):
+        print(f"  {name}: RMSE {c['rmse']:.6g}  mean A {c['mean_a']:.6g}  mean B {c['mean_b']:.6g}  "
+              f"max |A-B| {c['max_abs']:.6g}")
+    if stats["nonfinite_a"] or stats["nonfinite_b"]:
+        print(f"non-finite pixels: A {stats['nonfinite_a']}, B {stats['nonfinite_b']}")
+    if args.diff:
+        print(f"difference image: {args.diff}")
+
+
+def dataset(args):
+    ensure_llvm_path()
+    from ..data.datasets import BLOCK_DATASETS, make_dataset, write_block_dataset
+    from ..data.io import save_cells
+    if args.name in BLOCK_DATASETS and Path(args.output).suffix == ".cells":
+        # streamed block by block: no per-cell array of the whole data set
+        from ..progress import progress
+        with progress(int(args.cells), f"writing {args.output}") as bar:
+            out = write_block_dataset(args.output, int(args.cells), args.levels, args.seed, args.nxb, bar,
+                                      name=args.name, layout=args.layout)
+        print(f"wrote {out}: {out.stat().st_size // 16} cells in blocks ({args.layout} layout)")
+        return
+    if args.nxb is not None:
+        raise SystemExit("mi-amr dataset: --nxb applies to 'blocks' and 'cosmo' written as .cells")
+    if args.layout != "blocks":
+        raise SystemExit("mi-amr dataset: --layout applies to 'blocks' and 'cosmo' written as .cells")
+    cells = make_dataset(args.name, args.cells, args.levels, args.seed)
+    out = save_cells(cells, args.output)
+    print(f"wrote {out}: {cells}")
