@@ -170,7 +170,7 @@ def cells_and_weights(data, field=None):
             yield from cells_and_weights(d, field)
         return
     if isinstance(data, AMRCells):
-        values = data.value if field is None else data.fields[field]
+        values = data.values if field is None else data.fields[field]
         yield values.astype(np.float64), np.exp2(3.0 * data.level)
         return
     values = data.field(field)

@@ -24,7 +24,7 @@ def brute_force(cells: AMRCells, x, method: str | Reconstruction = "tent", chunk
     val = np.zeros(len(x))
     found = np.zeros(len(x), dtype=bool)
     for s in range(0, len(x), chunk):
-        val[s:s + chunk], found[s:s + chunk] = method.brute_force_chunk(lo, w, cells.value, x[s:s + chunk, None, :])
+        val[s:s + chunk], found[s:s + chunk] = method.brute_force_chunk(lo, w, cells.values, x[s:s + chunk, None, :])
     return val, found
 
 

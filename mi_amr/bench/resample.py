@@ -123,7 +123,7 @@ def resample_grid(data, resolution: int, method: str = "box", bar=None):
     nx, ny, nz = (int(e) // v for e in ext)
     grid = np.zeros(nx * ny * nz, dtype=np.float32)
     chunks = data.cell_chunks() if not isinstance(data, AMRCells) else (
-        (data.pos[s:s + (1 << 21)], data.level[s:s + (1 << 21)], data.value[s:s + (1 << 21)])
+        (data.pos[s:s + (1 << 21)], data.level[s:s + (1 << 21)], data.values[s:s + (1 << 21)])
         for s in range(0, len(data), 1 << 21))
     for pos, level, value in chunks:
         p = pos - lo
@@ -238,7 +238,7 @@ def densest_point(data) -> np.ndarray:
     data bounds fill (a halo's core on cosmological data)."""
     from ..data.cells import AMRCells
     lo, hi = (np.asarray(b, dtype=np.float64) for b in data.bounds)
-    chunks = data.cell_chunks() if not isinstance(data, AMRCells) else [(data.pos, data.level, data.value)]
+    chunks = data.cell_chunks() if not isinstance(data, AMRCells) else [(data.pos, data.level, data.values)]
     best, where = -np.inf, None
     for pos, level, value in chunks:
         i = int(np.argmax(value))
@@ -376,7 +376,7 @@ def study_one(mi, spec: str, args) -> dict:
         from .harness import zoom_camera
         camera = zoom_camera(densest_point(data), args.zoom)
     study = Study(mi, plan, args, camera)
-    values = data.value if hasattr(data, "value") else data.values
+    values = data.values
     study.floor = positive_floor(values, data.source) if plan.transform == "log10" else None
     lo, hi = data.bounds
     n_fine = int((hi - lo).max())

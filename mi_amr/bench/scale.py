@@ -59,7 +59,7 @@ def data_file(kind: str, n: int, data_dir: Path, source: str = "cells", layout: 
             from ..data.io import write_exabricks
             cells = make_dataset(kind, n, levels=4)
             perm = np.random.default_rng(2).permutation(len(cells))
-            write_exabricks(AMRCells(cells.pos[perm], cells.level[perm], cells.value[perm], validate=False), path)
+            write_exabricks(AMRCells(cells.pos[perm], cells.level[perm], cells.values[perm], validate=False), path)
         elif layout != "blocks":
             raise ValueError(f"layout {layout!r} applies to block-structured kinds ({', '.join(BLOCK_KINDS)}); "
                              f"{kind} takes blocks or shuffled")

@@ -140,7 +140,7 @@ class BlockVolume(mi.Object):
         """Blocks of validated ``cells`` (in memory); ``method``: the
         reconstruction they will serve (it weighs the block size)."""
         lo, hi = cells.bounds
-        chunks = lambda: ((cells.pos[s:s + CHUNK], cells.level[s:s + CHUNK], cells.value[s:s + CHUNK])  # noqa: E731
+        chunks = lambda: ((cells.pos[s:s + CHUNK], cells.level[s:s + CHUNK], cells.values[s:s + CHUNK])  # noqa: E731
                           for s in range(0, len(cells), CHUNK))
         vol = _build(chunks, lo, hi, int(cells.level.max()), cells.source, "error", block,
                      lambda: sample_runs(len(cells), lambda s, e: (cells.pos[s:e], cells.level[s:e], None)),

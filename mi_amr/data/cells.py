@@ -27,7 +27,8 @@ class AMRCells(mi.Object):
     level : int array (N,)
         Cell levels, ``0`` = finest.
     value : float array (N,)
-        One finite scalar per cell.
+        One finite scalar per cell (kept as ``values``, the name
+        `BlockVolume` uses; ``value`` is a read-only alias).
     overlap : {"error", "finest"}
         What to do with cells that cover the same space: raise ``ValueError``
         (default) or keep the finer cells and drop the coarser ones.
@@ -58,7 +59,7 @@ class AMRCells(mi.Object):
         self.source = source
         self.pos = np.ascontiguousarray(pos, dtype=np.int64)
         self.level = np.ascontiguousarray(level, dtype=np.int32)
-        self.value = np.ascontiguousarray(value, dtype=np.float32)
+        self.values = np.ascontiguousarray(value, dtype=np.float32)
         #: physical metadata (`mi_amr.data.metadata`): domain, field, units, code
         self.meta = {}
         #: further named fields, one value per cell each
@@ -75,12 +76,12 @@ class AMRCells(mi.Object):
 
     def __reduce__(self):
         """Pickled as its arrays (for Dask workers), not validated again."""
-        return (_cells_from_arrays, (self.pos, self.level, self.value, self.source, self.meta, self.fields))
+        return (_cells_from_arrays, (self.pos, self.level, self.values, self.source, self.meta, self.fields))
 
     # ---- Validation ----------------------------------------------------
     def _validate(self, overlap: str):
         src = self.source
-        check_cells(self.pos, self.level, self.value, src)
+        check_cells(self.pos, self.level, self.values, src)
         w = (np.int64(1) << self.level.astype(np.int64))[:, None]
         lo = self.pos.min(axis=0)
         hi = (self.pos + w).max(axis=0)
@@ -95,18 +96,24 @@ class AMRCells(mi.Object):
                     f"{src}: {int((~keep).sum())} cells overlap finer or duplicate "
                     f"cells (first: cell {i} at {self.pos[i].tolist()}, level "
                     f"{self.level[i]}); pass overlap='finest' to keep the finer ones")
-            self.pos, self.level, self.value = self.pos[keep], self.level[keep], self.value[keep]
+            self.pos, self.level, self.values = self.pos[keep], self.level[keep], self.values[keep]
             self.fields = {name: f[keep] for name, f in self.fields.items()}
 
     # ---- Properties ----------------------------------------------------
+    @property
+    def value(self) -> np.ndarray:
+        """The per-cell values, read-only alias of `values` (the name used
+        inside the package and by `BlockVolume`)."""
+        return self.values
+
     def __len__(self):
-        return int(self.value.shape[0])
+        return int(self.values.shape[0])
 
     def cell_chunks(self, max_cells: int = 1 << 22):
         """Yield ``(pos, level, value)`` slices of at most ``max_cells`` cells
         (the same reading interface as `BlockVolume.cell_chunks`)."""
         for s in range(0, len(self), max_cells):
-            yield self.pos[s:s + max_cells], self.level[s:s + max_cells], self.value[s:s + max_cells]
+            yield self.pos[s:s + max_cells], self.level[s:s + max_cells], self.values[s:s + max_cells]
 
     @property
     def origin(self) -> np.ndarray:
@@ -132,7 +139,7 @@ class AMRCells(mi.Object):
 
     @property
     def value_range(self) -> tuple[float, float]:
-        return float(self.value.min()), float(self.value.max())
+        return float(self.values.min()), float(self.values.max())
 
     @property
     def nbytes(self) -> int:

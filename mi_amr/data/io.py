@@ -116,7 +116,7 @@ def write_exabricks(cells: AMRCells, cells_path, scalars_path=None) -> tuple[Pat
     rec["x"], rec["y"], rec["z"] = cells.pos.T
     rec["level"] = cells.level
     rec.tofile(cells_path)
-    cells.value.astype("<f4").tofile(scalars_path)
+    cells.values.astype("<f4").tofile(scalars_path)
     side = metadata.sidecar_path(cells_path)
     if getattr(cells, "meta", None):
         side.write_text(json.dumps(cells.meta, indent=1) + "\n")
@@ -267,7 +267,7 @@ def write_npz(cells: AMRCells, path) -> Path:
     extra = {"meta": np.array(json.dumps(cells.meta))} if getattr(cells, "meta", None) else {}
     extra.update({f"{FIELD_PREFIX}{name}": f for name, f in getattr(cells, "fields", {}).items()})
     np.savez_compressed(path, pos=cells.pos.astype(np.int32 if np.abs(cells.pos).max() < 2**31 else np.int64),
-                        level=cells.level, value=cells.value, **extra)
+                        level=cells.level, value=cells.values, **extra)
     return path
 
 

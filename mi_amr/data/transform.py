@@ -56,8 +56,8 @@ def apply_value_transform(data: AMRCells | BlockVolume, kind: str, inplace: bool
                          f"use value_transform='none'")
     meta = dict(data.meta, value_transform="log10")
     if isinstance(data, AMRCells):
-        floor = positive_floor(data.value, data.source)
-        out = AMRCells(data.pos, data.level, log10_values(data.value, floor), validate=False,
+        floor = positive_floor(data.values, data.source)
+        out = AMRCells(data.pos, data.level, log10_values(data.values, floor), validate=False,
                        source=f"log10 of {data.source}", fields=data.fields)
         out.meta = dict(meta, log_floor=floor)
         return out, floor

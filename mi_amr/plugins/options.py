@@ -208,7 +208,7 @@ def _field_values(data, field: str | None) -> np.ndarray:
     """The values of ``field`` of the data (None: the main field), or a
     `ParameterError` naming the fields there are."""
     if field is None:
-        return data.values if isinstance(data, BlockVolume) else data.value
+        return data.values
     if field not in data.fields:
         have = ", ".join(repr(n) for n in sorted(data.fields)) or "none besides the main one"
         raise ParameterError(f"amr: emission_field {field!r} is not a field of {data.source} (fields: {have})")
