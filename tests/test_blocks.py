@@ -16,6 +16,7 @@ from mi_amr.reconstruction import reconstruction_method
 from mi_amr.structures.boxes import expand_boxes
 from mi_amr.structures.macrocell_grid import MacrocellGrid, axis_resolution
 from mi_amr.testing import brute_force
+from mi_amr.data.volume import as_method, as_volume
 
 from conftest import random_amr
 
@@ -57,7 +58,7 @@ def test02_block_size_follows_the_data(llvm, method):
     assert blocks.block >= 8 and blocks.nbytes / len(blocks) < 4.2
 
     def total(vol):
-        return vol.nbytes + DeviceReconstruction(vol, method).nbytes
+        return vol.nbytes + DeviceReconstruction(vol, as_method(method)).nbytes
     for name in ("cloud", "stadium"):
         cells = DATA[name]()
         chosen = total(BlockVolume.from_cells(cells, method=method))
@@ -124,7 +125,7 @@ def test06_device_reconstruction_matches_brute_force(variant, block, method):
     """Values at random points, cell corners and centres (stencils across
     block boundaries included) equal the brute-force oracle."""
     cells = random_amr(7, n=16, levels=4)
-    dev = DeviceReconstruction(BlockVolume.from_cells(cells, block), method)
+    dev = DeviceReconstruction(BlockVolume.from_cells(cells, block), as_method(method))
     rng = np.random.default_rng(3)
     x = rng.uniform(-2, 18, (4000, 3))
     x[:800] = np.round(x[:800] * 2) / 2
@@ -166,19 +167,19 @@ def test07_macrocell_ranges_from_blocks_are_exact(name, support, monkeypatch):
     vol = BlockVolume.from_cells(cells)
     for res in (5, 8, 16, 37):                   # 8 and 16 align with the blocks
         ref = fold_each_cell(cells, res, support)
-        for src in (cells, vol):
-            g = MacrocellGrid(src, res, support=support)
+        for src in (as_volume(cells, support), vol):
+            g = MacrocellGrid(src, res, support=as_method(support))
             for a, b in zip((g.vmin, g.vmax, g.level_bits), ref):
                 np.testing.assert_array_equal(a, b)
         with monkeypatch.context() as m:
             m.setattr(macrocell_grid, "BLOCK_CHUNK", 8 * vol.block ** 3)       # eight blocks a chunk
             m.setattr(macrocell_grid, "build_threads", lambda: 2)          # as on a 2-core box
             m.setattr(block_windows, "WINDOW_PATTERNS", 0)           # every window gathered, not sliced
-            g = MacrocellGrid(vol, res, support=support)
+            g = MacrocellGrid(vol, res, support=as_method(support))
         for a, b in zip((g.vmin, g.vmax, g.level_bits), ref):
             np.testing.assert_array_equal(a, b)
-    fine = MacrocellGrid(vol, 32, support=support)
-    pooled, direct = fine.pooled(8), MacrocellGrid(vol, 8, support=support)
+    fine = MacrocellGrid(vol, 32, support=as_method(support))
+    pooled, direct = fine.pooled(8), MacrocellGrid(vol, 8, support=as_method(support))
     if pooled is not None:
         np.testing.assert_array_equal(pooled.vmax, direct.vmax)
         np.testing.assert_array_equal(pooled.level_bits, direct.level_bits)
@@ -237,7 +238,7 @@ def test09_memory_estimates_within_2x_of_the_measured_peak(llvm, tmp_path, name)
         est = grid_bytes(int(np.prod(g.res)), vol.values.size)
         assert 0.5 < est / peak < 2.0, ("grid", res, est / peak)
     for method in ("nearest", "tent"):
-        _, peak = peak_of(lambda: DeviceReconstruction(vol, method))
+        _, peak = peak_of(lambda: DeviceReconstruction(vol, as_method(method)))
         est = hash_bytes(len(vol.level), reconstruction_method(method))
         assert 0.5 < est / peak < 2.0, ("hash", method, est / peak)
     bricks, peak = peak_of(lambda: Bricks(vol))
@@ -253,7 +254,7 @@ def test10_media_on_the_same_data_share_one_device_copy(llvm):
     once, and both still match brute force."""
     cells = random_amr(7, n=16, levels=3)
     vol = BlockVolume.from_cells(cells)
-    a, b = DeviceReconstruction(vol, "nearest"), DeviceReconstruction(vol, "tent")
+    a, b = DeviceReconstruction(vol, as_method("nearest")), DeviceReconstruction(vol, as_method("tent"))
     assert a.values.index == b.values.index
     x = np.random.default_rng(4).uniform(0, 16, (2000, 3))
     bits = mi.UInt32(sum(1 << int(L) for L in cells.levels))
@@ -276,7 +277,7 @@ def test11_from_dense_is_one_level_of_the_same_field(llvm):
     assert v.n_cells == int(np.count_nonzero(~np.isnan(dense)))
     assert v.hi.tolist() == [18, 37, 20] and len(v.level) == 2 * 2 * 2   # the y-slab's blocks are gone
     x = rng.random((5000, 3)) * np.array([18, 37, 20])
-    val, found = HostReconstruction(v)(x, "nearest")
+    val, found = HostReconstruction(v)(x, as_method("nearest"))
     i = np.floor(x).astype(np.int64)
     ref = dense[i[:, 2], i[:, 1], i[:, 0]]
     np.testing.assert_array_equal(found, ~np.isnan(ref))

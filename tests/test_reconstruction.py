@@ -14,6 +14,7 @@ from mi_amr.reconstruction import METHODS, reconstruction_method
 from mi_amr.reconstruction.tent import Tent
 from mi_amr.structures.host_reconstruction import HostReconstruction
 from mi_amr.testing import brute_force
+from mi_amr.data.volume import as_method, as_volume
 
 from conftest import random_amr
 
@@ -22,14 +23,14 @@ from conftest import random_amr
 def test04_reconstruction_matches_brute_force(variant, method):
     cells = random_amr(7, n=16, levels=4)
     assert len(cells.levels) >= 3
-    host = HostReconstruction(cells)
-    dev = DeviceReconstruction(cells, method)
+    host = HostReconstruction(as_volume(cells))
+    dev = DeviceReconstruction(as_volume(cells, method), as_method(method))
     rng = np.random.default_rng(2)
     x = rng.uniform(-2, 18, (3000, 3))
     # also exact cell corners and centres, where ties are decided
     x[:500] = np.round(x[:500] * 2) / 2
     ref, ref_found = brute_force(cells, x, method)
-    val, found = host(x, method)
+    val, found = host(x, as_method(method))
     np.testing.assert_array_equal(found, ref_found)
     np.testing.assert_allclose(val, ref, atol=1e-9)
     xr = (x - dev.origin).astype(np.float32)
@@ -45,7 +46,7 @@ def test05_tent_is_trilinear_inside_single_level():
     from scipy.interpolate import RegularGridInterpolator
     interp = RegularGridInterpolator([np.arange(n) + 0.5 for n in (4, 5, 6)], v.transpose(2, 1, 0))
     x = rng.uniform(0.5, 1, (500, 3)) * np.array([3, 4, 5])
-    val, found = HostReconstruction(cells)(x, "tent")
+    val, found = HostReconstruction(as_volume(cells))(x, as_method("tent"))
     assert found.all()
     np.testing.assert_allclose(val, interp(x), atol=1e-6)
 
@@ -53,13 +54,13 @@ def test05_tent_is_trilinear_inside_single_level():
 @pytest.mark.parametrize("method", ["tent", "nearest"])
 def test06_macrocell_ranges_contain_reconstructed_values(method):
     cells = random_amr(11, n=16, levels=4)
-    grid = MacrocellGrid(cells, resolution=5, support=method)
+    grid = MacrocellGrid(as_volume(cells, method), resolution=5, support=as_method(method))
     lo, hi = cells.bounds
     rng = np.random.default_rng(4)
     u = rng.random((20000, 3))
     u[:2000] = np.round(u[:2000] * 10) / 10        # on macrocell faces
     x = lo + u * (hi - lo)
-    val, found = HostReconstruction(cells)(x, method)
+    val, found = HostReconstruction(as_volume(cells))(x, as_method(method))
     idx = np.clip(np.floor(u * grid.res), 0, grid.res - 1).astype(int)
     flat = idx[:, 0] + grid.res[0] * (idx[:, 1] + grid.res[1] * idx[:, 2])
     assert np.all(grid.vmin[flat[found]] <= val[found] + 1e-6)
@@ -113,16 +114,16 @@ def test08_methods_are_resolved_once_from_their_names():
         reconstruction_method(None)
     cells = random_amr(11, n=8, levels=2)
     with pytest.raises(ValueError, match=message):
-        MacrocellGrid(cells, resolution=4, support="cubic")
+        MacrocellGrid(as_volume(cells), resolution=4, support=as_method("cubic"))
     with pytest.raises(ValueError, match=message):
         brute_force(cells, np.zeros((1, 3)), "cubic")
     x = np.random.default_rng(6).uniform(-1, 9, (500, 3))
-    host = HostReconstruction(cells)
+    host = HostReconstruction(as_volume(cells))
     for name in METHODS:
-        by_name, by_object = host(x, name), host(x, reconstruction_method(name))
+        by_name, by_object = host(x, as_method(name)), host(x, reconstruction_method(name))
         np.testing.assert_array_equal(by_name[0], by_object[0])
         np.testing.assert_array_equal(by_name[1], by_object[1])
-        grids = [MacrocellGrid(cells, resolution=4, support=m) for m in (name, reconstruction_method(name))]
+        grids = [MacrocellGrid(as_volume(cells), resolution=4, support=as_method(m)) for m in (name, reconstruction_method(name))]
         np.testing.assert_array_equal(grids[0].vmin, grids[1].vmin)
         np.testing.assert_array_equal(grids[0].level_bits, grids[1].level_bits)
 
@@ -141,7 +142,8 @@ def test09_brick_domains_are_the_union_of_their_cells_supports(method):
     support boxes of each brick's cells (brute force over the cells)."""
     from mi_amr.structures.bricks import Bricks
     cells = random_amr(12, n=12, levels=3)
-    bricks = Bricks(cells, 4)
+    volume = as_volume(cells)
+    bricks = Bricks(volume, 4)
     m = reconstruction_method(method)
     dlo, dhi = bricks.domains(m)
     for b in range(len(bricks)):

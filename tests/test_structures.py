@@ -8,6 +8,7 @@ from mi_amr.structures.brick_lists import BrickLists
 from mi_amr.device.bricks import BrickSampler, DeviceBrickLists, DeviceBricks
 from mi_amr.structures.bricks import Bricks
 from mi_amr.data.datasets import make_dataset
+from mi_amr.data.volume import as_method, as_volume
 from mi_amr.structures.kdtree_sah import build_sah_kdtree
 from mi_amr.testing import brute_force
 from mi_amr.structures.region_tree import (ABR_LEAF_CELLS, box_value_ranges, brick_region_tree, build_region_tree,
@@ -25,7 +26,8 @@ def data(request):
 
 
 def test01_bricks_are_complete_same_level_boxes(data):
-    b = Bricks(data, max_width=4)
+    volume = as_volume(data)
+    b = Bricks(volume, max_width=4)
     assert b.dims.prod(axis=1).sum() == len(data)
     assert np.all(b.dims <= 4)
     cells = {(tuple(p), int(l)): float(v) for p, l, v in zip(data.pos.tolist(), data.level, data.value)}
@@ -74,7 +76,8 @@ def test01b_bricks_read_the_volume_in_place(max_width):
 
 
 def test02_abrs_partition_space_with_exact_brick_lists(data):
-    b = Bricks(data)
+    volume = as_volume(data)
+    b = Bricks(volume)
     dlo, dhi = b.domains()
     lo, hi = data.bounds
     tree = build_region_tree(np.round(2 * dlo).astype(np.int64), np.round(2 * dhi).astype(np.int64), 2 * lo, 2 * hi)
@@ -98,7 +101,8 @@ def test02b_abr_leaf_floor_keeps_lists_complete(data):
     ``leaf_extent`` of the boxes in it) the leaves still partition the box,
     every leaf lists exactly the domains overlapping it, and only leaves at
     or under the floor keep a face inside."""
-    b = Bricks(data)
+    volume = as_volume(data)
+    b = Bricks(volume)
     dlo, dhi = b.domains()
     lo, hi = data.bounds
     floor = 2 * 2 * b.width                       # two cells of each brick, in doubled units
@@ -120,7 +124,8 @@ def test02b_abr_leaf_floor_keeps_lists_complete(data):
 
 @pytest.mark.parametrize("method", ["tent", "nearest"])
 def test03_leaf_ranges_contain_reconstructed_values(variant, data, method):
-    b = Bricks(data)
+    volume = as_volume(data)
+    b = Bricks(volume)
     dlo, dhi = b.domains()
     lo, hi = data.bounds
     rng = np.random.default_rng(1)
@@ -130,10 +135,10 @@ def test03_leaf_ranges_contain_reconstructed_values(variant, data, method):
         tree = build_region_tree(np.round(2 * boxes[0]).astype(np.int64), np.round(2 * boxes[1]).astype(np.int64),
                                  2 * lo, 2 * hi)
         leaf = tree.locate(2 * x)
-        exact = exact_value_ranges(tree, b, method)
+        exact = exact_value_ranges(tree, b, as_method(method))
         # over the method's supports (ABRs), the leaves' own brick lists give the same ranges
         if (boxes[0] is dlo) == (method == "tent"):
-            own = exact_value_ranges(tree, b, method, own_lists=True)
+            own = exact_value_ranges(tree, b, as_method(method), own_lists=True)
             np.testing.assert_array_equal(own[0], exact[0])
             np.testing.assert_array_equal(own[1], exact[1])
         for vmin, vmax in (box_value_ranges(tree.leaf_lo / 2, tree.leaf_hi / 2, dlo, dhi, b.vmin, b.vmax), exact):
@@ -147,7 +152,8 @@ def test03_leaf_ranges_contain_reconstructed_values(variant, data, method):
 def test04_brick_sampling_matches_brute_force(variant, data, mode, method, leaf_cells):
     if leaf_cells and (mode != "abr" or method != "tent"):
         pytest.skip("the leaf floor applies to tent ABRs only")
-    b = Bricks(data)
+    volume = as_volume(data)
+    b = Bricks(volume)
     origin = data.origin
     lo, hi = data.bounds
     dev = DeviceBricks(b, origin)
@@ -156,10 +162,10 @@ def test04_brick_sampling_matches_brute_force(variant, data, mode, method, leaf_
         tree = brick_region_tree(b, lo, hi, method == "tent", leaf_cells)
         if method == "nearest":
             assert tree.list_count.max() == 1
-        sampler = BrickSampler(dev, method, *frame, over_bounds=method == "nearest",
+        sampler = BrickSampler(dev, as_method(method), *frame, over_bounds=method == "nearest",
                                abr_tree=DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), np.zeros(tree.n_leaves), np.zeros(tree.n_leaves)))
     else:
-        sampler = BrickSampler(dev, method, *frame, lists=DeviceBrickLists(BrickLists(b, lo, hi - lo, [7, 5, 6])))
+        sampler = BrickSampler(dev, as_method(method), *frame, lists=DeviceBrickLists(BrickLists(b, lo, hi - lo, [7, 5, 6])))
     rng = np.random.default_rng(3)
     x = lo + rng.random((4000, 3)) * (hi - lo)
     x[:400] = np.round(x[:400] * 2) / 2                  # cell faces and centres

@@ -12,6 +12,7 @@ from mi_amr.device.grid import MAX_SKIP_EDGE, SKIP_BITS, DeviceTwoLevelGrid
 from mi_amr.device.ray import intersect_unit_cube, safe_rcp
 from mi_amr.device.segments import TwoLevelGridSegments
 from mi_amr.structures.cost_model import GridPlan, auto_grid, plan_cost, refine_gain
+from mi_amr.data.volume import as_method, as_volume
 
 from conftest import random_amr
 
@@ -225,14 +226,14 @@ def test06_cost_model_refines_a_small_object_in_a_large_domain(llvm):
     torus only; uniform data get a uniform grid."""
     cells = make_dataset("stadium", cells=6000, levels=7, seed=1)
     tf = mi_amr.TransferFunction.preset("spiky", cells.value_range)
-    plan, costs = auto_grid(cells, tf, 600.0, support="nearest", masks=True)
+    plan, costs = auto_grid(as_volume(cells, "nearest"), tf, 600.0, support=as_method("nearest"), masks=True)
     assert plan.refinement > 1 and costs[plan] < min(c for p, c in costs.items() if p.refinement == 1)
     med = mi.load_dict({"type": "amr", "data": cells, "transfer_function": tf, "density_scale": 600.0,
                         "reconstruction": "nearest"})
     g = med.structures.grid
     assert isinstance(g, DeviceTwoLevelGrid) and 0 < g.refined_fraction() < 0.1
     flat = random_amr(seed=1, n=16, levels=1)
-    plan, _ = auto_grid(flat, mi_amr.TransferFunction.preset("constant", (0.0, 2.0)), 5.0)
+    plan, _ = auto_grid(as_volume(flat), mi_amr.TransferFunction.preset("constant", (0.0, 2.0)), 5.0)
     assert plan.refinement == 1
 
 

@@ -11,6 +11,7 @@ from mi_amr.structures.host_reconstruction import HostReconstruction
 from mi_amr.structures.macrocell_grid import MacrocellGrid
 from mi_amr.structures.value_masks import ValueBins, byte_tables, mask_max_alpha_host, value_masks
 from mi_amr.transfer.function import TransferFunction
+from mi_amr.data.volume import as_method, as_volume
 
 from conftest import random_amr
 
@@ -41,11 +42,11 @@ def test01_masks_hold_every_reconstructed_bin(llvm, method, seed):
     cells = random_amr(seed, n=16, levels=3, quantize=32)
     volume = BlockVolume.from_cells(cells, method=method)
     x = _points(cells, seed=seed)
-    value, found = HostReconstruction(volume)(x, method)
+    value, found = HostReconstruction(volume)(x, as_method(method))
     bins = ValueBins.of(volume)
     for res in (7, 16):
-        grid = MacrocellGrid(volume, res, support=method)
-        masks = value_masks(volume, grid, method, bins)
+        grid = MacrocellGrid(volume, res, support=as_method(method))
+        masks = value_masks(volume, grid, as_method(method), bins)
         m = _macrocell(grid, x)
         applies = found.copy()
         if method == "tent":
@@ -101,7 +102,7 @@ def test04_medium_majorants_bound_the_extinction(llvm, tf_name):
     if tf_name == "spiky":
         assert masked.sum() < 0.9 * plain.sum()
     x = _points(cells)
-    value, found = HostReconstruction(cells)(x, "nearest")
+    value, found = HostReconstruction(as_volume(cells))(x, as_method("nearest"))
     sigma = 7.0 * tf(value)[:, 3]
     m = _macrocell(grid, x)
     assert np.all(masked[m][found] >= sigma[found] * (1 - 1e-6))

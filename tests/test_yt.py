@@ -8,6 +8,7 @@ import pytest
 
 import mi_amr
 from mi_amr.structures.host_reconstruction import HostReconstruction
+from mi_amr.data.volume import as_method, as_volume
 
 yt = pytest.importorskip("yt")
 
@@ -24,7 +25,7 @@ def _check_against_yt(ds, field, cells, n_points=1500):
     centres = cells.pos + 0.5 * cells.width[:, None]
     if len(centres) > n_points:
         centres = centres[np.random.default_rng(0).choice(len(centres), n_points, replace=False)]
-    val, found = HostReconstruction(cells)(centres, "nearest")
+    val, found = HostReconstruction(as_volume(cells))(centres, as_method("nearest"))
     assert found.all()
     dle = ds.domain_left_edge.d
     dx = (ds.domain_right_edge.d - dle) / finest

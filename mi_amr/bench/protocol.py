@@ -142,9 +142,9 @@ def dense_volume(cells, args):
     import numpy as np
 
     from ..data.blocks import BlockVolume
-    from ..reconstruction import reconstruction_method
+    from ..data.volume import as_method
     from ..tools.reference import resample_dense
-    method = reconstruction_method(args.reconstruction)
+    method = as_method(args.reconstruction)
     if not method.dense_exact:          # a dense resampling is that field exactly
         raise ValueError("dense16 resamples the nearest field: run it with --reconstruction nearest")
     key = id(cells)
@@ -584,7 +584,7 @@ def frozen_frame_timing(mi, scene, spp: int, rounds: int = 5, change=None):
 def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
     """Efficiency of amrvolpath/grid/hash over uniform grid resolutions, and
     of the grid `auto_grid` picks (uniform or two-level; Fig. 8 of the paper)."""
-    from ..reconstruction import reconstruction_method
+    from ..data.volume import as_method, as_volume
     from ..structures.cost_model import REFINEMENTS, auto_grid
     rows = []
     for r in args.sweep:
@@ -593,9 +593,9 @@ def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
                      "seconds_per_spp": rec["seconds_per_spp"],
                      "lookups_per_collision": rec["lookups_per_collision"]})
     refinements = (1,) + REFINEMENTS if args.grid_refinement is None else (args.grid_refinement,)
-    plan, costs = auto_grid(cells, tf, scale, support=args.reconstruction, refinements=refinements,
-                            masks=reconstruction_method(args.reconstruction).value_masks_tighten
-                            and not args.no_value_masks)
+    method = as_method(args.reconstruction)
+    plan, costs = auto_grid(as_volume(cells, method), tf, scale, support=method, refinements=refinements,
+                            masks=method.value_masks_tighten and not args.no_value_masks)
     auto = str(plan.resolution) if plan.refinement == 1 else f"{plan.resolution}/{plan.refinement} two-level"
     rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img,
                         grid_resolution=plan.resolution, grid_refinement=plan.refinement)

@@ -19,7 +19,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..reconstruction import Reconstruction, reconstruction_method
+from ..reconstruction import Reconstruction
 from ..structures.brick_lists import BrickLists
 from ..structures.bricks import Bricks
 from .ray import in_unit_cube
@@ -84,14 +84,14 @@ class BrickSampler:
     (``lists``) point location. A view over device structs: it owns no
     Dr.Jit arrays of its own."""
 
-    def __init__(self, bricks: DeviceBricks, method: str | Reconstruction, offset, extent, abr_tree=None,
+    def __init__(self, bricks: DeviceBricks, method: Reconstruction, offset, extent, abr_tree=None,
                  lists=None, over_bounds: bool = False):
         """``over_bounds``: ``abr_tree`` was built over the brick bounds
         (where a cell's support is its box), so a leaf's list is the one
         brick that contains the whole leaf: its cell is taken even where
         float rounding puts the point a hair outside the brick."""
         self.bricks = bricks
-        self.method = reconstruction_method(method)
+        self.method = method
         self.over_bounds = over_bounds and abr_tree is not None
         self.offset, self.extent = offset, extent
         self.abr = abr_tree

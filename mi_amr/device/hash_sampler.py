@@ -20,8 +20,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..data.blocks import BlockVolume
-from ..data.cells import AMRCells
-from ..reconstruction import Reconstruction, reconstruction_method
+from ..reconstruction import Reconstruction
 from ..structures.level_hash import LevelHash, hash_u32, pack_key
 from .ray import in_unit_cube
 from .structs import jit_struct
@@ -45,13 +44,10 @@ class BlockHash(LevelHash):
 @jit_struct(keys="UInt64", keys_z="UInt32", offset="UInt32", mask="UInt32", max_probe="UInt32",
             payload="UInt32", values="Float", neighbours="UInt32", n_blocks="UInt32")
 class DeviceReconstruction:
-    """Reconstruction at points, in Dr.Jit, from the blocks of a `BlockVolume`
-    (an `AMRCells` is converted first)."""
+    """Reconstruction at points, in Dr.Jit, from the blocks of a `BlockVolume`."""
 
-    def __init__(self, volume: BlockVolume | AMRCells, method: str | Reconstruction):
-        self.method = reconstruction_method(method)
-        if isinstance(volume, AMRCells):
-            volume = BlockVolume.from_cells(volume, method=self.method)
+    def __init__(self, volume: BlockVolume, method: Reconstruction):
+        self.method = method
         self.volume = volume
         if self.method.needs_ghosts:        # ghost blocks and neighbours: one probe per stencil
             ghost_coord, ghost_level, neighbours = volume.stencil_index()

@@ -34,7 +34,10 @@ METHODS: dict[str, type[Reconstruction]] = {
     "nearest": Nearest,
 }
 
-__all__ = ["METHODS", "WEIGHT_EPS", "Reconstruction", "check_method", "reconstruction_method"]
+#: The default method's object (the defaults of functions that take a method).
+DEFAULT_METHOD: Reconstruction = Tent()
+
+__all__ = ["DEFAULT_METHOD", "METHODS", "WEIGHT_EPS", "Reconstruction", "check_method", "reconstruction_method"]
 
 
 def reconstruction_method(method: str | Reconstruction) -> Reconstruction:

@@ -6,6 +6,7 @@ import numpy as np
 
 from ..memory import BYTES_PER_MACROCELL, require
 from .boxes import expand_boxes
+from ..reconstruction import DEFAULT_METHOD, Reconstruction
 from .bricks import Bricks
 
 #: Peak build bytes per (list cell, brick) entry: expansion and sort.
@@ -19,7 +20,8 @@ class BrickLists:
     units). Host arrays: ``count``, ``offset`` (per cell, x fastest) and
     ``items`` (brick ids)."""
 
-    def __init__(self, bricks: Bricks, lo, extent, res, memory_limit: float | None = None, method="tent"):
+    def __init__(self, bricks: Bricks, lo, extent, res, memory_limit: float | None = None,
+                 method: Reconstruction = DEFAULT_METHOD):
         res = np.asarray(res, dtype=np.int64)
         dlo, dhi = bricks.domains(method)
         scale = res / np.asarray(extent, dtype=np.float64)

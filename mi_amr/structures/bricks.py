@@ -19,9 +19,8 @@ import weakref
 import numpy as np
 
 from ..data.blocks import BlockVolume
-from ..data.cells import AMRCells
 from ..progress import progress
-from ..reconstruction import Reconstruction, reconstruction_method
+from ..reconstruction import DEFAULT_METHOD, Reconstruction
 
 
 class Bricks:
@@ -46,15 +45,13 @@ class Bricks:
             raise RuntimeError("amr: the data of these bricks no longer exist")
         return volume
 
-    def __init__(self, data: AMRCells | BlockVolume, max_width: int = 8):
+    def __init__(self, data: BlockVolume, max_width: int = 8):
         if max_width < 1:
             raise ValueError(f"max_width must be >= 1, got {max_width}")
         # bricks are cached per data object (`mi_amr.structures.cache`), so they
         # hold the data they were given weakly: a strong reference from the
-        # cache entry would keep its own key alive. Blocks made here are
-        # the bricks' own.
-        self._own_volume = BlockVolume.from_cells(data) if isinstance(data, AMRCells) else None
-        self._volume = weakref.ref(self._own_volume if self._own_volume is not None else data)
+        # cache entry would keep its own key alive.
+        self._volume = weakref.ref(data)
         data = self.volume
         B = data.block
         self.stride = (1, B, B * B)
@@ -93,11 +90,11 @@ class Bricks:
     def hi(self) -> np.ndarray:
         return self.lo + self.dims * self.width[:, None]
 
-    def domains(self, method: str | Reconstruction = "tent") -> tuple[np.ndarray, np.ndarray]:
+    def domains(self, method: Reconstruction = DEFAULT_METHOD) -> tuple[np.ndarray, np.ndarray]:
         """Extended domains: the union of the supports of each brick's cells
         under the reconstruction ``method`` (float64, finest units; tent's,
         ``[lo - w/2, hi + w/2]``, by default)."""
-        m = reconstruction_method(method)
+        m = method
         w = self.width[:, None].astype(np.float64)
         lo, _ = m.support_box(self.lo.astype(np.float64), w)
         _, hi = m.support_box(self.hi.astype(np.float64) - w, w)

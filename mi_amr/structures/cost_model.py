@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..data.cells import AMRCells
-from ..reconstruction import Reconstruction, reconstruction_method
+from ..data.blocks import BlockVolume
+from ..reconstruction import DEFAULT_METHOD, METHODS, Reconstruction
 from ..transfer.function import range_majorants_host
 from .macrocell_grid import MacrocellGrid
 from .value_masks import mask_max_alpha_host
@@ -100,8 +100,8 @@ def plan_cost(mu: np.ndarray, plan: GridPlan):
     return cost, refined
 
 
-def auto_grid(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.0,
-              support: str | Reconstruction = "tent", candidates=CANDIDATES, grids: dict | None = None,
+def auto_grid(cells: BlockVolume, tf, density_scale: float, world_scale: float = 1.0,
+              support: Reconstruction = DEFAULT_METHOD, candidates=CANDIDATES, grids: dict | None = None,
               masks: bool = False, refinements=(1,) + REFINEMENTS):
     """The `GridPlan` of least expected tracking cost per unit of ray
     length in the unit cube, and ``{plan: cost}``.
@@ -127,7 +127,7 @@ def auto_grid(cells: AMRCells, tf, density_scale: float, world_scale: float = 1.
     the fine level if f R* is not a candidate).
 
     ``world_scale`` converts local to world length; ``support``: the
-    reconstruction method (name or object) whose supports the value ranges
+    reconstruction method whose supports the value ranges
     cover (`MacrocellGrid`). The value ranges are
     splatted once at the finest candidate and pooled by powers of two for
     the coarser ones; ``grids``, when given, receives the finest grid
@@ -187,11 +187,10 @@ def file_grids(volume, methods=None) -> dict:
     masks where a method's majorants use them), for each reconstruction
     method: what a native file stores so that a medium opened from it
     builds none (`mi_amr.data.amrb.write_amrb`)."""
-    from ..reconstruction import METHODS
     finest = _candidates(volume)[-1]
     out = {}
     for name in (methods or METHODS):
-        method = reconstruction_method(name)
+        method = METHODS[name]()
         out[method.name] = MacrocellGrid(volume, finest, support=method,
                                          masks=method.value_masks_tighten).to_file()
     return out

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..data.block_keys import ghost_blocks
 from ..memory import hash_bytes
-from ..reconstruction import reconstruction_method
+from ..reconstruction import DEFAULT_METHOD, Reconstruction
 from .cost_model import _candidates
 from .level_hash import KEY_BITS
 from .macrocell_grid import axis_resolution
@@ -23,7 +23,7 @@ from .macrocell_grid import axis_resolution
 GRID_BYTES_PER_MACROCELL = 16
 
 
-def medium_bytes(volume, reconstruction: str = "tent") -> dict:
+def medium_bytes(volume, method: Reconstruction = DEFAULT_METHOD) -> dict:
     """Host bytes of an ``amr`` medium with the default structures (traversal
     ``grid``, sampling ``hash``) over ``volume`` (a `BlockVolume`), from its
     blocks: ``data`` (`BlockVolume.nbytes`), ``hash`` (the point-location
@@ -36,7 +36,6 @@ def medium_bytes(volume, reconstruction: str = "tent") -> dict:
     checks against the memory limit before building the hash (`hash_bytes`
     plus the values). On the CUDA backend the values and structures are
     copied to the GPU as well."""
-    method = reconstruction_method(reconstruction)
     coord, level = volume.coord.astype(np.int64), np.asarray(volume.level)
     neighbour_bytes = 4
     if method.needs_ghosts:

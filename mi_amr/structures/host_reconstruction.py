@@ -10,18 +10,16 @@ from __future__ import annotations
 import numpy as np
 
 from ..data.blocks import BlockVolume
-from ..data.cells import AMRCells
-from ..reconstruction import Reconstruction, reconstruction_method
+from ..reconstruction import Reconstruction
 
 
 class HostReconstruction:
     """Vectorised numpy reconstruction through the blocks of the data."""
 
-    def __init__(self, data: AMRCells | BlockVolume):
-        self.volume = BlockVolume.from_cells(data) if isinstance(data, AMRCells) else data
+    def __init__(self, volume: BlockVolume):
+        self.volume = volume
 
-    def __call__(self, x, method: str | Reconstruction = "tent"):
+    def __call__(self, x, method: Reconstruction):
         """``(value, found)`` at points ``x`` (M, 3), absolute finest units."""
-        method = reconstruction_method(method)
         x = np.asarray(x, dtype=np.float64) - self.volume.origin
         return method.host_eval(self.volume, x)

@@ -21,11 +21,10 @@ import threading
 import numpy as np
 
 from ..data.blocks import BlockVolume
-from ..data.cells import AMRCells
 from ..memory import grid_bytes, require
 from ..parallel import build_threads, ordered_map
 from ..progress import progress
-from ..reconstruction import Reconstruction, reconstruction_method
+from ..reconstruction import DEFAULT_METHOD, Reconstruction
 from .boxes import expand_boxes
 from .block_windows import block_window_reduce, block_windows
 from .value_masks import ValueBins, value_masks
@@ -40,7 +39,7 @@ def axis_resolution(longest: int, extent) -> np.ndarray:
     return np.maximum(1, np.round(longest * ext / ext.max())).astype(np.int64)
 
 
-def default_resolution(cells: AMRCells | BlockVolume) -> np.ndarray:
+def default_resolution(cells: BlockVolume) -> np.ndarray:
     """Grid resolution chosen from the data: about 8 cells per macrocell on
     average, a power of two along the longest axis between 8 and 128, never
     finer than the finest level, other axes in proportion. (Measured on the
@@ -58,14 +57,13 @@ class MacrocellGrid:
 
     Parameters
     ----------
-    cells : AMRCells or BlockVolume
-        Read chunk by chunk (`cell_chunks`).
+    cells : BlockVolume
+        Read block by block (`block_chunks`).
     resolution : int or (3,) ints, optional
         Macrocells per axis (x, y, z). ``None`` picks `default_resolution`;
         a single int is the count along the longest axis.
-    support : str or Reconstruction
-        The reconstruction method (a name in
-        `mi_amr.reconstruction.METHODS`, or the object): each cell is
+    support : Reconstruction
+        The reconstruction method (`mi_amr.reconstruction`): each cell is
         splatted over its support box (`Reconstruction.support_box`:
         ``tent`` ``[c - w, c + w]``, ``nearest`` the cell itself).
     chunk : int
@@ -78,9 +76,8 @@ class MacrocellGrid:
         `mi_amr.structures.value_masks`), else ``masks`` is None.
     """
 
-    def __init__(self, cells: AMRCells | BlockVolume, resolution=None, support: str | Reconstruction = "tent",
+    def __init__(self, cells: BlockVolume, resolution=None, support: Reconstruction = DEFAULT_METHOD,
                  chunk: int = 1 << 20, memory_limit: float | None = None, masks: bool = False):
-        support = reconstruction_method(support)
         lo, hi = cells.bounds
         ext = (hi - lo).astype(np.float64)
         if resolution is None:
@@ -98,7 +95,7 @@ class MacrocellGrid:
         self.lo, self.extent = lo, ext
         if self._from_file(cells, support, masks):
             return
-        slots = cells.values.size if isinstance(cells, BlockVolume) else len(cells)
+        slots = cells.values.size
         require(grid_bytes(float(np.prod(res)), slots),
                 f"a macrocell grid of {'x'.join(str(int(r)) for r in res)} cells", memory_limit,
                 "choose a smaller grid_resolution")
@@ -108,25 +105,19 @@ class MacrocellGrid:
         bits = np.zeros(n, dtype=np.uint32)
         splat = _RangeSplat(cells.origin, lo, hi, res, support, chunk, vmin, vmax, bits)
         with progress(len(cells), f"macrocell ranges {'x'.join(str(int(r)) for r in res)}") as bar:
-            if isinstance(cells, BlockVolume):
-                def add(chunk):
-                    level, coord, values = chunk
-                    splat.add_blocks(level, coord, values, cells.log2_block)
-                    return int(np.count_nonzero(~np.isnan(values)))
-                # chunks of about BLOCK_CHUNK cells, reduced on every core
-                for n in ordered_map(add, cells.block_chunks(BLOCK_CHUNK), build_threads()):
-                    bar.update(n)
-            else:
-                for pos, level, value in cells.cell_chunks():
-                    splat.add(pos, level, value)
-                    bar.update(len(value))
+            def add(chunk):
+                level, coord, values = chunk
+                splat.add_blocks(level, coord, values, cells.log2_block)
+                return int(np.count_nonzero(~np.isnan(values)))
+            # chunks of about BLOCK_CHUNK cells, reduced on every core
+            for n in ordered_map(add, cells.block_chunks(BLOCK_CHUNK), build_threads()):
+                bar.update(n)
             splat.finish()
         self.vmin, self.vmax, self.level_bits = vmin, vmax, bits
         self.masks = self.bins = None
         if masks:
-            volume = cells if isinstance(cells, BlockVolume) else BlockVolume.from_cells(cells, method=support)
-            self.bins = ValueBins.of(volume)
-            self.masks = value_masks(volume, self, support, self.bins)
+            self.bins = ValueBins.of(cells)
+            self.masks = value_masks(cells, self, support, self.bins)
 
     def _from_file(self, cells, support, masks: bool) -> bool:
         """Take the grid a native file stored for this method and resolution

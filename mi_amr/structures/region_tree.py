@@ -20,7 +20,7 @@ import numpy as np
 
 from ..memory import BYTES_PER_TREE_ITEM, BYTES_PER_TREE_NODE, BYTES_PER_TREE_PAIR, require
 from ..progress import progress
-from ..reconstruction import Reconstruction, reconstruction_method
+from ..reconstruction import DEFAULT_METHOD, Reconstruction
 
 
 #: Tent ABR leaves are not split once no side is longer than this many cells
@@ -263,7 +263,7 @@ def build_region_tree(box_lo, box_hi, root_lo, root_hi, leaf_extent=None, memory
 
 
 def brick_region_tree(bricks, lo, hi, over_domains: bool, leaf_cells: int | None = None,
-                      memory_limit=None, what: str = "region tree", method="tent") -> RegionTree:
+                      memory_limit=None, what: str = "region tree", method: Reconstruction = DEFAULT_METHOD) -> RegionTree:
     """The region tree of ``bricks`` over the data bounds ``[lo, hi]``
     (finest units): over the brick domains (``over_domains``: the ABRs of
     ``tent``), leaves not split below ``leaf_cells`` cells of the finest
@@ -332,7 +332,7 @@ def _depth(axis, child) -> int:
     return int(best)
 
 
-def exact_value_ranges(tree: RegionTree, bricks, method: str | Reconstruction = "tent", own_lists: bool = False,
+def exact_value_ranges(tree: RegionTree, bricks, method: Reconstruction = DEFAULT_METHOD, own_lists: bool = False,
                        chunk: int = 1 << 22):
     """Exact value range of each leaf of ``tree`` (built over boxes in
     doubled finest units): min/max over the cells whose support box
@@ -385,7 +385,6 @@ def exact_value_ranges(tree: RegionTree, bricks, method: str | Reconstruction = 
 def _support_half_cells(method) -> tuple[int, int]:
     """How far a cell's support reaches below and above its lower corner,
     in half cells (the region trees count in doubled finest units)."""
-    method = reconstruction_method(method)
     a, b = method.support_box(0.0, 2.0)             # a cell of two units at 0
     if a != round(a) or b != round(b):
         raise ValueError(f"reconstruction {method}: support radius {method.support_radius} "

@@ -31,10 +31,9 @@ import threading
 import numpy as np
 
 from ..data.blocks import BlockVolume
-from ..data.cells import AMRCells
 from ..parallel import ordered_map
 from ..progress import progress
-from ..reconstruction import Reconstruction, reconstruction_method
+from ..reconstruction import Reconstruction
 from .block_windows import block_windows
 
 N_BINS = 64
@@ -82,15 +81,13 @@ class ValueBins:
         return np.where(ok, upto & ~below, np.uint64(0))
 
 
-def value_masks(data: AMRCells | BlockVolume, grid, method: str | Reconstruction,
+def value_masks(volume: BlockVolume, grid, method: Reconstruction,
                 bins: ValueBins | None = None) -> np.ndarray:
     """The value mask (uint64) of every macrocell of ``grid`` (a
     `MacrocellGrid`: ``res``, ``lo``, ``extent``), for ``method`` (see the
     module docstring): the bins of the method's items (`Reconstruction.mask_items`,
     read block by block) folded into the macrocells their boxes
     (`Reconstruction.mask_item_box`) overlap."""
-    method = reconstruction_method(method)
-    volume = BlockVolume.from_cells(data, method=method) if isinstance(data, AMRCells) else data
     bins = bins or ValueBins.of(volume)
     res = np.asarray(grid.res, dtype=np.int64)
     masks = np.zeros(int(np.prod(res)), dtype=np.uint64)

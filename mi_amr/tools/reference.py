@@ -24,7 +24,8 @@ from pathlib import Path
 from ..data.cells import AMRCells
 from ..scene_xml import PASS_THROUGH, amr_elements, load_root, parse_scene
 from ..structures.host_reconstruction import HostReconstruction
-from ..reconstruction import Reconstruction, reconstruction_method
+from ..data.volume import as_method, as_volume
+from ..reconstruction import Reconstruction
 from ..transfer.function import TransferFunction
 
 #: Default memory limit of the dense reference (sigma_t + albedo), bytes.
@@ -52,7 +53,7 @@ def resample_dense(cells: AMRCells, method: str | Reconstruction = "tent", resol
 
     ``device``: evaluate with the Dr.Jit reconstruction (fast, multi-threaded;
     the default when a JIT variant is active) or with the numpy one."""
-    method = reconstruction_method(method)
+    method = as_method(method)
     need = dense_bytes(cells, resolution)
     if need > memory_limit:
         nz, ny, nx = dense_shape(cells, resolution)
@@ -65,9 +66,10 @@ def resample_dense(cells: AMRCells, method: str | Reconstruction = "tent", resol
     voxel = (hi - lo) / np.array(shape[::-1], dtype=np.float64)   # finest units per voxel (x, y, z)
     if device is None:
         device = mi.variant() is not None and not mi.variant().startswith("scalar")
+    volume = as_volume(cells, method)
     if device:
         from ..device.hash_sampler import DeviceReconstruction
-        dev = DeviceReconstruction(cells, method)
+        dev = DeviceReconstruction(volume, method)
         bits = mi.UInt32(dev.hash.level_bits)
 
         def rec(x, method):
@@ -75,7 +77,7 @@ def resample_dense(cells: AMRCells, method: str | Reconstruction = "tent", resol
             v, f = dev.eval(mi.Vector3f(np.ascontiguousarray(xr.T)), bits)
             return v.numpy(), f.numpy()
     else:
-        rec = HostReconstruction(cells)
+        rec = HostReconstruction(volume)
     n = int(np.prod(shape))
     value = np.zeros(n, dtype=np.float32)
     found = np.zeros(n, dtype=bool)
@@ -97,7 +99,7 @@ def reference_medium(cells: AMRCells, tf: TransferFunction, density_scale: float
     The ``gridvolume`` filter is the method's (`Reconstruction.grid_filter`):
     ``nearest`` uses ``filter_type="nearest"``, ``tent`` uses trilinear.
     """
-    method = reconstruction_method(method)
+    method = as_method(method)
     sigma_t, albedo = baked_grids(cells, tf, method, resolution, memory_limit)
     filter_type = method.grid_filter
     from ..plugins.options import as_transform4f
@@ -119,7 +121,7 @@ def baked_grids(cells: AMRCells, tf: TransferFunction, method: str | Reconstruct
     per voxel (zero where no cell covers the voxel centre): ``(sigma_t,
     albedo)``, float32, ``[nz, ny, nx, 1]`` (opacity, before
     ``density_scale``) and ``[nz, ny, nx, 3]``."""
-    value, found = resample_dense(cells, reconstruction_method(method), resolution, memory_limit)
+    value, found = resample_dense(cells, as_method(method), resolution, memory_limit)
     rgba = tf(value)
     rgba[~found] = 0.0
     return (np.ascontiguousarray(rgba[..., 3:4], dtype=np.float32),
