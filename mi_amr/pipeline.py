@@ -27,9 +27,10 @@ import numpy as np
 from .builds import COMPONENTS
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
+from .data.volume import as_method
 from .device.structs import jit_struct
 from .memory import require
-from .reconstruction import Reconstruction, reconstruction_method
+from .reconstruction import Reconstruction
 from .strategies import SAMPLINGS, TRAVERSALS
 from .structures.cache import HOST_CACHE, StructureCache
 from .transfer.classification import Classification
@@ -52,7 +53,7 @@ class StructureOptions:
     @property
     def method(self) -> Reconstruction:
         """The reconstruction method (`mi_amr.reconstruction`), resolved once."""
-        return reconstruction_method(self.reconstruction)
+        return as_method(self.reconstruction)
 
     @property
     def grid_masks(self) -> bool:
@@ -73,23 +74,19 @@ class Structures:
     `sampler` return views over what it built.
     """
 
-    def __init__(self, data: AMRCells | BlockVolume, options: StructureOptions,
-                 classification: Classification, world_scale: float, cache: StructureCache = HOST_CACHE):
+    def __init__(self, volume: BlockVolume, options: StructureOptions,
+                 classification: Classification, world_scale: float, cache: StructureCache = HOST_CACHE,
+                 cells: AMRCells | None = None):
         self.cache = cache
         self.options = options
         self.classification = classification
         self.world_scale = world_scale
         self.traversal = TRAVERSALS[options.traversal]
         self.sampling = SAMPLINGS[options.sampling]
-        if isinstance(data, AMRCells):
-            # blocks of the cells, made once per AMRCells object (their block
-            # size weighed for the first medium's reconstruction): media on
-            # the same cells share the blocks and their device copy
-            self._given_cells = data
-            data = cache.get(data, "volume", lambda: BlockVolume.from_cells(data, method=options.method))
-        else:
-            self._given_cells = None
-        self.volume = data
+        # ``cells``: the `AMRCells` the volume was made from, when a user
+        # gave cells (`mi_amr.plugins.options.medium_volume`), else None
+        self._given_cells = cells
+        self.volume = data = volume
         self.device = {}                # device structs (seen by dr.freeze)
         self.field_tables = {}          # hash tables over further fields (`field_sampler`)
         self.host = {}                  # host-only structures (bricks)

@@ -62,7 +62,7 @@ def store_outputs(outputs, field, folder, fields=(), log=print):
     ``log`` as it fails)."""
     from .autoscene import open_data
     from .data.amrb import save_amrb
-    from .data.blocks import BlockVolume
+    from .data.volume import as_volume
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     stored, failed = [], []
@@ -71,8 +71,7 @@ def store_outputs(outputs, field, folder, fields=(), log=print):
             if not Path(src).exists():
                 raise FileNotFoundError(f"{src}: no such file or directory")
             volume, _, _ = open_data(src, field, fields)
-            if not isinstance(volume, BlockVolume):
-                volume = BlockVolume.from_cells(volume)
+            volume = as_volume(volume)
             path = save_amrb(volume, folder / f"{k:03d}_{Path(src).name}.amrb")
             stored.append((src, path))
         except Exception as e:                   # named, and the others go on

@@ -43,6 +43,7 @@ import numpy as np
 from ..parallel import ordered_map
 from ..progress import progress
 from .blocks import BlockVolume
+from .volume import as_volume
 
 MAGIC = b"MIAMRB\r\n"
 #: Format version written; a reader refuses any not in `READ_VERSIONS`.
@@ -98,7 +99,7 @@ def save_amrb(data, path) -> Path:
     `AMRCells` or a `BlockVolume`) as blocks, with the macrocell grids of
     every reconstruction method, so that a medium opened from the file
     builds none; returns the path."""
-    volume = data if isinstance(data, BlockVolume) else BlockVolume.from_cells(data)
+    volume = as_volume(data)
     return write_amrb(volume, path, grids=None if _GRID_BUILDER is None else _GRID_BUILDER(volume))
 
 

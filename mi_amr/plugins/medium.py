@@ -329,8 +329,8 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self.classification = Classification(options.tf, options.density_scale,
                                              emission=None if emission is None else emission.tf,
                                              emission_scale=1.0 if emission is None else emission.scale)
-        self.structures = Structures(options.data, options.structures, self.classification,
-                                     options.world_scale).build()
+        self.structures = Structures(options.volume, options.structures, self.classification,
+                                     options.world_scale, cells=options.cells).build()
         # a medium that glows: the emission field's look-ups go through the
         # point-location hash (whatever the sampling) with that field's values
         if emission is not None:

@@ -18,9 +18,11 @@ from ..data.blocks import BlockVolume
 from ..data.io import load_volume
 from ..data.reconstruction import METHODS
 from ..data.transform import VALUE_TRANSFORMS, apply_value_transform
+from ..data.volume import as_volume
 from ..memory import default_memory_limit
 from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
 from ..pipeline import SAMPLINGS, TRAVERSALS, StructureOptions
+from ..structures.cache import HOST_CACHE
 from ..transfer.classification import MAX_DENSITY_SCALE
 from ..transfer.function import TransferFunction
 
@@ -55,8 +57,11 @@ class Emission:
 @dataclass(frozen=True)
 class MediumOptions:
     """Everything the ``amr`` medium needs, validated. ``density_scale`` in
-    inverse world units; ``to_world`` maps the local unit cube to the world."""
-    data: AMRCells | BlockVolume
+    inverse world units; ``to_world`` maps the local unit cube to the world.
+    ``volume``: the data as blocks; ``cells``: the `AMRCells` they were made
+    from when the scene gave cells (else None)."""
+    volume: BlockVolume
+    cells: "AMRCells | None"
     tf: TransferFunction
     density_scale: float
     majorant: str
@@ -81,7 +86,8 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
     # once, at load; the TF domain is in transformed units (a file's volume is
     # this medium's own, so it is transformed in place)
     data, _ = apply_value_transform(data, transform, inplace="filename" in props.keys())
-    emission = _emission(props, data)
+    volume, cells = medium_volume(data, reconstruction)
+    emission = _emission(props, volume)
     structures = StructureOptions(
         reconstruction=reconstruction,
         traversal=get_string(props, "amr", "traversal", "grid", TRAVERSALS),
@@ -93,13 +99,14 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
         value_masks=get_bool(props, "amr", "value_masks", True),
         memory_limit=get_float(props, "amr", "memory_limit", default_memory_limit(), positive=True))
     return MediumOptions(
-        data=data,
-        tf=_transfer_function(props, data),
+        volume=volume,
+        cells=cells,
+        tf=_transfer_function(props, volume),
         density_scale=get_float(props, "amr", "density_scale", 1.0, minimum=0.0, maximum=MAX_DENSITY_SCALE),
         majorant=get_string(props, "amr", "majorant", "ray", MAJORANTS),
         max_iterations=get_int(props, "amr", "max_iterations", MAX_TRACKING_ITERATIONS,
                                minimum=1, maximum=2**31),
-        to_world=_to_world(props, data),
+        to_world=_to_world(props, volume),
         structures=structures,
         emission=emission)
 
@@ -125,6 +132,17 @@ def _refinement(props) -> int | None:
     return f
 
 
+def medium_volume(data: AMRCells | BlockVolume, method: str) -> tuple[BlockVolume, "AMRCells | None"]:
+    """``(volume, cells)``: the data as blocks, resolved once here; the blocks
+    of an `AMRCells` are made once per cells object (their block size
+    weighed for the first medium's reconstruction: media on the same cells
+    share the blocks and their device copy), and ``cells`` is that object
+    (None for a `BlockVolume`)."""
+    if isinstance(data, AMRCells):
+        return HOST_CACHE.get(data, "volume", lambda: as_volume(data, method)), data
+    return data, None
+
+
 def _load_data(props, method: str) -> AMRCells | BlockVolume:
     overlap = get_string(props, "amr", "overlap", "error", OVERLAPS)
     has_file, has_data = "filename" in props.keys(), "data" in props.keys()
@@ -145,7 +163,7 @@ def _load_data(props, method: str) -> AMRCells | BlockVolume:
     return load_volume(path, scalars, overlap=overlap, method=method)
 
 
-def _transfer_function(props, cells: AMRCells | BlockVolume) -> TransferFunction:
+def _transfer_function(props, cells: BlockVolume) -> TransferFunction:
     tf = props.get("transfer_function", "foggy")
     vlo, vhi = cells.value_range
     if vhi <= vlo:                 # constant data: centre the value in the TF domain
@@ -179,8 +197,7 @@ def _emission(props, data) -> Emission | None:
     field = get_string(props, "amr", "emission_field", None)
     transform = get_string(props, "amr", "emission_transform", "none", VALUE_TRANSFORMS)
     values = _field_values(data, field)
-    lo, hi = (data.field_range(field) if isinstance(data, BlockVolume)
-              else (float(values.min()), float(values.max())))
+    lo, hi = data.field_range(field)
     if transform == "log10":
         floor = positive_floor(values, f"{data.source} field {field or 'value'}")
         lo, hi = float(np.log10(max(lo, floor))), float(np.log10(max(hi, floor)))

@@ -50,10 +50,8 @@ def _data_file(loaded: LoadedScene, out_dir: Path) -> Path:
         return src.resolve()
     target = out_dir / f"{src.stem or 'data'}{'-' + str(field).replace(',', '-') if field else ''}.amrb"
     if not target.exists():
-        from ..data.blocks import BlockVolume
         from ..native_file import save_native
-        data = loaded.plan.data
-        save_native(data if isinstance(data, BlockVolume) else BlockVolume.from_cells(data), target)
+        save_native(loaded.plan.data, target)
     return target
 
 
