@@ -25,7 +25,6 @@ from ..memory import grid_bytes, require
 from ..parallel import build_threads, ordered_map
 from ..progress import progress
 from ..reconstruction import DEFAULT_METHOD, Reconstruction
-from .boxes import expand_boxes
 from .block_windows import block_window_reduce, block_windows
 from .value_masks import ValueBins, value_masks
 
@@ -224,19 +223,6 @@ class _RangeSplat:
         qw = (q << L) + (self.origin[axis] - self.lo[axis])
         return self._macrocells(qw.astype(np.float64), float(1 << L), axis)
 
-    def add(self, pos, level, value):
-        levels = np.unique(level)
-        for L in levels:
-            L = int(L)
-            sel = level == L if len(levels) > 1 else slice(None)
-            p, v = pos[sel], value[sel]
-            if self._is_dense(L):
-                qmin, grid = self._dense_grid(L)
-                q = ((p.astype(np.int64) - self.origin) >> L) - qmin
-                grid[q[:, 2], q[:, 1], q[:, 0]] = v
-            else:
-                self._fold_cells(p, L, v)
-
     def add_blocks(self, level, coord, values, log2_block):
         """Fold blocks of cells: ``level`` (k,), block coordinates ``coord``
         (k, 3), ``values`` (k, B, B, B) indexed [block, z, y, x], NaN = no
@@ -270,45 +256,6 @@ class _RangeSplat:
                 np.minimum.at(self.vmin, idx, vmin[ok])
                 np.maximum.at(self.vmax, idx, vmax[ok])
                 np.bitwise_or.at(self.bits, idx, np.uint32(1 << L))
-
-    def _fold_cells(self, pos, L, value):
-        res = self.res
-        i0, i1 = self._macrocells(pos.astype(np.float64) - self.lo, float(1 << L))
-        bit = np.uint32(1 << L)
-        span = i1 - i0
-        near = (span[:, 0] <= 2) & (span[:, 1] <= 2) & (span[:, 2] <= 2)
-        # group the cells by their span (3^3 kinds); each kind folds into the
-        # macrocells base + d for every offset d <= span
-        kind = np.where(near, span[:, 0] + 3 * span[:, 1] + 9 * span[:, 2], 27)
-        order = np.argsort(kind, kind="stable")
-        bounds = np.searchsorted(kind[order], np.arange(28))
-        base = i0[:, 0] + res[0] * (i0[:, 1] + res[1] * i0[:, 2])
-        for k in range(27):
-            sel = order[bounds[k]:bounds[k + 1]]
-            if not len(sel):
-                continue
-            sx, sy, sz = k % 3, (k // 3) % 3, k // 9
-            b0, v = base[sel], value[sel]
-            for dz in range(sz + 1):
-                for dy in range(sy + 1):
-                    for dx in range(sx + 1):
-                        idx = b0 + (dx + res[0] * (dy + res[1] * dz))
-                        np.minimum.at(self.vmin, idx, v)
-                        np.maximum.at(self.vmax, idx, v)
-                        np.bitwise_or.at(self.bits, idx, bit)
-        far = ~near
-        if far.any():
-            i0, i1, value = i0[far], i1[far], value[far]
-            ends = np.cumsum((i1 - i0 + 1).prod(axis=1))
-            start = 0
-            while start < len(i0):
-                stop = max(start + 1, int(np.searchsorted(ends, (ends[start - 1] if start else 0) + self.chunk,
-                                                          side="right")))
-                idx, owner = expand_boxes(i0[start:stop], i1[start:stop], res)
-                np.minimum.at(self.vmin, idx, value[start:stop][owner])
-                np.maximum.at(self.vmax, idx, value[start:stop][owner])
-                np.bitwise_or.at(self.bits, idx, bit)
-                start = stop
 
     def finish(self):
         """Reduce the dense levels into the macrocells: the minima and the
