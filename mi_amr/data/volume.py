@@ -1,9 +1,9 @@
-"""Resolution at the boundary (issue 41, as OpenVKL's ``commit()``): data
-and reconstruction methods enter the package through `as_volume` and
-`as_method`, once, where a user hands them in (the medium's options, the
-short-cuts of `mi_amr`, `mi_amr.autoscene.open_data`, the command line's
-loaders, the structures pipeline). Inside, functions take a `BlockVolume`
-and a `Reconstruction` object only."""
+"""Resolution at the boundary (as OpenVKL's ``commit()``; docs/design.md
+section 6c): data and reconstruction methods enter the package through
+`as_volume` and `as_method`, once, where a user hands them in (the medium's
+options, the short-cuts of `mi_amr`, the command line's loaders, the
+benchmarks). Inside, functions take a `BlockVolume` and a `Reconstruction`
+object only."""
 
 from __future__ import annotations
 
