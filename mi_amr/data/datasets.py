@@ -296,14 +296,22 @@ def block_leaves(cells: int, levels: int = 4, seed: int = 0, nxb=None, field: st
     parts = []                                   # (unit, sub-block, lo, level, size) per size
     for s in sizes:
         u = np.nonzero(choice == s)[0]
-        offs = block_offsets(nxb // int(s)) * s                      # sub-block corners, level units
-        w = (np.int64(1) << level[u].astype(np.int64))[:, None, None]
-        sub_lo = (lo[u][:, None, :] + offs[None] * w).reshape(-1, 3)
-        parts.append((np.repeat(u, len(offs)), np.tile(np.arange(len(offs)), len(u)), sub_lo,
-                      np.repeat(level[u], len(offs)), np.full(len(u) * len(offs), s)))
+        cut = nxb // int(s)
+        sub_lo, sub_level = _sub_blocks(lo[u], level[u], cut, int(s))
+        parts.append((np.repeat(u, cut ** 3), np.tile(np.arange(cut ** 3), len(u)), sub_lo,
+                      sub_level, np.full(len(sub_level), s)))
     unit, sub, sub_lo, sub_level, size = (np.concatenate([p[i] for p in parts]) for i in range(5))
     order = np.lexsort((sub, unit))              # the blocks of each leaf together, leaves in order
     return sub_lo[order], sub_level[order], size[order], n_fine, seed
+
+
+def _sub_blocks(lo, level, cut: int, s: int):
+    """Each block ``lo`` (k, 3) finest units, ``level`` (k,) cut into
+    ``cut^3`` same-level blocks of ``s`` cells per side: ``(lo (k cut^3, 3),
+    level (k cut^3,))``, the sub-blocks of each block together."""
+    offs = block_offsets(cut) * s                                    # sub-block corners, level units
+    w = (np.int64(1) << np.asarray(level).astype(np.int64))[:, None, None]
+    return (lo[:, None, :] + offs[None] * w).reshape(-1, 3), np.repeat(level, len(offs))
 
 
 def _block_chunk(lo, level, size, n_fine: int, f, order: str = "F"):
@@ -381,12 +389,11 @@ def _layout_leaves(args, layout: str):
             u = np.nonzero(sub == s)[0]
             for s0 in np.unique(size[u]):
                 v = u[size[u] == s0]
-                cut = max(1, int(s0) // int(s))
-                offs = block_offsets(cut) * min(int(s), int(s0))
-                w = (np.int64(1) << level[v].astype(np.int64))[:, None, None]
-                lo_parts.append((lo[v][:, None, :] + offs[None] * w).reshape(-1, 3))
-                lev_parts.append(np.repeat(level[v], len(offs)))
-                size_parts.append(np.full(len(v) * len(offs), min(int(s), int(s0))))
+                s1 = min(int(s), int(s0))
+                sub_lo, sub_level = _sub_blocks(lo[v], level[v], max(1, int(s0) // int(s)), s1)
+                lo_parts.append(sub_lo)
+                lev_parts.append(sub_level)
+                size_parts.append(np.full(len(sub_level), s1))
         lo, level, size = (np.concatenate(p) for p in (lo_parts, lev_parts, size_parts))
         # refined region by region, as patch-based codes flag them: a third of the coarser
         # blocks, picked at random, hold the next finer level (same extent, 2x the cells per
