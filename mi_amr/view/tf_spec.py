@@ -3,17 +3,23 @@
 The editor works in *display* units: the values themselves (linear) or their
 log10, over a value range ``[lo, hi]`` of those units; opacity control
 points ``(u, alpha)`` lie in the normalised display value ``u = (d - lo) /
-(hi - lo)``, colour comes from a matplotlib colormap over ``u``. The medium
+(hi - lo)``, colour comes from a matplotlib colormap over ``u``, or from the
+points' own colours (``(u, alpha, "#rrggbb")``, `point_colours`). The medium
 holds its values in *stored* units (``value_transform`` none or log10, fixed
 at load: docs/design.md section 11). `TFSpec.table` samples the display-space
 TF at the entries of a table that is uniform in stored units, so both
 display modes work over one loaded medium: switching them changes the table,
-not the data.
+not the data. `TFSpec.file_json` writes the editor's TF as the JSON that
+``mi-amr render --tf`` reads (in display units), with the editor's state
+beside it; `TFSpec.from_file` reads that, or any TF JSON, back.
 """
 
 from __future__ import annotations
 
+import json
+import tempfile
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -35,11 +41,52 @@ def spiky_points() -> list[tuple[float, float]]:
     return pts + [(1.0, 0.0)]
 
 
+#: The editor's presets: a colormap and opacity points (the first three
+#: are `TransferFunction.preset`'s, what the autoscene plan names).
 PRESET_POINTS = {
     "spiky": ("plasma", spiky_points()),
     "foggy": ("viridis", [(0.0, 0.0), (0.15, 0.02), (0.5, 0.08), (1.0, 0.15)]),
     "ramp": ("viridis", [(0.0, 0.0), (1.0, 1.0)]),
+    "ramp down": ("magma", [(0.0, 1.0), (1.0, 0.0)]),
+    "tent": ("coolwarm", [(0.0, 0.0), (0.5, 0.8), (1.0, 0.0)]),
+    "step": ("inferno", [(0.0, 0.0), (0.5, 0.0), (0.52, 0.7), (1.0, 0.7)]),
+    "gray ramp": ("gray", [(0.0, 0.0), (1.0, 0.6)]),
 }
+#: Opacity samples the editor takes from a loaded table of more entries.
+LOADED_POINTS = 65
+
+
+def hex_rgb(colours) -> np.ndarray:
+    """``"#rrggbb"`` strings -> (n, 3) floats in [0, 1]."""
+    return np.array([[int(c[i:i + 2], 16) for i in (1, 3, 5)] for c in colours], np.float64).reshape(-1, 3) / 255.0
+
+
+def rgb_hex(rgb) -> list[str]:
+    """(n, 3) floats in [0, 1] -> ``"#rrggbb"`` strings."""
+    q = np.rint(255 * np.clip(np.asarray(rgb, np.float64).reshape(-1, 3), 0, 1)).astype(int)
+    return ["#%02x%02x%02x" % tuple(c) for c in q]
+
+
+def point_colours(points, u, base) -> np.ndarray:
+    """(len(u), 3) colours over ``u``: between two neighbouring points of
+    which at least one has its own colour, the two points' colours blended
+    linearly (a point without one takes ``base`` at its u); elsewhere
+    ``base(u)`` (the colormap)."""
+    u = np.asarray(u, np.float64)
+    out = base(u)
+    own = [i for i, p in enumerate(points) if len(p) > 2]
+    if not own or len(points) < 2:
+        return out
+    pu = np.array([p[0] for p in points], np.float64)
+    col = base(pu)
+    col[own] = hex_rgb([points[i][2] for i in own])
+    has = np.zeros(len(points), bool)
+    has[own] = True
+    i = np.clip(np.searchsorted(pu, u, side="right") - 1, 0, len(pu) - 2)
+    width = pu[i + 1] - pu[i]
+    t = np.clip(np.divide(u - pu[i], width, out=np.zeros_like(u), where=width > 0), 0.0, 1.0)
+    blend = col[i] + t[:, None] * (col[i + 1] - col[i])
+    return np.where((has[i] | has[i + 1])[:, None], blend, out)
 
 
 @dataclass
@@ -52,7 +99,7 @@ class TFSpec:
     density: float = 1.0
 
     def to_json(self) -> dict:
-        return {"points": [list(map(float, p)) for p in self.points], "colormap": self.colormap,
+        return {"points": [[float(p[0]), float(p[1]), *p[2:]] for p in self.points], "colormap": self.colormap,
                 "log": bool(self.log), "range": [float(self.range[0]), float(self.range[1])],
                 "density": float(self.density)}
 
@@ -84,7 +131,8 @@ class TFSpec:
             raise ValueError("range: hi must be above 0 (the data are positive)")
         density = change.density if change.density is not None else self.density
         order = sorted(range(len(pts)), key=lambda i: pts[i][0])      # stable
-        return TFSpec([(float(pts[i][0]), float(pts[i][1])) for i in order], cmap, log, (lo, hi), float(density))
+        return TFSpec([(float(pts[i][0]), float(pts[i][1]), *pts[i][2:]) for i in order], cmap, log, (lo, hi),
+                      float(density))
 
     def table(self, stored_log: bool, scene_rgb: np.ndarray | None = None) -> TransferFunction:
         """The medium's TF: `TABLE_SIZE` entries uniform in stored units over
@@ -104,16 +152,64 @@ class TFSpec:
             u = np.linspace(0.0, 1.0, TABLE_SIZE)
             domain = (lo, hi)
         u = np.clip(u, 0.0, 1.0)
-        pts = np.asarray(self.points, dtype=np.float64)
+        pts = np.array([p[:2] for p in self.points], dtype=np.float64)
         rgba = np.empty((TABLE_SIZE, 4))
         if self.colormap == "scene" and scene_rgb is not None:
             grid = np.linspace(0, 1, len(scene_rgb))
-            for c in range(3):
-                rgba[:, c] = np.interp(u, grid, scene_rgb[:, c])
+
+            def base(x):
+                return np.stack([np.interp(x, grid, scene_rgb[:, c]) for c in range(3)], axis=1)
         else:
-            rgba[:, :3] = matplotlib.colormaps[self.colormap](u)[:, :3]
+            def base(x):
+                return matplotlib.colormaps[self.colormap](x)[:, :3]
+        rgba[:, :3] = point_colours(self.points, u, base)
         rgba[:, 3] = np.interp(u, pts[:, 0], pts[:, 1])
         return TransferFunction(np.clip(rgba, 0.0, 1.0), domain)
+
+    def file_json(self, scene_rgb: np.ndarray | None = None) -> str:
+        """This TF as the JSON ``mi-amr render --tf`` reads: `TABLE_SIZE`
+        entries uniform in the display units (``"log10"``: whether those are
+        log10, then render with ``--log``) over the range, and the editor's
+        state (``"editor"``) that `from_file` restores exactly."""
+        tf = self.table(stored_log=self.log, scene_rgb=scene_rgb)
+        d = json.loads(tf.to_json())
+        d.update(log10=bool(self.log), editor=self.to_json())
+        return json.dumps(d)
+
+    def from_file(self, text: str, log_available: bool, colormaps=COLORMAPS) -> "TFSpec":
+        """The spec of a TF JSON file's ``text``: a file `file_json` wrote
+        (its editor state), or any table ``mi-amr render --tf`` reads (ours
+        or a ParaView preset: its domain in this spec's display units, or
+        log10 where it says so; up to `LOADED_POINTS` points with their
+        table colours). A `ValueError` says what is wrong."""
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"TF file: not JSON ({e})") from None
+        if isinstance(d, dict) and isinstance(d.get("editor"), dict):
+            return self.changed(parse_message(dict(d["editor"], type="tf")), log_available, colormaps)
+        if isinstance(d, list) or (isinstance(d, dict) and "RGBPoints" in d):
+            with tempfile.TemporaryDirectory() as tmp:       # ParaView presets are read from a file
+                path = Path(tmp) / "preset.json"
+                path.write_text(text)
+                tf = TransferFunction.from_paraview(path)
+        elif isinstance(d, dict) and "domain" in d and "rgba" in d:
+            try:
+                tf = TransferFunction(d["rgba"], d["domain"])
+            except (ValueError, TypeError) as e:
+                raise ValueError(f"TF file: {e}") from None
+        else:
+            raise ValueError("TF file: expected an object with 'domain' and 'rgba' (or a ParaView preset)")
+        log = d.get("log10", self.log) if isinstance(d, dict) else self.log
+        if not isinstance(log, bool):
+            raise ValueError("TF file: 'log10' must be true or false")
+        n = min(len(tf), LOADED_POINTS)
+        u = np.linspace(0.0, 1.0, n)
+        grid = np.linspace(0.0, 1.0, len(tf))
+        rgba = np.stack([np.interp(u, grid, tf.rgba[:, c]) for c in range(4)], axis=1)
+        points = [[float(a), float(b), h] for a, b, h in zip(u, rgba[:, 3], rgb_hex(rgba[:, :3]))]
+        change = parse_message({"type": "tf", "points": points, "log": log, "range": list(map(float, tf.domain))})
+        return self.changed(change, log_available, colormaps)
 
 
 #: Bins of the fine histogram that every editor histogram is re-binned from.
@@ -156,11 +252,20 @@ class Histogram:
         self.edges = np.linspace(lo, hi, FINE_BINS + 1)
         self.cdf = np.concatenate([[0.0], np.cumsum(counts)]) / (total or 1.0)
 
-    def shares(self, spec: TFSpec, stored_log: bool, bins: int = 128) -> list[float]:
-        """Share of the volume in each of ``bins`` display bins over ``spec.range``."""
-        edges = np.linspace(spec.range[0], spec.range[1], bins + 1)
+    def _cdf(self, edges, spec: TFSpec, stored_log: bool) -> np.ndarray:
+        """The share of the volume below each display value of ``edges``."""
+        edges = np.asarray(edges, np.float64)
         if stored_log and not spec.log:
             with np.errstate(divide="ignore", invalid="ignore"):
                 edges = np.where(edges > 0, np.log10(np.maximum(edges, 1e-300)), -np.inf)
-        cdf = np.interp(edges, self.edges, self.cdf, left=0.0, right=1.0)
+        return np.interp(edges, self.edges, self.cdf, left=0.0, right=1.0)
+
+    def shares(self, spec: TFSpec, stored_log: bool, bins: int = 128) -> list[float]:
+        """Share of the volume in each of ``bins`` display bins over ``spec.range``."""
+        cdf = self._cdf(np.linspace(spec.range[0], spec.range[1], bins + 1), spec, stored_log)
         return np.maximum(np.diff(cdf), 0.0).tolist()
+
+    def outside(self, spec: TFSpec, stored_log: bool) -> tuple[float, float]:
+        """``(below, above)``: the shares of the volume below and above ``spec.range``."""
+        lo, hi = self._cdf(spec.range, spec, stored_log)
+        return float(lo), float(max(1.0 - hi, 0.0))
