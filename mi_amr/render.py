@@ -18,10 +18,13 @@ import itertools
 import os
 import sys
 import time
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
+#: Samples per pixel of ``render`` when neither ``--spp`` nor the XML scene says.
+DEFAULT_SPP = 64
 DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
                       "not XML scenes (set those in the scene)")
 
@@ -103,6 +106,30 @@ def scene_params(defines) -> dict:
         k, v = item.split("=", 1)
         params[k] = v
     return params
+
+
+def scene_spp(path, params: dict) -> int | None:
+    """The ``sample_count`` of an XML scene's first sensor (a ``$name``
+    taken from ``params``, the ``-D`` values, else the scene's
+    ``<default>``); None when the scene names none (or does not parse:
+    its load says why)."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return None
+    sensor = root.find("sensor")
+    sampler = sensor.find("sampler") if sensor is not None else None
+    counts = [e.get("value", "") for e in (sampler if sampler is not None else []) if e.get("name") == "sample_count"]
+    if not counts:
+        return None
+    value = counts[0]
+    if value.startswith("$"):
+        defaults = {e.get("name"): e.get("value") for e in root.findall("default")}
+        value = params.get(value[1:], defaults.get(value[1:], ""))
+    try:
+        return int(value) if int(value) >= 1 else None
+    except ValueError:
+        return None
 
 
 def frames(args) -> tuple[list[dict], list[str]]:
@@ -213,6 +240,10 @@ def render(args):
                   or args.emission_range or args.emission_scale is not None)
     if is_xml and data_flags:
         raise SystemExit(DATA_FLAGS_MESSAGE)
+    if args.spp is None:                      # the scene's own sample count, as Mitsuba would take it
+        args.spp = (scene_spp(args.scene, frames(args)[0][0]) if is_xml else None) or DEFAULT_SPP
+    if args.spp < 1:
+        raise ValueError(f"--spp {args.spp}: at least 1")
     if is_xml and args.movie:
         raise SystemExit("mi-amr: --movie renders a run's outputs (a data pattern such as 'DD00??/DD00??'), "
                          "not an XML scene; for -D variations use --frames")

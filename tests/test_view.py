@@ -119,10 +119,10 @@ def test04_every_request_needs_the_token(served):
     assert server.host == "127.0.0.1"
     assert _get(f"{base}/")[0] == 403
     assert _get(f"{base}/?token=wrong")[0] == 403
-    assert _get(f"{base}/static/viewer.js")[0] == 403
-    assert _get(f"{base}/static/viewer.js?token={server.token}")[0] == 200
+    assert _get(f"{base}/static/viewer.js")[0] == 200        # code, no data: public (the page carries the token)
+    assert _get(f"{base}/static/index.html")[0] == 404       # the page only with its token
     status, body = _get(server.url)
-    assert status == 200 and 'data-testid="view"' in body
+    assert status == 200 and 'data-testid="view"' in body and f'content="{server.token}"' in body
     with pytest.raises((ConnectionClosed, InvalidStatus)):
         with connect(f"ws://127.0.0.1:{server.port}/ws?token=wrong") as ws:
             ws.recv(timeout=10)

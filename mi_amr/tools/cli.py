@@ -81,9 +81,12 @@ def _block_sizes(text: str):
     return sizes[0] if len(sizes) == 1 else tuple(sizes)
 
 
-def _render_flags(p, spp: int):
-    """The flags every command that renders takes."""
-    p.add_argument("--spp", type=int, default=spp, help=f"samples per pixel (default {spp})")
+def _render_flags(p, spp: int | None):
+    """The flags every command that renders takes (``spp`` None: the
+    scene's own sample count, else 64)."""
+    p.add_argument("--spp", type=int, default=spp,
+                   help=f"samples per pixel (default {spp})" if spp else
+                   "samples per pixel (default: an XML scene's own sample_count, else 64)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default="llvm_ad_rgb")
     p.add_argument("-D", "--define", action="append", metavar="NAME=VALUE",
@@ -141,7 +144,7 @@ def build_parser():
                                           "scenes and data go to OUT_outputs/)")
     r.add_argument("--denoise", action="store_true",
                    help="also write OUT-denoised.exr/.png: Intel Open Image Denoise (mi-amr[view] extra)")
-    _render_flags(r, 64)
+    _render_flags(r, None)
     r.add_argument("--chunk-spp", type=int, default=None,
                    help="samples per chunk (default: spp / max(8, 2 x workers), rounded up)")
     r.add_argument("--workers", type=int, default=None,
@@ -163,7 +166,9 @@ def build_parser():
     v.add_argument("--port", type=int, default=0, help="port (default: a free one)")
     v.add_argument("--host", default="127.0.0.1",
                    help="address to bind (default 127.0.0.1: this machine only; anything else is reachable "
-                        "from other machines, with the token)")
+                        "from other machines, with the token, and needs --allow-remote)")
+    v.add_argument("--allow-remote", action="store_true",
+                   help="allow a --host other machines reach (the traffic is not encrypted)")
     v.add_argument("--out", default=".", help="folder for snapshots (default: the current one)")
     v.add_argument("--no-browser", action="store_true", help="print the URL, do not open a browser")
     v.add_argument("--res", type=int, default=256, help="image width (default 256)")
@@ -262,10 +267,10 @@ def main(argv=None):
     except RuntimeError as e:
         if "failed to instantiate" not in str(e):     # not a scene that failed to load
             raise
-        if _plugin_error(str(e)).rstrip(": ").endswith("KeyboardInterrupt"):   # Ctrl-C inside a plugin
+        if plugin_error(str(e)).rstrip(": ").endswith("KeyboardInterrupt"):   # Ctrl-C inside a plugin
             print(f"mi-amr {args.command}: interrupted", file=sys.stderr)
             return 130
-        print(f"mi-amr {args.command}: error: {_plugin_error(str(e))}", file=sys.stderr)
+        print(f"mi-amr {args.command}: error: {plugin_error(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:                 # Ctrl-C: writers have removed what they had begun
         print(f"mi-amr {args.command}: interrupted", file=sys.stderr)
@@ -273,7 +278,7 @@ def main(argv=None):
     return code if isinstance(code, int) else 0
 
 
-def _plugin_error(message: str) -> str:
+def plugin_error(message: str) -> str:
     """Mitsuba's "failed to instantiate" message without the plugin's
     traceback: where it happened and the exception it raised."""
     where, _, trace = message.partition("Traceback (most recent call last):")

@@ -6,36 +6,86 @@ subcommand (`mi_amr.tools.cli`)."""
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import sys
 import time
+import webbrowser
 from pathlib import Path
 
 from .._llvm import ensure_llvm_path
 from ..render import scene_params, set_variant
 
 
-def view(args):
-    import webbrowser
+#: After a failed load, how long ``mi-amr view`` waits for a page to show the
+#: error before it exits (seconds), and how long a page that got it is given to draw it.
+LOAD_ERROR_WAIT = 10.0
+LOAD_ERROR_SHOWN = 1.0
 
-    from ..view.engine import ViewEngine
-    from ..view.server import ViewServer, warn_if_exposed
-    if Path(args.scene).suffix.lower() == ".xml" and args.field:
-        raise ValueError("--field is for data, not XML scenes")
-    if not Path(args.scene).exists():
+
+def view(args):
+    """``mi-amr view``: check every argument (one line each), listen, print
+    the URL, open the browser through a private redirect file, serve until
+    Ctrl-C. A failed load is printed as one line and shown in the page;
+    then the exit status is 2."""
+    from ..view.engine import ViewEngine       # lazy: start-up time (Mitsuba, the viewer)
+    from ..view.server import ViewServer, is_loopback, redirect_file
+    scene, host, port = Path(args.scene), args.host, args.port
+    if not scene.exists():
         raise FileNotFoundError(f"{args.scene}: no such file or directory")
-    set_variant(args.variant)
+    if scene.suffix.lower() == ".xml" and args.field:
+        raise ValueError("--field is for data, not XML scenes")
+    if not 0 <= port <= 65535:
+        raise ValueError(f"--port {port}: a port is 0 (any free one) to 65535")
+    if not host or not (is_loopback(host) or args.allow_remote):
+        raise ValueError(f"--host {host!r} serves other machines: add --allow-remote (the traffic is not encrypted)")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"--out {out}: cannot make the folder ({e.strerror or e})") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out}: not writable")
+    try:
+        set_variant(args.variant)
+    except SystemExit as e:
+        raise ValueError(str(e.code).removeprefix("mi-amr: ")) from None
     engine = ViewEngine(args.scene, args.field, res=args.res, max_spp=args.max_spp,
                         preview_scale=args.preview_scale, variant=args.variant)
-    server = ViewServer(engine, args.host, args.port, out_dir=args.out)
-    warn_if_exposed(args.host)
-    engine.start()
-    print(f"mi-amr view: {server.url}", flush=True)
-    print("(Ctrl-C stops the viewer)", flush=True)
-    if not args.no_browser:
-        webbrowser.open(server.url)
     try:
-        server.run()
+        server = ViewServer(engine, host, port, out_dir=out)
+    except (OSError, OverflowError) as e:
+        raise ValueError(f"cannot serve on {host}:{port}: {getattr(e, 'strerror', None) or e}") from None
+    if not is_loopback(host):
+        print(f"mi-amr view: warning: serving {host} for other machines; the traffic (token, data, images) "
+              "is not encrypted", file=sys.stderr)
+    engine.start()
+    server.start()
+    print(f"mi-amr view: {server.url}", flush=True)
+    print(f"(snapshots go to {server.out_dir}; Ctrl-C stops the viewer)", flush=True)
+    opened = None
+    try:
+        if not args.no_browser:
+            opened = redirect_file(server.url)
+            webbrowser.open(opened.as_uri())
+        while not engine.ready.wait(0.2):
+            pass
+        if engine.error:
+            print(f"mi-amr view: error: {engine.error}", file=sys.stderr, flush=True)
+            if server.error_shown.wait(LOAD_ERROR_WAIT):
+                time.sleep(LOAD_ERROR_SHOWN)
+            return 2
+        while server.running():
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        print("mi-amr view: stopped", file=sys.stderr)
     finally:
+        server.stop()
         engine.stop()
+        if opened is not None:
+            shutil.rmtree(opened.parent, ignore_errors=True)
 
 
 def timed_render(mi, scene, spp, repeats, seed=0):

@@ -13,7 +13,16 @@ state that changed meanwhile is shown (the newest picture there is) but
 accumulated into nothing; the first pass after a change is rendered at
 ``preview_scale`` of the resolution (quick feedback while a control is
 dragged). With the denoiser (`mitsuba_oidn`) on, a view sees denoised
-previews and denoised images of its accumulation at 1, 2, 4, 8, ... spp.
+previews and denoised images of its accumulation at 1, 2, 4, 8, 16 spp,
+then about each second (`DENOISE_INTERVAL`) and at ``max_spp``; between
+them each pass re-sends the last denoised image with the real spp count.
+Switching the denoiser keeps the accumulation.
+
+A change that cannot render never reaches the render thread (`change`
+refuses it with a `ValueError`); a pass that fails all the same is
+reported to its view alone (``notify``), which goes back to the last state
+that rendered. The render thread survives any pass; a failed load is the
+only fatal error (``error``, one line).
 
 The loaded scene is one `LoadedScene` (``engine.loaded``); the engine takes
 and gives `protocol` messages. Images reach a view through its
@@ -24,6 +33,7 @@ are dropped, never queued).
 
 from __future__ import annotations
 
+import gc
 import io
 import itertools
 import threading
@@ -33,15 +43,21 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import OrbitCamera
-from .protocol import (CameraChange, DenoiseChange, Frame, Hello, HistogramReply, Status, TFChange, ViewChange,
+from ..tools.cli import plugin_error
+from .camera import FLOOR_MARGIN, MAX_ELEVATION, OrbitCamera
+from .protocol import (CameraChange, DenoiseChange, Error, Frame, Hello, HistogramReply, Status, TFChange, ViewChange,
                        parse_message)
+from .protocol import Describe, EditorRequest, FieldChange, TFFile, TFLoad, TFSave
 from .scene import LoadedScene, load_scene
-from .snapshot import write_snapshot
-from .tf_spec import TFSpec, colormap_stops
+from .snapshot import Snapshot, SnapshotBudget, write_snapshot
+from .tf_spec import PRESET_POINTS, TFSpec, colormap_stops
 
 #: Samples per pixel after which a view stops refining.
 DEFAULT_MAX_SPP = 1024
+#: With the denoiser on, a new denoised image of the accumulation at least this often (seconds).
+DENOISE_INTERVAL = 1.0
+#: Passes of one state that may fail in a row before its view stops rendering (until it changes).
+MAX_FAILURES = 3
 #: Held around every Dr.Jit call of a viewer (scene changes, frozen passes):
 #: recording a frozen function while another thread traces or renders is
 #: not safe. Code that renders in the same process while a viewer runs (a
@@ -56,6 +72,17 @@ def denoiser():
     except ImportError as e:
         return None, f"denoising needs mitsuba-oidn: pip install 'mi-amr[view]' ({e})"
     return (lambda img: np.asarray(mitsuba_oidn.denoise(np.ascontiguousarray(img, np.float32), hdr=True))), None
+
+
+def one_line(e: BaseException) -> str:
+    """An exception as one line for a person: its message's first line
+    (Mitsuba's plugin failures without their traceback), its type named
+    unless it is a ValueError, OSError or RuntimeError."""
+    text = str(e).strip()
+    if "failed to instantiate" in text:
+        text = plugin_error(text)
+    first = text.splitlines()[0] if text else ""
+    return first if isinstance(e, (ValueError, OSError, RuntimeError)) and first else f"{type(e).__name__}: {first}"
 
 
 def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:
@@ -75,13 +102,22 @@ class View:
     camera: OrbitCamera
     spec: TFSpec
     send: object                         # send(protocol.Frame header, jpeg bytes), thread-safe
+    notify: object = None                # notify(protocol message) to the view's page, thread-safe
     denoise: bool = True
-    version: int = 0                     # bumped by every change
+    version: int = 0                     # bumped by every change message (the page counts them too)
+    epoch: int = 0                       # bumped by every change of the picture: the accumulation restarts
     accum: np.ndarray | None = None
     spp: int = 0
-    accum_version: int = -1
-    preview_version: int = -1
-    denoised: np.ndarray | None = None   # the newest denoised image of the accumulation
+    accum_epoch: int = -1
+    preview_epoch: int = -1
+    denoised: np.ndarray | None = None   # the newest denoised image of the accumulation,
+    denoised_spp: int = 0                # ... of this many samples,
+    denoised_jpeg: bytes = b""           # ... as the page got it,
+    denoised_at: float = -1e9            # ... made then (time.monotonic)
+    redisplay: bool = False              # show the accumulation again (the denoiser was switched)
+    good: tuple | None = None            # the last (camera, spec) that rendered
+    failures: int = 0                    # passes of the view's state failed in a row
+    broken: str | None = None            # why its state does not render (nothing to go back to)
     closed: bool = False
 
 
@@ -97,6 +133,8 @@ class ViewEngine:
                  preview_scale: float = 0.5, variant: str = "llvm_ad_rgb"):
         if not 16 <= res <= 4096:
             raise ValueError(f"res must lie in [16, 4096], got {res}")
+        if not 1 <= max_spp <= 1_000_000:
+            raise ValueError(f"max_spp must lie in [1, 1000000], got {max_spp}")
         if not 0.1 <= preview_scale <= 1:
             raise ValueError(f"preview_scale must lie in [0.1, 1], got {preview_scale}")
         self.source, self.field, self.res, self.max_spp = source, field, int(res), int(max_spp)
@@ -110,9 +148,10 @@ class ViewEngine:
         self._wake = threading.Condition(threading.RLock())     # the views and their state
         self._stop = False
         self._listeners: list = []               # status(Status) callbacks
-        self._failures = 0
+        self._field_requests: list = []          # (name, done Event, result dict): for the render thread
         self._seeds = itertools.count()
         self._denoise, self.denoiser_missing = denoiser()
+        self._denoise_lock = threading.Lock()    # one denoise at a time (render thread, snapshots)
         self._thread = threading.Thread(target=self._run, name="mi-amr view", daemon=True)
 
     @property
@@ -190,12 +229,14 @@ class ViewEngine:
             stop_listening()
 
     # ---- Views -------------------------------------------------------------------
-    def open_view(self, send) -> View:
-        """A new view with the scene's initial camera and TF."""
+    def open_view(self, send, notify=None) -> View:
+        """A new view with the scene's initial camera and TF; ``send(header,
+        jpeg)`` gets its frames, ``notify(message)`` the render thread's
+        errors for it."""
         if not self.ready.is_set():
             raise RuntimeError("the data are still loading")
         with self._wake:
-            v = View(next(self._ids), self.loaded.initial_camera, self.loaded.initial_spec, send,
+            v = View(next(self._ids), self.loaded.initial_camera, self.loaded.initial_spec, send, notify,
                      denoise=self._denoise is not None)
             self._views[v.id] = v
             self._wake.notify_all()
@@ -211,7 +252,7 @@ class ViewEngine:
         s = self.loaded
         return Hello(view.id, view.camera, view.spec, tuple(s.colormaps), s.log_available, self._denoise is not None,
                      self.denoiser_missing, view.denoise, tuple(s.size), self.max_spp, s.description,
-                     colormap_stops(s.colormaps, s.scene_rgb))
+                     colormap_stops(s.colormaps, s.scene_rgb), editor=self._editor_extras())
 
     def change(self, view: View, change: ViewChange | dict) -> bool:
         """Apply a camera, TF or denoise change to ``view`` (a page message
@@ -224,30 +265,127 @@ class ViewEngine:
             before = view.spec
             match change:
                 case CameraChange():
-                    view.camera = view.camera.moved(change)
+                    camera = view.camera.moved(change)
+                    check_camera(camera)
+                    view.camera = camera
                 case TFChange():
-                    view.spec = view.spec.changed(change, self.loaded.log_available, self.loaded.colormaps)
+                    spec = view.spec.changed(change, self.loaded.log_available, self.loaded.colormaps)
+                    self.loaded.check(spec)            # one that cannot render is refused here
+                    view.spec = spec
                 case DenoiseChange(on=on):
                     if on and self._denoise is None:
                         raise ValueError(self.denoiser_missing)
-                    view.denoise = on                  # the version bump below restarts the view
+                    view.denoise = on                  # the accumulation stays: shown again
+                    view.version += 1
+                    view.redisplay = view.accum_epoch == view.epoch
+                    self._wake.notify_all()
+                    return False
                 case _:
                     raise ValueError(f"not a view change: {type(change).__name__}")
             view.version += 1
+            view.epoch += 1
+            view.broken = None
             self._wake.notify_all()
             return (before.range, before.log) != (view.spec.range, view.spec.log)
+
+    # ---- The TF editor's requests ------------------------------------------------------
+    def _editor_extras(self) -> dict:
+        """Hello's ``editor``: the fields to choose from (or why none), the
+        values' units, why log10 is off, the presets, the start camera and
+        the camera's clamps (the page orbits as `OrbitCamera.moved` does)."""
+        s = self.loaded
+        current = s.field
+        if s.fields and current is not None:
+            current = next((f for f in s.fields if f == current or f.split(",")[-1] == current), current)
+        presets = {k: {"colormap": c, "points": [list(q) for q in pts]} for k, (c, pts) in PRESET_POINTS.items()}
+        return {"fields": list(s.fields), "field": current, "field_note": s.field_note, "units": s.units,
+                "log_note": s.log_note, "presets": presets, "home": s.initial_camera.to_json(),
+                "max_elevation": MAX_ELEVATION, "floor_margin": FLOOR_MARGIN}
+
+    def request(self, view: View, msg: EditorRequest):
+        """Answer a TF-editor request (`protocol.EditorRequest`): the TF as a
+        file (`TFFile`), a TF file loaded into the view (a new `Hello`),
+        another field (`switch_field`; None), a new `Hello`. A `ValueError`
+        says what is wrong; the view is then unchanged."""
+        match msg:
+            case TFSave():
+                return TFFile(view.spec.file_json(self.loaded.scene_rgb))
+            case TFLoad(text=text):
+                with self._wake:
+                    spec = view.spec.from_file(text, self.loaded.log_available, self.loaded.colormaps)
+                    if hasattr(self.loaded, "check"):
+                        self.loaded.check(spec)
+                    view.spec = spec
+                    view.version += 1
+                    view.epoch += 1
+                    self._wake.notify_all()
+                return self.describe(view)
+            case FieldChange(name=name):
+                self.switch_field(name)
+                return None
+            case Describe():
+                return self.describe(view)
+        raise ValueError(f"not an editor request: {type(msg).__name__}")
+
+    def switch_field(self, name: str, timeout: float = 600.0):
+        """Render the field ``name`` of the same data (one of
+        ``loaded.fields``) in every view, each keeping its camera; loaded on
+        the render thread between passes, then every view's page gets a new
+        `Hello` (its ``notify``). A failure is a `ValueError` to the caller
+        and changes nothing."""
+        s = self.loaded
+        if not s.fields:
+            raise ValueError(f"field: {s.field_note}")
+        if name not in s.fields:
+            raise ValueError(f"field: one of {', '.join(s.fields)}")
+        done, result = threading.Event(), {}
+        with self._wake:
+            self._field_requests.append((name, done, result))
+            self._wake.notify_all()
+        if not done.wait(timeout):
+            raise ValueError(f"field {name}: not loaded within {timeout:g} s")
+        if "error" in result:
+            raise ValueError(result["error"])
+
+    def _serve_field_requests(self):
+        """On the render thread: load the fields asked for (`switch_field`)."""
+        with self._wake:
+            requests, self._field_requests = self._field_requests, []
+        for name, done, result in requests:
+            try:
+                with JIT_LOCK:
+                    new = load_scene(self.source, name, self.res, lambda desc: self._set_status(desc=desc))
+            except Exception as e:                   # the last good scene stays
+                result["error"] = f"field {name}: {one_line(e)}"
+                done.set()
+                continue
+            with self._wake:
+                old, self.loaded, self.field = self.loaded, new, name
+                views = list(self._views.values())
+                for v in views:
+                    v.spec, v.epoch = new.initial_spec, v.epoch + 1      # version: the page's count
+                self._wake.notify_all()
+            with JIT_LOCK:
+                del old                          # its Dr.Jit objects go on this thread
+                gc.collect()
+            self._set_status(desc=f"field {name}")
+            for v in views:
+                if v.notify is not None:
+                    v.notify(self.describe(v))
+            done.set()
 
     def histogram(self, view: View) -> HistogramReply:
         """The volume-weighted histogram under the view's TF editor."""
         spec = view.spec
-        return HistogramReply(tuple(self.loaded.shares(spec)), tuple(spec.range), spec.log)
+        below, above = self.loaded.outside(spec)
+        return HistogramReply(tuple(self.loaded.shares(spec)), tuple(spec.range), spec.log, below, above)
 
     # ---- Rendering ---------------------------------------------------------------
     def _run(self):
         try:
             self._load()
         except BaseException as e:                   # shown in the page, and by the CLI
-            self.error = f"{type(e).__name__}: {e}" if not isinstance(e, (ValueError, OSError)) else str(e)
+            self.error = one_line(e)
             self._set_status(state="error", desc=self.error)
             self.ready.set()
             self._release()
@@ -256,92 +394,166 @@ class ViewEngine:
         self.ready.set()
         turn = 0
         while True:
+            self._serve_field_requests()
             with self._wake:
-                stopping = self._stop
-            if stopping:
-                self._release()
-                return
-            with self._wake:
+                if self._stop:
+                    break
                 views = [v for v in self._views.values() if self._needs_work(v)]
                 if not views:
                     self._wake.wait(0.25)
                     continue
                 turn += 1
                 view = views[turn % len(views)]
-                version, camera, spec = view.version, view.camera, view.spec
-                preview = self.preview_scale < 1 and view.preview_version != version \
-                    and view.accum_version != version
-            self._pass(view, version, camera, spec, preview)
+                epoch, camera, spec, redisplay = view.epoch, view.camera, view.spec, view.redisplay
+                preview = self.preview_scale < 1 and view.preview_epoch != epoch and view.accum_epoch != epoch
+            try:
+                if redisplay:
+                    self._redisplay(view)
+                else:
+                    self._pass(view, epoch, camera, spec, preview)
+            except Exception as e:                   # this view's trouble, nobody else's
+                self._failed(view, epoch, camera, spec, e)
+        self._release()
 
     def _needs_work(self, v: View) -> bool:
-        return v.accum_version != v.version or v.spp < self.max_spp
+        if v.broken:
+            return False
+        return v.redisplay or v.accum_epoch != v.epoch or v.spp < self.max_spp
 
-    def _pass(self, view: View, version: int, camera, spec, preview: bool):
+    def _denoise_due(self, view: View, spp: int) -> bool:
+        """Denoise the accumulation now: at 1, 2, 4, 8, 16 spp, then each
+        `DENOISE_INTERVAL`, and at ``max_spp``."""
+        return spp >= self.max_spp or (spp <= 16 and spp & (spp - 1) == 0) \
+            or time.monotonic() - view.denoised_at >= DENOISE_INTERVAL
+
+    def _denoised(self, image: np.ndarray) -> np.ndarray:
+        with self._denoise_lock:
+            return self._denoise(image)
+
+    def _pass(self, view: View, epoch: int, camera, spec, preview: bool):
         full = self.loaded.size
         size = [max(8, int(full[0] * self.preview_scale)), max(8, int(full[1] * self.preview_scale))] \
             if preview else list(full)
         t0 = time.perf_counter()
-        try:
-            with JIT_LOCK:
+        with JIT_LOCK:
+            try:
                 self.loaded.apply(camera, spec, size)
                 image = self.loaded.render(next(self._seeds), size)
-        except Exception as e:                       # say it, forget the recording, go on
-            import sys
-            print(f"mi-amr view: a pass failed ({type(e).__name__}: {str(e).splitlines()[0]}); "
-                  "rendering again", file=sys.stderr)
-            self._failures += 1
-            with JIT_LOCK:
-                self.loaded.forget(size)
-            if self._failures >= 3:
-                self._set_status(state="error", desc=f"rendering fails: {e}")
-                with self._wake:
-                    self._stop = True
-            return
-        self._failures = 0
-        render_ms = 1e3 * (time.perf_counter() - t0)
+            except Exception:
+                self.loaded.forget(size)             # its recording and what the scene holds
+                raise
+        render_ms = round(1e3 * (time.perf_counter() - t0), 1)
         with self._wake:
             if view.closed:
                 return
-            if view.version != version:
+            view.good, view.failures = (camera, spec), 0
+            stale = view.epoch != epoch
+            if stale:
                 # the view changed while this pass ran (a drag): show it, as the
                 # newest picture there is, but accumulate nothing into it
-                preview, shown, spp, denoised = True, image, 1, False
+                preview, shown, spp, denoise = True, image, 1, False
             elif preview:
-                view.preview_version = version
+                view.preview_epoch = epoch
                 shown, spp = image, 1
-                denoised = view.denoise and self._denoise is not None          # clean while dragging, too
+                denoise = view.denoise and self._denoise is not None          # clean while dragging, too
             else:
-                if view.accum_version != version:
-                    view.accum, view.spp, view.accum_version, view.denoised = image.astype(np.float64), 1, version, None
+                if view.accum_epoch != epoch:
+                    view.accum, view.spp, view.accum_epoch = image.astype(np.float64), 1, epoch
+                    view.denoised, view.denoised_spp, view.denoised_jpeg = None, 0, b""
                 else:
                     view.accum += image
                     view.spp += 1
                 spp = view.spp
                 shown = view.accum / spp
-                denoised = view.denoise and self._denoise is not None
-                if denoised and not (spp & (spp - 1) == 0 or spp == self.max_spp):   # at 1, 2, 4, 8, ... spp
-                    shown = None                         # keep the last denoised image on screen
-            send = view.send
-        if shown is not None and denoised:               # outside the lock: the page's changes go on
-            shown = self._denoise(shown)
-            if not preview:
-                with self._wake:
-                    if view.accum_version == version and view.spp == spp:
-                        view.denoised = shown
-        if shown is not None:
-            header = Frame(version, spp, bool(denoised), bool(preview), size[0], size[1], round(render_ms, 1),
-                           self.max_spp)
-            send(header, encode_jpeg(shown))
+                denoise = view.denoise and self._denoise is not None
+                if denoise and not self._denoise_due(view, spp):
+                    shown = None                     # the last denoised image, with the real count
+            version, send, old = view.version, view.send, (view.denoised_spp, view.denoised_jpeg)
+        if shown is None:
+            if old[1]:
+                send(Frame(version, spp, True, False, size[0], size[1], render_ms, self.max_spp, old[0]), old[1])
+            return
+        if denoise:                                  # outside the lock: the page's changes go on
+            shown = self._denoised(shown)
+        jpeg = encode_jpeg(shown)
+        if denoise and not preview:
+            with self._wake:
+                if view.accum_epoch == epoch and view.spp == spp:
+                    view.denoised, view.denoised_spp, view.denoised_jpeg = shown, spp, jpeg
+                    view.denoised_at = time.monotonic()
+        send(Frame(version, spp, bool(denoise), bool(preview), size[0], size[1], render_ms, self.max_spp), jpeg)
+
+    def _redisplay(self, view: View):
+        """The accumulation shown again, denoised or not (the denoiser was switched)."""
+        with self._wake:
+            view.redisplay = False
+            if view.accum_epoch != view.epoch or view.accum is None:
+                return
+            epoch, spp, version, send = view.epoch, view.spp, view.version, view.send
+            mean = view.accum / spp
+            denoise = view.denoise and self._denoise is not None
+            have = view.denoised if denoise and view.denoised_spp == spp else None
+        shown = have if have is not None else self._denoised(mean) if denoise else mean
+        jpeg = encode_jpeg(shown)
+        if denoise and have is None:
+            with self._wake:
+                if view.accum_epoch == epoch and view.spp == spp:
+                    view.denoised, view.denoised_spp, view.denoised_jpeg = shown, spp, jpeg
+                    view.denoised_at = time.monotonic()
+        h, w = mean.shape[:2]
+        send(Frame(version, spp, bool(denoise), False, w, h, 0.0, self.max_spp), jpeg)
+
+    def _failed(self, view: View, epoch: int, camera, spec, e: Exception):
+        """A pass of ``view`` failed: back to its last state that rendered,
+        or after `MAX_FAILURES` in a row of that one, stop rendering it
+        until it changes; its page is told, no other."""
+        why = one_line(e)
+        reply = None
+        with self._wake:
+            if view.closed:
+                return
+            view.failures += 1
+            if view.epoch != epoch:                  # changed meanwhile: the newer state is tried next
+                return
+            if view.good is not None and view.good != (camera, spec):
+                view.camera, view.spec = view.good
+                view.epoch += 1
+                view.failures = 0
+                reply = Error(f"this view could not be rendered ({why}); back to its last picture", "render",
+                              camera=view.camera, tf=view.spec)
+            elif view.failures >= MAX_FAILURES:
+                view.broken = why
+                reply = Error(f"rendering this view fails ({why}); change it to try again", "render")
+            notify = view.notify
+        if reply is not None and notify is not None:
+            notify(reply)
 
     # ---- Snapshots -----------------------------------------------------------------
-    def snapshot(self, view: View, out_dir, name: str) -> list[Path]:
+    def take_snapshot(self, view: View, out_dir, name: str, budget: SnapshotBudget | None = None) -> Snapshot:
         """The view's files (`snapshot.write_snapshot`): ``NAME.exr``,
-        ``.png``, ``.xml``, ``.tf.json`` in ``out_dir``; ``name`` must be a
-        plain file name. A `ValueError` before the first full frame."""
+        ``.png``, ``.xml``, ``.tf.json`` in ``out_dir`` (a numbered name when
+        one is taken), the PNG and EXR from the same samples; ``name`` must
+        be a plain file name. A `ValueError` before the first full frame,
+        or beyond ``budget``."""
         with self._wake:
-            if view.accum is None or view.accum_version != view.version:
+            if view.accum is None or view.accum_epoch != view.epoch:
                 raise ValueError("no image yet: wait for the first full frame")
             image = (view.accum / view.spp).astype(np.float32)
-            shown = view.denoised if view.denoise and view.denoised is not None else image
             camera, spec, spp = view.camera, view.spec, view.spp
-        return write_snapshot(self.loaded, out_dir, name, image, shown, camera, spec, spp)
+            denoise = view.denoise and self._denoise is not None
+            shown = view.denoised if denoise and view.denoised_spp == spp else None
+        if shown is None:
+            shown = self._denoised(image) if denoise else image
+        return write_snapshot(self.loaded, out_dir, name, image, shown, camera, spec, spp, budget)
+
+    def snapshot(self, view: View, out_dir, name: str) -> list[Path]:
+        """`take_snapshot`'s four files: [exr, png, xml, tf.json]."""
+        return self.take_snapshot(view, out_dir, name).files[:4]
+
+
+def check_camera(camera: OrbitCamera):
+    """A `ValueError` when ``camera`` cannot render (a position float32 cannot hold)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        where = np.asarray(camera.origin, np.float64).astype(np.float32)
+    if not np.isfinite(where).all():
+        raise ValueError("camera: too far away to render (its position overflows float32)")

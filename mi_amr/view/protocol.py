@@ -12,6 +12,10 @@ fields}``; a change message's missing fields keep the view's value:
 * ``denoise``: `DenoiseChange`
 * ``histogram``: `HistogramRequest`; ``snapshot``: `SnapshotRequest`
 * ``ack``: `Ack` (the newest frame is on screen)
+* the TF editor's requests (`EditorRequest`): ``tf_save`` (`TFSave`, answered
+  by a `TFFile`), ``tf_load`` (`TFLoad`), ``field`` (`FieldChange`: another
+  field of the same data, for every tab), ``describe`` (`Describe`: a new
+  `Hello`)
 
 Server to page: `Status`, `Hello`, `HistogramReply`, `SnapshotDone` and
 `Error` as JSON text; `Frame` as the header of a binary message (a 4-byte
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field, fields
 from typing import ClassVar
 
@@ -35,8 +40,10 @@ from typing import ClassVar
 MAX_MESSAGE = 64 * 1024
 #: Most control points a TF message may carry.
 MAX_POINTS = 256
-#: Longest colormap name a TF message may carry.
+#: Longest colormap (or field) name a message may carry.
 MAX_NAME = 100
+#: A TF point's own colour.
+_COLOUR = re.compile(r"#[0-9a-fA-F]{6}")
 
 
 class ProtocolError(ValueError):
@@ -147,6 +154,8 @@ class Hello(Message):
     max_spp: int
     data: str
     colormap_stops: dict
+    out_dir: str | None = _optional()          # where snapshots go (added by the server)
+    editor: dict | None = _optional()          # the TF editor's and camera's extras (`ViewEngine.describe`)
 
 
 @dataclass(frozen=True)
@@ -157,12 +166,16 @@ class HistogramReply(Message):
     counts: tuple[float, ...]
     range: tuple[float, float]
     log: bool
+    below: float | None = _optional()          # the share of the volume below the range
+    above: float | None = _optional()          # ... and above it
 
 
 @dataclass(frozen=True)
 class Frame(Message):
     """A binary frame's header: the view ``version`` it shows, its samples
-    per pixel, ``width`` x ``height`` pixels, render time in ms."""
+    per pixel, ``width`` x ``height`` pixels, render time in ms;
+    ``shown_spp``: the samples of the picture when fewer than ``spp`` (a
+    denoised image follows the accumulation about each second)."""
     TYPE: ClassVar[str] = "frame"
     version: int
     spp: int
@@ -172,25 +185,69 @@ class Frame(Message):
     height: int
     render_ms: float
     max_spp: int
+    shown_spp: int | None = _optional()
 
 
 @dataclass(frozen=True)
 class SnapshotDone(Message):
-    """The files a snapshot wrote (absolute paths) and its samples per pixel."""
+    """The files a snapshot wrote (absolute paths), its samples per pixel,
+    and ``notes`` on what else it wrote (the data, once) or chose (a numbered name)."""
     TYPE: ClassVar[str] = "snapshot"
     files: tuple[str, ...]
     spp: int
+    notes: tuple[str, ...] | None = _optional()
 
 
 @dataclass(frozen=True)
 class Error(Message):
-    """A refused message (nothing changed); ``about``: its type, when known."""
+    """A refused message (nothing changed); ``about``: its type, when known.
+    A change that could not render is undone: ``camera`` and ``tf`` are then
+    the view's state again (the last one that rendered)."""
     TYPE: ClassVar[str] = "error"
     message: str
     about: str | None = _optional()
+    camera: object = _optional()
+    tf: object = _optional()
 
 
 ServerMessage = Status | Hello | HistogramReply | Frame | SnapshotDone | Error
+
+
+# ---- The TF editor's requests and replies ------------------------------------------------------
+@dataclass(frozen=True)
+class TFSave(Message):
+    """Ask for the view's TF as a file (`TFFile`)."""
+    TYPE: ClassVar[str] = "tf_save"
+
+
+@dataclass(frozen=True)
+class TFLoad(Message):
+    """Make a TF JSON file's ``text`` the view's TF (`tf_spec.TFSpec.from_file`)."""
+    TYPE: ClassVar[str] = "tf_load"
+    text: str
+
+
+@dataclass(frozen=True)
+class FieldChange(Message):
+    """Render another field of the same data (yt data sets), for every view."""
+    TYPE: ClassVar[str] = "field"
+    name: str
+
+
+@dataclass(frozen=True)
+class Describe(Message):
+    """Ask for a new `Hello` (after the field changed)."""
+    TYPE: ClassVar[str] = "describe"
+
+
+@dataclass(frozen=True)
+class TFFile(Message):
+    """The view's TF as the JSON text ``mi-amr render --tf`` reads."""
+    TYPE: ClassVar[str] = "tf_file"
+    text: str
+
+
+EditorRequest = TFSave | TFLoad | FieldChange | Describe
 
 
 # ---- JSON ----------------------------------------------------------------------------------------
@@ -268,13 +325,15 @@ def _tf(f: dict) -> TFChange:
         p = f["points"]
         if not isinstance(p, list) or not 2 <= len(p) <= MAX_POINTS:
             raise ValueError(f"points: a list of 2 to {MAX_POINTS} [u, alpha] pairs")
-        if not all(isinstance(q, list) and len(q) == 2 and all(_is_number(x) for x in q) for q in p):
+        if not all(isinstance(q, list) and len(q) in (2, 3) and all(_is_number(x) for x in q[:2]) for q in p):
             raise ValueError("points: a list of [u, alpha] number pairs")
-        if not all(_finite(x) for q in p for x in q):
+        if not all(len(q) == 2 or (isinstance(q[2], str) and _COLOUR.fullmatch(q[2])) for q in p):
+            raise ValueError("points: a point's colour is '#rrggbb'")
+        if not all(_finite(x) for q in p for x in q[:2]):
             raise ValueError("points: a list of finite [u, alpha] pairs")
-        if not all(0 <= x <= 1 for q in p for x in q):
+        if not all(0 <= x <= 1 for q in p for x in q[:2]):
             raise ValueError("points: u and alpha must lie in [0, 1]")
-        out["points"] = tuple((float(u), float(a)) for u, a in p)
+        out["points"] = tuple((float(q[0]), float(q[1])) + tuple(c.lower() for c in q[2:]) for q in p)
     if "colormap" in f:
         c = f["colormap"]
         if not isinstance(c, str) or not 1 <= len(c) <= MAX_NAME:
@@ -297,6 +356,12 @@ def _tf(f: dict) -> TFChange:
             raise ValueError("density: a positive number")
         out["density"] = float(d)
     return TFChange(**out)
+
+
+def _text(name, v, most=MAX_MESSAGE) -> str:
+    if not isinstance(v, str) or not 1 <= len(v) <= most:
+        raise ValueError(f"{name}: text of 1 to {most} characters")
+    return v
 
 
 def _denoise(f: dict) -> DenoiseChange:
@@ -324,10 +389,12 @@ def safe_name(name) -> str:
 #: Each page message type: its class and the parser of its fields.
 _PARSERS = {cls.TYPE: (cls, parse_fields) for cls, parse_fields in (
     (CameraChange, _camera), (TFChange, _tf), (DenoiseChange, _denoise),
-    (HistogramRequest, lambda f: HistogramRequest()), (SnapshotRequest, _snapshot), (Ack, lambda f: Ack()))}
+    (HistogramRequest, lambda f: HistogramRequest()), (SnapshotRequest, _snapshot), (Ack, lambda f: Ack()),
+    (TFSave, lambda f: TFSave()), (TFLoad, lambda f: TFLoad(_text("text", f.get("text")))),
+    (FieldChange, lambda f: FieldChange(_text("name", f.get("name"), MAX_NAME))), (Describe, lambda f: Describe()))}
 
 
-def parse(text) -> PageMessage:
+def parse(text) -> PageMessage | EditorRequest:
     """A page's websocket message (``str``; anything else is binary) as a
     typed message; a `ProtocolError` names what is wrong."""
     if not isinstance(text, str):
@@ -338,10 +405,14 @@ def parse(text) -> PageMessage:
         obj = json.loads(text)
     except json.JSONDecodeError as e:
         raise ProtocolError(f"not JSON: {e}") from None
+    except RecursionError:
+        raise ProtocolError("message: nested too deeply") from None
+    except ValueError as e:                      # an integer of more digits than Python converts
+        raise ProtocolError(f"message: {str(e).splitlines()[0]}") from None
     return parse_message(obj)
 
 
-def parse_message(obj) -> PageMessage:
+def parse_message(obj) -> PageMessage | EditorRequest:
     """A decoded JSON message (a dict with a ``type``) as a typed message;
     a `ProtocolError` for an unknown type, a field it does not have, or a
     bad value (the field named)."""

@@ -17,11 +17,13 @@ itself, never one resampled from the editor's points.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
+from ..transfer.classification import check_density_scale
 from ..transfer.function import TransferFunction
-from .camera import OrbitCamera
+from .camera import OrbitCamera, floor_height, world_up
 from .protocol import MAX_POINTS
 from .tf_spec import COLORMAPS, PRESET_POINTS, Histogram, TFSpec
 
@@ -74,6 +76,9 @@ class LoadedScene:
     scene_rgb: np.ndarray | None = None
     scene_tf: TransferFunction | None = None
     plan: object = None
+    fields: tuple = ()                          # the fields a view may switch to (yt data)
+    field_note: str = ""                        # why there is no choice of field
+    units: str = ""                             # the values' units ("": unknown)
     scene: object = None                        # mi.Scene
     medium: object = None                       # its first amr medium
     params: object = None                       # mi.traverse(scene)
@@ -86,6 +91,15 @@ class LoadedScene:
     def log_available(self) -> bool:
         return self.stored_log
 
+    @property
+    def log_note(self) -> str:
+        """Why the log10 display is off ("" when it is offered)."""
+        if self.stored_log:
+            return ""
+        if self.plan is None:
+            return "log10 is off: the scene's medium holds its values linearly (value_transform none)"
+        return "log10 is off: values <= 0 fill over 10% of the volume"
+
     def table(self, spec: TFSpec) -> TransferFunction:
         """The medium's TF for ``spec``: the scene's own table while the
         spec's curve, colours, units and range are the scene's (the density
@@ -95,6 +109,15 @@ class LoadedScene:
                 (first.points, first.colormap, first.log, first.range):
             return self.scene_tf
         return spec.table(self.stored_log, self.scene_rgb)
+
+    def check(self, spec: TFSpec):
+        """A `ValueError` naming why ``spec`` cannot render (a TF domain
+        float32 cannot hold, a density scale out of range); nothing changes."""
+        try:
+            self.table(spec)
+            check_density_scale(spec.density)
+        except ValueError as e:
+            raise ValueError(f"tf: cannot be rendered: {e}") from None
 
     def apply(self, camera: OrbitCamera, spec: TFSpec, size):
         """Put a view's state into the scene (only what differs); under `JIT_LOCK`."""
@@ -126,6 +149,12 @@ class LoadedScene:
             self.histogram = Histogram(self.medium.volume)
         return self.histogram.shares(spec, self.stored_log)
 
+    def outside(self, spec: TFSpec) -> tuple[float, float]:
+        """The shares of the volume below and above ``spec.range`` (`Histogram.outside`)."""
+        if self.histogram is None:
+            self.histogram = Histogram(self.medium.volume)
+        return self.histogram.outside(spec, self.stored_log)
+
 
 def scene_spec(tf: TransferFunction, stored_log: bool, density: float) -> TFSpec:
     """The editor's start for a scene's own ``tf`` (stored units; colormap
@@ -148,6 +177,9 @@ def load_scene(source, field, res: int, say) -> LoadedScene:
     loaded = _load_xml(mi, source, res, say) if str(source).lower().endswith(".xml") \
         else _load_data(mi, source, field, res, say)
     loaded.medium = mi_amr.amr_media(loaded.scene)[0]
+    cam = loaded.initial_camera
+    loaded.initial_camera = replace(cam, floor=floor_height(ground_boxes(loaded.scene), cam.up))
+    loaded.units = loaded.units or str(loaded.medium.volume.meta.get("units") or "")
     loaded.params = params = mi.traverse(loaded.scene)
     # the first sensor's keys (named after its id: "sensor" in planned scenes)
     films = [k[:-len("film.size")] for k in params.keys() if k.endswith("film.size")]
@@ -158,6 +190,34 @@ def load_scene(source, field, res: int, say) -> LoadedScene:
     params[loaded.keys["size"]] = loaded.size
     params.update()
     return loaded
+
+
+def ground_boxes(scene) -> np.ndarray:
+    """``(n, 2, 3)``: the bounding boxes of the scene's shapes that bound no
+    medium (a ground, walls, lights): what the orbit camera stays above."""
+    boxes = [(list(b.min), list(b.max)) for b in (s.bbox() for s in scene.shapes()
+                                                  if s.interior_medium() is None and s.exterior_medium() is None)
+             if all(np.isfinite(list(b.min))) and all(np.isfinite(list(b.max)))]
+    return np.asarray(boxes, np.float64).reshape(-1, 2, 3)
+
+
+def data_fields(source, field) -> tuple[tuple, str, str]:
+    """``(fields, note, units)``: the fields of ``source`` the viewer can
+    switch between (a yt data set's on-disk fields, ``"type,name"``), or
+    ``()`` and why not; the units yt gives ``field`` ("" unknown)."""
+    if str(source).lower().endswith((".cells", ".npz", ".amrb")):
+        return (), f"{Path(str(source)).suffix} data hold a single field", ""
+    if not isinstance(source, (str, Path)):
+        return (), "data given as an object: the field is fixed", ""
+    from ..data.yt_import import load_dataset
+    ds = load_dataset(source)
+    keys = [(t, n) for t, n in ds.field_list if t not in ("all", "io", "nbody") and "particle" not in n]
+    names = tuple(f"{t},{n}" for t, n in keys)
+    key = next((k for k, name in zip(keys, names) if field in (name, k[1])), None)
+    units = str(ds.field_info[key].units) if key is not None and key in ds.field_info else ""
+    if not names:
+        return (), "yt lists no grid fields for these data", units
+    return names, "", units
 
 
 def _load_data(mi, source, field, res: int, say) -> LoadedScene:
@@ -173,9 +233,11 @@ def _load_data(mi, source, field, res: int, say) -> LoadedScene:
     medium.pop("tf_min"), medium.pop("tf_max")
     medium["transfer_function"] = spec.table(stored_log)
     say("building the medium")
+    fields, note, units = data_fields(source, field)
     return LoadedScene(source, field, f"{source}" + (f" field {field}" if field else ""), [res, res],
-                       OrbitCamera.looking(plan.origin, plan.target, plan.up, plan.fov), spec, COLORMAPS,
-                       stored_log, plan=plan, scene=mi.load_dict(d, parallel=False))
+                       OrbitCamera.looking(plan.origin, plan.target, world_up(plan.up), plan.fov), spec, COLORMAPS,
+                       stored_log, plan=plan, fields=fields, field_note=note, units=units,
+                       scene=mi.load_dict(d, parallel=False))
 
 
 def _load_xml(mi, source, res: int, say) -> LoadedScene:
@@ -199,6 +261,6 @@ def _load_xml(mi, source, res: int, say) -> LoadedScene:
     fov = float(np.ravel(sensor_params["x_fov"])[0]) if "x_fov" in sensor_params.keys() else 45.0
     w, h = sensor.film().size()
     return LoadedScene(source, None, str(source), [res, max(16, int(round(res * h / w)))],
-                       OrbitCamera.looking(origin, origin + dist * forward, up, fov), spec,
+                       OrbitCamera.looking(origin, origin + dist * forward, world_up(up), fov), spec,
                        ("scene",) + COLORMAPS, stored_log, scene_rgb=np.asarray(tf.rgba[:, :3], np.float64),
-                       scene_tf=tf, scene=scene)
+                       scene_tf=tf, field_note="an XML scene's medium holds a single field", scene=scene)

@@ -5,11 +5,22 @@ render`` renders to the same picture: for data the planned scene
 (`mi_amr.autoscene.write_scene_xml`), for an XML scene the source rewritten
 (`mi_amr.scene_xml`). An XML scene's TF left as it was is written with
 the scene's own table values (`LoadedScene.table`).
+
+Snapshots never overwrite: a taken name becomes ``NAME-1``, ``NAME-2``, ...;
+each file is written in a private folder, then copied to its name opened
+with ``O_CREAT | O_EXCL | O_NOFOLLOW`` (a file or link planted there is
+never written through: a link is refused). What else a snapshot writes
+(the data of yt, once, as ``.amrb``) is announced in its ``notes``; a
+`SnapshotBudget` bounds how many snapshots and bytes one viewer writes.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+import os
+import shutil
+import tempfile
+import threading
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,42 +31,143 @@ from .scene import LoadedScene
 from .tf_spec import TFSpec
 
 
+#: Snapshots one viewer may write, and their bytes in all (`SnapshotBudget`).
+MAX_SNAPSHOTS = 500
+MAX_SNAPSHOT_BYTES = 4 << 30
+#: The file kinds of a snapshot, in the order of `Snapshot.files`.
+EXTENSIONS = (".exr", ".png", ".xml", ".tf.json")
+
+
+@dataclass
+class Snapshot:
+    """What a snapshot wrote: ``files`` [exr, png, xml, tf.json, then side
+    files (the data, once)], its ``spp``, ``notes`` for the person."""
+    files: list
+    spp: int
+    notes: list = field(default_factory=list)
+
+
+class SnapshotBudget:
+    """At most ``count`` snapshots and ``nbytes`` bytes written by one
+    viewer (a token holder cannot fill the disk); thread-safe."""
+
+    def __init__(self, count: int = MAX_SNAPSHOTS, nbytes: int = MAX_SNAPSHOT_BYTES):
+        self.count, self.nbytes = int(count), int(nbytes)
+        self.used_count = self.used_bytes = 0
+        self._lock = threading.Lock()
+
+    def reserve(self):
+        """Count one snapshot more, or a `ValueError` when the budget is spent."""
+        with self._lock:
+            if self.used_count >= self.count:
+                raise ValueError(f"snapshot refused: this viewer has written its {self.count} snapshots "
+                                 "(restart it for more)")
+            if self.used_bytes >= self.nbytes:
+                raise ValueError(f"snapshot refused: this viewer has written {self.used_bytes / 1e6:.0f} MB of "
+                                 f"snapshots, its budget of {self.nbytes / 1e6:.0f} MB (restart it for more)")
+            self.used_count += 1
+
+    def spend(self, nbytes: int):
+        with self._lock:
+            self.used_bytes += int(nbytes)
+
+
+def free_stem(out_dir: Path, stem: str) -> str:
+    """``stem``, or ``stem-1``, ``stem-2``, ...: the first whose files are
+    all free in ``out_dir``; a `ValueError` when one of them is a symbolic link."""
+    for k in range(10000):
+        name = stem if k == 0 else f"{stem}-{k}"
+        paths = [out_dir / f"{name}{ext}" for ext in EXTENSIONS]
+        links = [q for q in paths if q.is_symlink()]
+        if links:
+            raise ValueError(f"snapshot refused: {links[0]} is a symbolic link (snapshots never write through links)")
+        if not any(os.path.lexists(q) for q in paths):
+            return name
+    raise ValueError(f"snapshot refused: {stem} and 9999 numbered names are taken in {out_dir}")
+
+
+def place(written: Path, target: Path):
+    """Copy the private file ``written`` to ``target``, a name that must be
+    free: opened with ``O_EXCL | O_NOFOLLOW`` (never through a link, never
+    over a file); a `ValueError` names it otherwise."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(target, flags, 0o644)
+    except FileExistsError:
+        what = "a symbolic link" if target.is_symlink() else "taken meanwhile"
+        raise ValueError(f"snapshot refused: {target} is {what} (snapshots never overwrite)") from None
+    with os.fdopen(fd, "wb") as out, open(written, "rb") as src:
+        shutil.copyfileobj(src, out, 1 << 20)
+
+
 def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, shown: np.ndarray,
-                   camera: OrbitCamera, spec: TFSpec, spp: int) -> list[Path]:
-    """The four files of a view (module docstring) in ``out_dir``: ``image``
-    the accumulation's mean (linear RGB, ``spp`` samples per pixel),
-    ``shown`` what the page shows; [exr, png, xml, tf.json] paths."""
+                   camera: OrbitCamera, spec: TFSpec, spp: int, budget: SnapshotBudget | None = None) -> Snapshot:
+    """The files of a view (module docstring) in ``out_dir``: ``image`` the
+    accumulation's mean (linear RGB, ``spp`` samples per pixel), ``shown``
+    what the page shows (from the same samples). Nothing is overwritten;
+    what was placed is removed again when a later file fails."""
     from ..images import write_exr, write_png
     out_dir = Path(out_dir).resolve()
-    stem = safe_name(name)
+    safe_name(name)
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [out_dir / f"{stem}{ext}" for ext in (".exr", ".png", ".xml", ".tf.json")]
-    write_exr(paths[0], image)
-    write_png(paths[1], shown)
-    tf = loaded.table(spec)
-    tf.to_json(paths[3])
-    if loaded.plan is not None:
-        _data_xml(loaded, paths[2], paths[3], camera, spec, tf, spp)
-    else:
-        _scene_xml(loaded, paths[2], paths[3], camera, spec, spp)
-    return paths
+    if budget is not None:
+        budget.reserve()
+    stem = free_stem(out_dir, name)
+    paths = [out_dir / f"{stem}{ext}" for ext in EXTENSIONS]
+    notes = [] if stem == name else [f"{name}.* exist: written as {stem}.*"]
+    placed = []
+    with tempfile.TemporaryDirectory(prefix=".mi-amr-snapshot-", dir=out_dir) as tmp:
+        private = [Path(tmp) / q.name for q in paths]
+        write_exr(private[0], image)
+        write_png(private[1], shown)
+        tf = loaded.table(spec)
+        tf.to_json(private[3])
+        side = []
+        if loaded.plan is not None:
+            data = _data_file(loaded, out_dir, Path(tmp))
+            if data.parent == Path(tmp):              # written now: placed beside the snapshot
+                side = [(data, out_dir / data.name)]
+                data = out_dir / data.name
+            _data_xml(loaded, private[2], paths[3], data, camera, spec, tf, spp)
+        else:
+            _scene_xml(loaded, private[2], paths[3], camera, spec, spp)
+        try:
+            for src, target in list(zip(private, paths)) + side:
+                place(src, target)
+                placed.append(target)
+        except BaseException:
+            for q in placed:
+                q.unlink(missing_ok=True)
+            raise
+    size = sum(q.stat().st_size for q in placed)
+    if budget is not None:
+        budget.spend(size)
+    for _, target in side:
+        notes.append(f"also wrote {target.name} ({target.stat().st_size / 1e6:.1f} MB): the data the XML "
+                     "loads, written once for this folder")
+    return Snapshot(placed, spp, notes)
 
 
-def _data_file(loaded: LoadedScene, out_dir: Path) -> Path:
-    """A file the XML can load: the source itself, or (yt data, a field's
-    own .scalars) the data written once as ``.amrb``."""
+def _data_file(loaded: LoadedScene, out_dir: Path, tmp: Path) -> Path:
+    """A file the XML can load: the source itself, the data written before
+    into ``out_dir``, or (yt data, a field's own .scalars) the data written
+    now as ``.amrb`` into the private folder ``tmp``."""
     from ..autoscene import field_scalars
     src, field = Path(str(loaded.source)), loaded.field
     if src.suffix in (".cells", ".npz", ".amrb") and src.is_file() and field_scalars(src, field) is None:
         return src.resolve()
-    target = out_dir / f"{src.stem or 'data'}{'-' + str(field).replace(',', '-') if field else ''}.amrb"
-    if not target.exists():
-        from ..native_file import save_native
-        save_native(loaded.plan.data, target)
-    return target
+    name = f"{src.stem or 'data'}{'-' + str(field).replace(',', '-') if field else ''}.amrb"
+    target = out_dir / name
+    if target.is_symlink():
+        raise ValueError(f"snapshot refused: {target} is a symbolic link (snapshots never write through links)")
+    if target.is_file():
+        return target
+    from ..native_file import save_native
+    return save_native(loaded.plan.data, tmp / name)
 
 
-def _data_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCamera, spec: TFSpec, tf, spp: int):
+def _data_xml(loaded: LoadedScene, path: Path, tf_path: Path, data: Path, camera: OrbitCamera, spec: TFSpec, tf,
+              spp: int):
     """The planned scene of data with the view's camera, TF and density scale."""
     from ..autoscene import write_scene_xml
     plan = replace(loaded.plan, tf=str(tf_path), tf_range=tf.domain, density_scale=spec.density,
@@ -64,7 +176,7 @@ def _data_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCamer
                           f"{tf_path.name} ({'log10' if spec.log else 'linear'} display over "
                           f"[{spec.range[0]:.4g}, {spec.range[1]:.4g}], colormap {spec.colormap}), "
                           f"density_scale {spec.density:.4g}"])
-    write_scene_xml(plan, _data_file(loaded, path.parent), path, res=loaded.size[0], spp=spp)
+    write_scene_xml(plan, data, path, res=loaded.size[0], spp=spp)
 
 
 def _scene_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCamera, spec: TFSpec, spp: int):
