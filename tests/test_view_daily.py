@@ -259,6 +259,11 @@ def test04_every_load_failure_is_one_line(served, tmp_path, monkeypatch, capsys)
     assert main(["view", str(tmp_path / "plain.xml"), "--no-browser", "--out", str(tmp_path)]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and "no amr medium" in err[0], err
+    # served to other machines only when asked, and then told that nothing is encrypted
+    assert main(["view", str(tmp_path / "plain.xml"), "--no-browser", "--out", str(tmp_path),
+                 "--host", "0.0.0.0", "--allow-remote"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 2 and "not encrypted" in err[0] and "no amr medium" in err[1], err
 
 
 # ---- 2. errors -----------------------------------------------------------------------------
@@ -349,6 +354,29 @@ def test06_malformed_messages_name_the_field_and_disconnects_are_quiet(served):
         socket.create_connection(("127.0.0.1", fresh.port), timeout=2).close()
     finally:
         fresh.stop()
+
+
+def test12_unread_replies_stay_bounded():
+    """A page that asks and never reads: a newer histogram or status
+    replaces the unsent one, and at most MAX_PENDING replies wait."""
+    import asyncio
+
+    from mi_amr.view import protocol as p
+    from mi_amr.view.server import MAX_PENDING, Outbox
+
+    async def flood():
+        box = Outbox()
+        for k in range(10000):
+            box.put(p.HistogramReply((float(k),), (0.0, 1.0), False))
+            box.put(p.Status("ready", f"s{k}"))
+            box.put(p.Error(f"e{k}", "tf"))
+        kinds = [(await box.get()) for _ in range(len(box))]
+        return kinds
+    sent = asyncio.run(flood())
+    assert len(sent) <= MAX_PENDING
+    assert [m.counts for m in sent if m.TYPE == "histogram"] == [(9999.0,)]
+    assert [m.desc for m in sent if m.TYPE == "status"] == ["s9999"]
+    assert sent[-1].message == "e9999"
 
 
 # ---- 4. samples are kept -------------------------------------------------------------------
