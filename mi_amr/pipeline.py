@@ -29,6 +29,7 @@ from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .data.volume import as_method
 from .device.structs import jit_struct
+from .device.values import device_field
 from .memory import require
 from .reconstruction import Reconstruction
 from .strategies import SAMPLINGS, TRAVERSALS
@@ -63,7 +64,7 @@ class StructureOptions:
         return self.value_masks and self.method.value_masks_tighten
 
 
-@jit_struct(offset="Vector3f", extent="Vector3f", global_majorant="Float", device=dict, field_tables=dict)
+@jit_struct(offset="Vector3f", extent="Vector3f", global_majorant="Float", device=dict, carried_fields=dict)
 class Structures:
     """Device structures of one medium, and the host structures behind them.
 
@@ -88,7 +89,7 @@ class Structures:
         self._given_cells = cells
         self.volume = data = volume
         self.device = {}                # device structs (seen by dr.freeze)
-        self.field_tables = {}          # hash tables over further fields (`field_sampler`)
+        self.carried_fields = {}          # further fields' device values (`field_values`)
         self.host = {}                  # host-only structures (bricks)
         self.build_seconds = {}
         lo, hi = data.bounds
@@ -155,29 +156,24 @@ class Structures:
         """The segment walker of the chosen traversal."""
         return self.traversal.walker(self._built(self.traversal.structure(self)))
 
-    def sampler(self):
+    def sampler(self, carried: mi.Float | None = None):
         """The point sampler of the chosen sampling: ``eval(u, active) ->
-        (value, found)`` at local points ``u``."""
+        (value, found)`` at local points ``u``. With a ``carried`` field
+        (`field_values`) one look-up reconstructs both: ``value`` is then a
+        ``Vector2f`` (main, carried) (docs/design.md section 12)."""
         for name in self.sampling.needs(self):
             self._built(name)
-        return self.sampling.sampler(self)
+        return self.sampling.sampler(self, carried)
 
-    def field_sampler(self, name: str | None, transform: str = "none"):
-        """A point sampler (``eval(u, active) -> (value, found)``) of a
-        further field of the data (`BlockVolume.field`; None: the main
-        values) through the point-location hash, which is built if the
-        chosen sampling did not need it: the field has the main values'
-        cells, so it shares their hash and layout."""
-        import copy
-        from .device.hash_sampler import HashSampler
-        from .device.values import device_field
-        key = f"{name}:{transform}"              # a struct field, so that dr.freeze sees the values
-        if key not in self.field_tables:
-            table = copy.copy(self.require("hash"))
-            table.values = device_field(self.volume, name, transform)
-            table.shares_values = True           # counted with the volume's fields
-            self.field_tables[key] = table
-        return HashSampler(self.field_tables[key], self.require("grid"), self.offset, self.extent)
+    def field_values(self, name: str | None, transform: str = "none") -> mi.Float:
+        """A further field of the data (`BlockVolume.field`; None: the main
+        values) with ``transform``, as a device array in the values' layout
+        (made once; kept in a struct field, so that dr.freeze sees it): the
+        ``carried`` field of `sampler`."""
+        key = f"{name}:{transform}"
+        if key not in self.carried_fields:
+            self.carried_fields[key] = device_field(self.volume, name, transform)
+        return self.carried_fields[key]
 
     # ---- Classification changes ----------------------------------------------
     def reclassify(self, classification: Classification | None = None):

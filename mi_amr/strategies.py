@@ -36,8 +36,9 @@ class Traversal:
 
 @dataclass(frozen=True)
 class Sampling:
-    """``needs``: the components the sampler reads; ``sampler(s)``: the
-    point sampler, ``eval(u, active) -> (value, found)`` at local points."""
+    """``needs``: the components the sampler reads; ``sampler(s, carried)``:
+    the point sampler, ``eval(u, active) -> (value, found)`` at local points
+    (``value`` a ``Vector2f`` when a further field is ``carried``)."""
     needs_: tuple
     sampler: Callable
 
@@ -64,19 +65,19 @@ TRAVERSALS = {
 }
 
 
-def _hash_sampler(s):
+def _hash_sampler(s, carried=None):
     # the macrocell grid's level masks limit the levels probed
-    return HashSampler(s.device["hash"], s.device["grid"], s.offset, s.extent)
+    return HashSampler(s.device["hash"], s.device["grid"], s.offset, s.extent, carried=carried)
 
 
-def _abr_sampler(s):
+def _abr_sampler(s, carried=None):
     return BrickSampler(s.device["device_bricks"], s.options.method, s.offset, s.extent,
-                        abr_tree=s.device[_abr_tree(s)], over_bounds=not s.support_beyond_cell)
+                        abr_tree=s.device[_abr_tree(s)], over_bounds=not s.support_beyond_cell, carried=carried)
 
 
-def _brick_sampler(s):
+def _brick_sampler(s, carried=None):
     return BrickSampler(s.device["device_bricks"], s.options.method, s.offset, s.extent,
-                        lists=s.device["brick_lists"])
+                        lists=s.device["brick_lists"], carried=carried)
 
 
 #: Samplings by name (the ``sampling`` parameter).

@@ -129,6 +129,44 @@ def test02_two_level_field_with_a_second_emission_field(llvm, traversal, samplin
     assert np.all(np.abs(mean - expected) < 5 * err + 1e-4), (mean, expected, err)
 
 
+@pytest.mark.parametrize("reconstruction,sampling", [("tent", "hash"), ("tent", "brick"), ("nearest", "abr")])
+def test02b_the_flights_one_look_up_carries_the_emission_field(llvm, reconstruction, sampling):
+    """One point query per collision (docs/design.md section 12): the free
+    flight's look-up reconstructs the emission field too. At every real
+    collision the ``carried`` value equals the brute-force reconstruction of
+    that field at the collision point (1e-4 relative: float32 weights), and
+    ``value`` that of the extinction field, for each method and sampling."""
+    from mi_amr.testing import brute_force
+    rng = np.random.default_rng(4)
+    base = two_level_cells()
+    value = rng.uniform(0.2, 1.0, len(base))
+    temperature = rng.uniform(1.0, 8.0, len(base))
+    cells = AMRCells(base.pos, base.level, value, fields={"temperature": temperature})
+    medium = mi.load_dict({"type": "amr", "data": cells, "density_scale": 3.0,
+                           "transfer_function": TransferFunction([[0, 0, 0, 0], [0, 0, 0, 1]], (0.0, 1.0)),
+                           "reconstruction": reconstruction, "sampling": sampling,
+                           "emission": TransferFunction([[1, 0, 0, 1], [0, 0, 1, 1]], (0.0, 8.0)),
+                           "emission_field": "temperature"})
+    n = 2048
+    o = np.column_stack([rng.uniform(0.05, 0.95, (n, 2)), np.full(n, -1.0)]).astype(np.float32)
+    d = rng.normal(size=(n, 3)) * [0.2, 0.2, 0.0] + [0.0, 0.0, 1.0]
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(1, n)
+    ray = mi.Ray3f(mi.Point3f(o.T), mi.Vector3f(d.T))
+    flight = medium.free_flight(ray, mi.Float(np.inf), sampler, mi.Bool(True))
+    looked = flight.looked.numpy()
+    assert looked.sum() > n // 2
+    t = flight.t.numpy()[looked]
+    p = o[looked] + t[:, None] * d[looked]                  # world = local: the unit cube
+    lo, hi = medium.structures.volume.bounds
+    x = lo + p * (np.asarray(hi) - np.asarray(lo))          # absolute finest units
+    for got, field in ((flight.carried, temperature), (flight.value, value)):
+        want, found = brute_force(AMRCells(base.pos, base.level, field), x, reconstruction)
+        assert found.all()
+        np.testing.assert_allclose(got.numpy()[looked], want, rtol=1e-4)
+
+
 def random_walk_radiance(sigma, albedo, le, n=400_000, seed=1):
     """Brute force, independent of the renderer: analog random walks of
     ``n`` particles entering the unit cube at z = 0 (x, y uniform in [0.2,

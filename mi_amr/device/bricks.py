@@ -24,7 +24,7 @@ from ..structures.brick_lists import BrickLists
 from ..structures.bricks import Bricks
 from .ray import in_unit_cube
 from .structs import jit_struct
-from .values import device_values
+from .values import CellValues, device_values
 
 
 @jit_struct(lo="Vector3f", dims="Vector3i", width="Float", offset="UInt32", values="Float")
@@ -85,11 +85,14 @@ class BrickSampler:
     Dr.Jit arrays of its own."""
 
     def __init__(self, bricks: DeviceBricks, method: Reconstruction, offset, extent, abr_tree=None,
-                 lists=None, over_bounds: bool = False):
+                 lists=None, over_bounds: bool = False, carried: mi.Float | None = None):
         """``over_bounds``: ``abr_tree`` was built over the brick bounds
         (where a cell's support is its box), so a leaf's list is the one
         brick that contains the whole leaf: its cell is taken even where
-        float rounding puts the point a hair outside the brick."""
+        float rounding puts the point a hair outside the brick.
+        ``carried``: a further field reconstructed by the same look-up
+        (`CellValues`)."""
+        self.carried = carried
         self.bricks = bricks
         self.method = method
         self.over_bounds = over_bounds and abr_tree is not None
@@ -98,7 +101,8 @@ class BrickSampler:
         self.lists = lists
 
     def eval(self, u: mi.Vector3f, active=True):
-        """``(value, found)`` at local points ``u``; nothing outside the unit cube."""
+        """``(value, found)`` at local points ``u``; nothing outside the unit
+        cube. ``value``: a ``Vector2f`` (main, carried) when a field is carried."""
         active = mi.Bool(active) & in_unit_cube(u)
         return self.eval_at(self.offset + u * self.extent, u, active)
 
@@ -121,9 +125,10 @@ class BrickSampler:
         in_domain = dr.all((u >= 0.0) & (u < 1.0))          # cells are half-open
         i = mi.UInt32(0)
         # loop state: only what this reconstruction changes (docs/design.md section 6)
-        state = self.method.brick_state()
+        cells = CellValues(self.bricks.values, self.carried)
+        state = self.method.brick_state(cells)
         while dr.hint(i < count, label="amr_brick_list", exclude=[self, x, start, count, items, in_domain]):
             b = dr.gather(mi.UInt32, items, start + i)
-            state = self.method.brick_step(self.bricks, b, x, i < count, state, self.over_bounds, in_domain)
+            state = self.method.brick_step(self.bricks, cells, b, x, i < count, state, self.over_bounds, in_domain)
             i += 1
         return self.method.brick_result(state)

@@ -24,7 +24,7 @@ from ..reconstruction import Reconstruction
 from ..structures.level_hash import LevelHash, hash_u32, pack_key
 from .ray import in_unit_cube
 from .structs import jit_struct
-from .values import device_values, shares_host_values
+from .values import CellValues, device_values, shares_host_values
 
 
 class BlockHash(LevelHash):
@@ -98,11 +98,13 @@ class DeviceReconstruction:
         return (q.x & m) + self.block * ((q.y & m) + self.block * (q.z & m))
 
     @dr.syntax
-    def eval(self, x: mi.Vector3f, level_bits: mi.UInt32, active=True):
+    def eval(self, x: mi.Vector3f, level_bits: mi.UInt32, active=True, carried: mi.Float | None = None):
         """Reconstruct at ``x`` (finest units relative to ``origin``).
 
         ``level_bits``: the levels that may contribute at ``x`` (from the
-        macrocell grid). Returns ``(value, found)``. Each loop iteration does
+        macrocell grid). Returns ``(value, found)``; with a ``carried``
+        field (same layout as the values) ``value`` is a ``Vector2f`` of
+        both fields, reconstructed from the same cells and weights. Each loop iteration does
         one probe, at the level the method picks, and runs the method's body
         for that level (`Reconstruction.hash_step`); a level takes at most
         ``max_probe`` probes per block it visits.
@@ -111,14 +113,15 @@ class DeviceReconstruction:
         remaining = dr.select(active, level_bits, 0)
         probe = mi.UInt32(0)
         # loop state: only what this reconstruction changes (docs/design.md section 6)
-        state = self.method.hash_state()
+        cells = CellValues(self.values, carried)
+        state = self.method.hash_state(cells)
         while dr.hint(remaining != 0, label="amr_reconstruct", exclude=[self, x]):
             L = self.method.hash_level(remaining)
             # x / 2^L is exact; fractions stay small numbers so that no
             # sub-cell offset is rounded away near 2^24 (float32 spacing 1)
             xl = x * dr.rcp(mi.Float(mi.UInt32(1) << L))
             fl = dr.floor(xl)
-            level_done, probe, state = self.method.hash_step(self, L, xl, fl, limit, probe, state)
+            level_done, probe, state = self.method.hash_step(self, cells, L, xl, fl, limit, probe, state)
             remaining = dr.select(level_done, remaining & ~(mi.UInt32(1) << L), remaining)
             remaining = self.method.hash_stop(remaining, state)
         return self.method.hash_result(state)
@@ -126,15 +129,18 @@ class DeviceReconstruction:
 
 class HashSampler:
     """Point sampler over a `DeviceReconstruction`: the macrocell grid's level
-    masks limit the levels probed. A view over device structs."""
+    masks limit the levels probed. A view over device structs; ``carried``:
+    a further field reconstructed by the same look-up (`CellValues`)."""
 
-    def __init__(self, table: DeviceReconstruction, grid, offset, extent):
+    def __init__(self, table: DeviceReconstruction, grid, offset, extent, carried: mi.Float | None = None):
         self.table, self.grid = table, grid
         self.offset, self.extent = offset, extent
+        self.carried = carried
 
     def eval(self, u: mi.Vector3f, active=True):
-        """``(value, found)`` at local points ``u``; nothing outside the unit cube."""
+        """``(value, found)`` at local points ``u``; nothing outside the unit
+        cube. ``value``: a ``Vector2f`` (main, carried) when a field is carried."""
         active = mi.Bool(active) & in_unit_cube(u)
         g = self.grid
         level_bits = dr.gather(mi.UInt32, g.level_bits, g.flat(g.cell_of(u)), active)
-        return self.table.eval(self.offset + u * self.extent, level_bits, active)
+        return self.table.eval(self.offset + u * self.extent, level_bits, active, self.carried)

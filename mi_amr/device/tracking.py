@@ -168,13 +168,16 @@ class TentativeCollision:
     (elsewhere the lane reached the segment's end), ``by_control`` where the
     control clock rang first (no look-up), ``look`` where the density was
     looked up, the ``value`` and ``sigma_t`` found there, and the segment's
-    control extinction ``mu_c`` and residual majorant ``residual = mu - mu_c``."""
+    control extinction ``mu_c`` and residual majorant ``residual = mu - mu_c``;
+    ``carried``: a further field's value found by the same look-up (0
+    unless the look-up carries one)."""
 
-    __slots__ = ("inside", "by_control", "look", "value", "sigma_t", "mu_c", "residual")
+    __slots__ = ("inside", "by_control", "look", "value", "sigma_t", "mu_c", "residual", "carried")
 
-    def __init__(self, inside, by_control, look, value, sigma_t, mu_c, residual):
+    def __init__(self, inside, by_control, look, value, sigma_t, mu_c, residual, carried):
         self.inside, self.by_control, self.look = inside, by_control, look
         self.value, self.sigma_t, self.mu_c, self.residual = value, sigma_t, mu_c, residual
+        self.carried = carried
 
 
 class _Tracking:
@@ -184,14 +187,17 @@ class _Tracking:
     residual rate ``mu - mu_c`` with a density look-up at each.
 
     ``lookup(u, active) -> (value, sigma_t)`` at local points (sigma_t per
-    world length). Subclasses provide the initial state (`begin`), the
+    world length), or ``(value, sigma_t, carried)`` when one look-up also
+    reconstructs a further field (`AMRMedium.point_query`). Subclasses provide the initial state (`begin`), the
     collision hook (`collide`) and the result."""
 
     label = "amr_track"
 
-    def __init__(self, lookup, sampler):
+    def __init__(self, lookup, sampler, carries: bool = False):
         self.lookup = lookup
         self.sampler = sampler
+        #: whether ``lookup`` returns a carried field's value too
+        self.carries = carries
 
     def control(self, state):
         """The current segment's control extinction ``mu_c``: none here, a
@@ -225,36 +231,39 @@ class _Tracking:
         by_control &= inside
         t = dr.select(inside, t_c, dr.select(alive, seg_end, t))
         look = inside & ~by_control
-        value = mi.Float(0.0)
-        sigma_t = mi.Float(0.0)
+        found = (mi.Float(0.0), mi.Float(0.0)) + ((mi.Float(0.0),) if self.carries else ())
         lookup = self.lookup
         x = ray.o + ray.d * t
         if dr.hint(look, exclude=[lookup, x]):
             # a symbolic conditional: a SIMD packet in which no lane looks
             # up the density (all stepping through segments) skips it
-            value, sigma_t = lookup(x, look)
+            found = lookup(x, look)
         state.lookups += dr.select(look, 1, 0)
-        state, alive = self.collide(state, TentativeCollision(inside, by_control, look, value, sigma_t, mu_c,
-                                                              residual), alive)
+        carried = found[2] if self.carries else 0.0
+        state, alive = self.collide(state, TentativeCollision(inside, by_control, look, found[0], found[1], mu_c,
+                                                              residual, carried), alive)
         return state, t, alive
 
 
-@jit_struct(rng=Rng, mu="Float", collided="Bool", value="Float", looked="Bool", sigma_t="Float",
-            lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32")
+@jit_struct(rng=Rng, mu="Float", collided="Bool", value="Float", carried="Float", looked="Bool",
+            sigma_t="Float", lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32")
 class DeltaState(_Fields):
     """Loop state of `DeltaTracking`: the stream, the segment's majorant,
-    the real collision so far (its value, whether that value was looked up
-    there, and sigma_t) and the counts."""
+    the real collision so far (its value and carried field's value, whether
+    they were looked up there, and sigma_t) and the counts. ``carried`` is
+    None unless the look-up carries a field (no loop variable that never
+    changes)."""
 
 
-@jit_struct(collided="Bool", t="Float", albedo="Color3f", sigma_t="Float", value="Float", looked="Bool",
-            counts=TrackingCounts)
+@jit_struct(collided="Bool", t="Float", albedo="Color3f", sigma_t="Float", value="Float", carried="Float",
+            looked="Bool", counts=TrackingCounts)
 class FreeFlight(_Fields):
     """Result of a free flight: ``collided`` where a real collision
     happened, at the world ray's ``t`` (`LocalRay.world_t`; where none
     happened, where the walk ended), with its ``albedo`` and ``sigma_t``,
-    the reconstructed ``value`` there where ``looked`` (a control collision
-    of decomposition tracking looks nothing up), and the counts."""
+    the reconstructed ``value`` there (and a ``carried`` field's, None when
+    the look-up carried none) where ``looked`` (a control collision of
+    decomposition tracking looks nothing up), and the counts."""
 
 
 class DeltaTracking(_Tracking):
@@ -263,13 +272,14 @@ class DeltaTracking(_Tracking):
     ``albedo_of(value, active) -> rgb`` is called once, after the loop, for
     the lanes that collided (a null collision needs no colour)."""
 
-    def __init__(self, lookup, albedo_of, sampler):
-        super().__init__(lookup, sampler)
+    def __init__(self, lookup, albedo_of, sampler, carries: bool = False):
+        super().__init__(lookup, sampler, carries)
         self.albedo_of = albedo_of
 
     def begin(self, ray, active):
         return DeltaState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), collided=mi.Bool(False),
-                          value=mi.Float(0.0), looked=mi.Bool(False), sigma_t=mi.Float(0.0), lookups=mi.UInt32(0),
+                          value=mi.Float(0.0), carried=mi.Float(0.0) if self.carries else None,
+                          looked=mi.Bool(False), sigma_t=mi.Float(0.0), lookups=mi.UInt32(0),
                           null=mi.UInt32(0), real=mi.UInt32(0), steps=mi.UInt32(0))
 
     def real_sigma_t(self, c: TentativeCollision):
@@ -283,6 +293,8 @@ class DeltaTracking(_Tracking):
         accept = c.by_control | (c.look & (state.rng.next_1d(c.look) * c.residual < excess))
         state.collided |= accept
         state.value = dr.select(accept & ~c.by_control, c.value, state.value)
+        if self.carries:
+            state.carried = dr.select(accept & ~c.by_control, c.carried, state.carried)
         state.looked = dr.select(accept, ~c.by_control, state.looked)
         state.sigma_t = dr.select(accept, self.real_sigma_t(c), state.sigma_t)
         state.null += dr.select(c.inside & ~accept, 1, 0)
@@ -294,7 +306,8 @@ class DeltaTracking(_Tracking):
                                 dr.select(end.exhausted, 1, 0))
         return FreeFlight(collided=state.collided, t=ray.world_t(end.t),
                           albedo=self.albedo_of(state.value, state.collided), sigma_t=state.sigma_t,
-                          value=state.value, looked=state.collided & state.looked, counts=counts)
+                          value=state.value, carried=state.carried, looked=state.collided & state.looked,
+                          counts=counts)
 
 
 @jit_struct(**DeltaState.JIT_FIELDS, mu_c="Float")
@@ -310,8 +323,8 @@ class DecompositionTracking(DeltaTracking):
     reports ``mu_c`` as its sigma_t; the value left in the state colours it
     (any value has that one colour)."""
 
-    def __init__(self, lookup, albedo_of, sampler, known_albedo):
-        super().__init__(lookup, albedo_of, sampler)
+    def __init__(self, lookup, albedo_of, sampler, known_albedo, carries: bool = False):
+        super().__init__(lookup, albedo_of, sampler, carries)
         self.known_albedo = known_albedo
 
     def begin(self, ray, active):

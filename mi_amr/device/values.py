@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+from ..data.transform import log10_values, positive_floor
 
 
 def device_values(volume) -> mi.Float:
@@ -41,7 +42,6 @@ def device_field(volume, name: str | None, transform: str = "none") -> mi.Float:
     if not isinstance(values, mi.Float):
         host = volume.field(name)
         if transform == "log10":
-            from ..data.transform import log10_values, positive_floor
             host = log10_values(host, positive_floor(host, f"{volume.source} field {name or 'value'}"))
         elif transform != "none":
             raise ValueError(f"unknown field transform {transform!r}")
@@ -51,3 +51,32 @@ def device_field(volume, name: str | None, transform: str = "none") -> mi.Float:
         if transform == "none" and dr.backend_v(values) == dr.JitBackend.LLVM:
             volume.fields[name] = values.numpy()
     return values
+
+
+class CellValues:
+    """What a reconstruction gathers at a cell: the main field's value and,
+    where a medium needs a second field at the same points (the emission
+    field of a glowing medium), that one too, from the same look-up
+    (docs/design.md section 12). Both arrays share the volume's layout.
+
+    A gathered value is a ``Float``, or a ``Vector2f`` (main, carried) when
+    a field is carried; reconstruction sums and selects either alike."""
+
+    def __init__(self, values: mi.Float, carried: mi.Float | None = None):
+        self.values, self.carried = values, carried
+
+    def zero(self):
+        """The value of no cell (the loop state's start)."""
+        return mi.Float(0.0) if self.carried is None else mi.Vector2f(0.0)
+
+    def gather(self, index, active):
+        """The value(s) of cells ``index`` of the volume's layout."""
+        v = dr.gather(mi.Float, self.values, index, active)
+        if self.carried is None:
+            return v
+        return mi.Vector2f(v, dr.gather(mi.Float, self.carried, index, active))
+
+    @staticmethod
+    def main(v):
+        """The main field's part of a gathered value."""
+        return v.x if isinstance(v, mi.Vector2f) else v

@@ -25,6 +25,8 @@ from ..transfer.classification import Classification
 from ..transfer.function import TransferFunction
 from .options import parse_medium_options
 from .variant_class import VariantPlugin
+import gc
+from ..structures.cost_model import volpath_speedup
 
 
 def scene_media(scene) -> list:
@@ -91,7 +93,6 @@ _LIVE = weakref.WeakSet()
 
 def live_media() -> int:
     """Number of `AMRMedium` instances alive (after a garbage collection)."""
-    import gc
     gc.collect()
     return len(_LIVE)
 
@@ -151,7 +152,6 @@ def _warn_if_volpath_is_slower(medium):
     if "volpath" in _WARNED or medium.majorant_mode != "ray" or medium._volpath_checked:
         return
     medium._volpath_checked = True               # with the TF of its first trace
-    from ..structures.cost_model import volpath_speedup
     speedup = volpath_speedup(medium.majorant_grid)
     if speedup < 1.0:
         _WARNED.add("volpath")
@@ -331,10 +331,11 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
                                              emission_scale=1.0 if emission is None else emission.scale)
         self.structures = Structures(options.volume, options.structures, self.classification,
                                      options.world_scale, cells=options.cells).build()
-        # a medium that glows: the emission field's look-ups go through the
-        # point-location hash (whatever the sampling) with that field's values
-        if emission is not None:
-            self.structures.field_sampler(emission.field, emission.transform)
+        # a medium that glows from a field of its own (or the values under a
+        # transform): the flight's one look-up reconstructs that field too
+        self._carried = None
+        if emission is not None and (emission.field is not None or emission.transform != "none"):
+            self._carried = self.structures.field_values(emission.field, emission.transform)
         self.classification.on_change = self.structures.reclassify
         self._ray_majorant = _RayMajorant()
         two_level = (options.structures.traversal == "grid"
@@ -437,6 +438,14 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         value, found = self.structures.sampler().eval(u, active)
         return value, self.classification.sigma_t(value, found)
 
+    def point_query(self, u: mi.Vector3f, active=True):
+        """``(value, sigma_t, carried)`` at local point ``u`` from one
+        look-up: `value_local` and, for a medium that glows from a field of
+        its own, that field's value at the same point (docs/design.md
+        section 12; pbrt-v4's ``SamplePoint`` answers every property at once)."""
+        both, found = self.structures.sampler(self._carried).eval(u, active)
+        return both.x, self.classification.sigma_t(both.x, found), both.y
+
     def albedo_of(self, value, active=True):
         """The TF's colour (the albedo) at ``value``."""
         return self.classification.device.eval_rgb(value, active)
@@ -456,27 +465,27 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         """``L_e`` at world points ``p`` (the radiance of the absorbing gas:
         its emission per unit length is ``sigma_a L_e``); 0 outside the data
         and for a medium that does not glow."""
-        emission = self.options.emission
-        if emission is None:
+        if self.options.emission is None:
             return mi.Color3f(0.0)
-        sampler = self.structures.field_sampler(emission.field, emission.transform)
-        value, found = sampler.eval(self._to_local @ p, active)
+        value, found = self.structures.sampler().eval(self._to_local @ p, active) if self._carried is None \
+            else self._carried_at(self._to_local @ p, active)
         return self.classification.emitted_radiance(value, found)
 
+    def _carried_at(self, u, active):
+        both, found = self.structures.sampler(self._carried).eval(u, active)
+        return both.y, found
+
     def emitted_radiance_at(self, flight: FreeFlight, p: mi.Point3f, active=True):
-        """``L_e`` at the real collisions of ``flight`` (world points ``p``),
-        from the one point query of the flight where the emission TF reads
-        the extinction's own values (no ``emission_field``, no
-        ``emission_transform``): the value found there serves both; a
-        control collision of decomposition tracking, which looked nothing
-        up, and an emission field of its own look up ``p`` (`emitted_radiance`)."""
-        emission = self.options.emission
-        if emission is None:
+        """``L_e`` at the real collisions of ``flight`` (world points ``p``)
+        from the flight's own point query (`point_query`): the value found
+        there, or the emission field carried with it. Only a control
+        collision of decomposition tracking, which looked nothing up, looks
+        ``p`` up (`emitted_radiance`): every collision costs one look-up."""
+        if self.options.emission is None:
             return mi.Color3f(0.0)
-        if emission.field is not None or emission.transform != "none":
-            return self.emitted_radiance(p, active)
         found = mi.Bool(active) & flight.looked
-        from_value = self.classification.emitted_radiance(flight.value, found)
+        value = flight.value if self._carried is None else flight.carried
+        from_value = self.classification.emitted_radiance(value, found)
         return dr.select(found, from_value, self.emitted_radiance(p, mi.Bool(active) & ~flight.looked))
 
     def set_emission(self, emission: TransferFunction | None = None, emission_scale: float | None = None):
@@ -505,11 +514,12 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         ``control``): a `FreeFlight`, its ``t`` in world units along ``ray``.
         ``sampler``: a Mitsuba sampler or an `Rng`, which seeds the
         tracking's own random stream."""
+        carries = self._carried is not None
+        lookup = self.point_query if carries else self.value_local
         if control:
-            tracking = DecompositionTracking(self.value_local, self.albedo_of, sampler,
-                                             self.tf_device.rgb_constant)
+            tracking = DecompositionTracking(lookup, self.albedo_of, sampler, self.tf_device.rgb_constant, carries)
         else:
-            tracking = DeltaTracking(self.value_local, self.albedo_of, sampler)
+            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries)
         return self._track(ray, t_max, active, tracking)
 
     def transmittance(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False) -> Transmittance:

@@ -120,16 +120,18 @@ class Reconstruction:
         raise NotImplementedError
 
     # ---- Device: hash of blocks ----------------------------------------
-    def hash_state(self):
+    def hash_state(self, cells):
         """The loop state this method adds to the hash look-up loop (a
-        tuple of Dr.Jit arrays, each changed by every iteration)."""
+        tuple of Dr.Jit arrays, each changed by every iteration).
+        ``cells`` (`mi_amr.device.values.CellValues`) gathers the values:
+        a ``Float``, or a ``Vector2f`` when a second field is carried."""
         raise NotImplementedError
 
     def hash_level(self, remaining):
         """The level to probe next among the bits of ``remaining``."""
         raise NotImplementedError
 
-    def hash_step(self, table, L, xl, fl, limit, probe, state):
+    def hash_step(self, table, cells, L, xl, fl, limit, probe, state):
         """One loop iteration at level ``L``: ``xl`` the point in level
         units, ``fl = floor(xl)``, ``limit`` the largest level coordinate
         the hash holds, ``probe`` the linear-probing step. Returns
@@ -145,11 +147,11 @@ class Reconstruction:
         raise NotImplementedError
 
     # ---- Device: bricks ------------------------------------------------
-    def brick_state(self):
+    def brick_state(self, cells):
         """The loop state this method adds to the brick list loop."""
         raise NotImplementedError
 
-    def brick_step(self, bricks, b, x, active, state, over_bounds, in_domain):
+    def brick_step(self, bricks, cells, b, x, active, state, over_bounds, in_domain):
         """Fold brick ``b`` of `DeviceBricks` ``bricks`` at point ``x`` into
         ``state``. ``over_bounds``: the list is the one brick whose bounds
         hold the whole leaf (``in_domain``: the point is in the data)."""

@@ -65,20 +65,21 @@ class Nearest(Reconstruction):
         return self.support_box(q * w, w)                # the cell's box
 
     # ---- Device: hash of blocks ----------------------------------------
-    def hash_state(self):
-        return mi.Bool(False), mi.Float(0.0)             # found, value
+    def hash_state(self, cells):
+        return mi.Bool(False), cells.zero()              # found, value
 
     def hash_level(self, remaining):
         return 31 - dr.lzcnt(remaining)                  # coarsest first: see the module docstring
 
-    def hash_step(self, table, L, xl, fl, limit, probe, state):
+    def hash_step(self, table, cells, L, xl, fl, limit, probe, state):
         found, value = state
         in_range = dr.all((fl >= 0.0) & (fl < limit))
         qi = mi.Vector3u(dr.select(in_range, fl, 0.0))
         hit, level_done, blk = table.probe_block(qi >> table.log2_block, L, probe, in_range)
-        v = dr.gather(mi.Float, table.values, blk * table.block ** 3 + table.cell_slot(qi), hit)
-        found = found | (hit & ~dr.isnan(v))
-        value = dr.select(hit & ~dr.isnan(v), v, value)
+        v = cells.gather(blk * table.block ** 3 + table.cell_slot(qi), hit)
+        present = hit & ~dr.isnan(cells.main(v))
+        found = found | present
+        value = dr.select(present, v, value)
         probe = dr.select(level_done, 0, probe + 1)
         return level_done, probe, (found, value)
 
@@ -90,15 +91,15 @@ class Nearest(Reconstruction):
         return dr.select(found, value, 0.0), found
 
     # ---- Device: bricks: the finest brick that contains the point --------
-    def brick_state(self):
-        return mi.Float(dr.inf), mi.Float(0.0)           # cell width of the best brick, its value
+    def brick_state(self, cells):
+        return mi.Float(dr.inf), cells.zero()            # cell width of the best brick, its value
 
-    def brick_step(self, bricks, b, x, active, state, over_bounds, in_domain):
+    def brick_step(self, bricks, cells, b, x, active, state, over_bounds, in_domain):
         best_w, value = state
         xb, dims, w, off, inside = bricks.locate(b, x, active)
         # the nearest cell of the brick (clamped into it); ``inside`` says whether it contains x
         i = dr.clip(mi.Vector3i(dr.floor(xb)), 0, dims - 1)
-        v = dr.gather(mi.Float, bricks.values, bricks.cell_slot(off, i), active)
+        v = cells.gather(bricks.cell_slot(off, i), active)
         if over_bounds:                    # the leaf lies in its brick
             inside = active & in_domain
         finer = inside & (w < best_w)      # finest containing brick wins

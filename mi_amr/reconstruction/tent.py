@@ -81,14 +81,14 @@ class Tent(Reconstruction):
         return np.where(q == 0, a - w, a), a + w
 
     # ---- Device: hash of blocks ----------------------------------------
-    def hash_state(self):
+    def hash_state(self, cells):
         # stencil corners handled at this level, sum of weights, sum of weighted values
-        return mi.UInt32(0), mi.Float(0.0), mi.Float(0.0)
+        return mi.UInt32(0), mi.Float(0.0), cells.zero()
 
     def hash_level(self, remaining):
         return dr.tzcnt(remaining)         # every level contributes: any order will do
 
-    def hash_step(self, table, L, xl, fl, limit, probe, state):
+    def hash_step(self, table, cells, L, xl, fl, limit, probe, state):
         done, sum_w, sum_wv = state
         frac = xl - fl
         # Stencil b + {0,1}^3 with b = floor(xl - 1/2); tent weights
@@ -131,8 +131,8 @@ class Tent(Reconstruction):
             mine = open_c & (use_base | dr.all((qi >> table.log2_block) == qb))
             has = mine & hit & (blk_c < table.n_blocks)      # ghosts and "none" hold no values
             w = (t1.x if dx else t0.x) * (t1.y if dy else t0.y) * (t1.z if dz else t0.z)
-            v = dr.gather(mi.Float, table.values, blk_c * b3 + table.cell_slot(qi), has)
-            use = has & ~dr.isnan(v)
+            v = cells.gather(blk_c * b3 + table.cell_slot(qi), has)
+            use = has & ~dr.isnan(cells.main(v))
             sum_w = sum_w + dr.select(use, w, 0.0)
             sum_wv = sum_wv + dr.select(use, w * v, 0.0)
             done = done | dr.select(mine, 1 << c, 0)
@@ -147,10 +147,10 @@ class Tent(Reconstruction):
         return dr.select(found, sum_wv / dr.maximum(sum_w, WEIGHT_EPS), 0.0), found
 
     # ---- Device: bricks: the brick's stencil cells, summed over bricks ---
-    def brick_state(self):
-        return mi.Float(0.0), mi.Float(0.0)              # sum of weights, of weighted values
+    def brick_state(self, cells):
+        return mi.Float(0.0), cells.zero()               # sum of weights, of weighted values
 
-    def brick_step(self, bricks, b, x, active, state, over_bounds, in_domain):
+    def brick_step(self, bricks, cells, b, x, active, state, over_bounds, in_domain):
         """Trilinear weights of the 2x2x2 cells around ``x`` without those
         outside the brick; ``over_bounds`` does not apply (tent lists hold
         every brick whose domain contains the point)."""
@@ -158,14 +158,14 @@ class Tent(Reconstruction):
         xc = xb - 0.5
         base = mi.Vector3i(dr.floor(xc))
         w_b = mi.Float(0.0)
-        wv_b = mi.Float(0.0)
+        wv_b = cells.zero()
         for c in range(8):
             i = base + mi.Vector3i(c & 1, (c >> 1) & 1, (c >> 2) & 1)
             ok = active & dr.all((i >= 0) & (i < dims))
             dd = dr.abs(xc - mi.Vector3f(i))
             wt = dr.maximum(0.0, 1.0 - dd.x) * dr.maximum(0.0, 1.0 - dd.y) * dr.maximum(0.0, 1.0 - dd.z)
             ok &= wt > 0.0
-            v = dr.gather(mi.Float, bricks.values, bricks.cell_slot(off, i), ok)
+            v = cells.gather(bricks.cell_slot(off, i), ok)
             w_b += dr.select(ok, wt, 0.0)
             wv_b += dr.select(ok, wt * v, 0.0)
         sum_w, sum_wv = state
