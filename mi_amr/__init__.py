@@ -12,12 +12,17 @@ ensure_llvm_path()
 
 import mitsuba as mi  # noqa: E402
 
-from .data.cells import AMRCells  # noqa: E402
-from .data.convert import dense_to_amr
-from .data.io import load_cells, read_exabricks, read_npz, save_cells, write_exabricks, write_npz
-from .transfer.function import TransferFunction
-from .data import datasets  # noqa: E402
 from . import native_file  # noqa: E402,F401  (gives the one .amrb writer its macrocell grids)
+from .autoscene import scene_for as _scene_for  # noqa: E402
+from .data import datasets  # noqa: E402,F401
+from .data.cells import AMRCells  # noqa: E402
+from .data.convert import dense_to_amr  # noqa: E402
+from .data.io import load_cells, read_exabricks, read_npz, save_cells, write_exabricks, write_npz  # noqa: E402
+from .data.yt_import import from_yt as _from_yt, world_transform as _world_transform  # noqa: E402
+from .device.structs import refresh  # noqa: E402
+from .plugins.integrator import integrator_class  # noqa: E402
+from .plugins.medium import AMRMedium, medium_class, require_jit_rgb_variant, scene_media  # noqa: E402
+from .transfer.function import TransferFunction  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",
@@ -31,10 +36,6 @@ def register(variant: str | None = None):
     variant that is active when a scene instantiates them."""
     if mi.variant() is None:
         return
-    from .device.structs import refresh
-    from .plugins.integrator import integrator_class
-    from .plugins.medium import medium_class, require_jit_rgb_variant
-
     refresh()
 
     def make_medium(props):
@@ -60,27 +61,23 @@ register()
 
 def from_yt(ds, field, **kw):
     """Leaf cells of a yt grid or octree data set (see `mi_amr.data.yt_import.from_yt`)."""
-    from .data.yt_import import from_yt as _from_yt
     return _from_yt(ds, field, **kw)
 
 
 def world_transform(ds):
     """``to_world`` for a yt dataset's domain (see `mi_amr.data.yt_import`)."""
-    from .data.yt_import import world_transform as _wt
-    return _wt(ds)
+    return _world_transform(ds)
 
 
 def scene_for(data, field=None, **options) -> dict:
     """A scene dictionary for ``mi.load_dict`` made from AMR data alone:
     camera framing the domain at its true aspect, sun and sky, a TF over
     the values' distribution (see `mi_amr.autoscene.scene_for`)."""
-    from .autoscene import scene_for as _scene_for
     return _scene_for(data, field, **options)
 
 
 def amr_media(scene_or_medium) -> list:
     """The `amr` media of a scene (or the medium itself, in a list)."""
-    from .plugins.medium import AMRMedium, scene_media
     if isinstance(scene_or_medium, AMRMedium):
         return [scene_or_medium]
     return [m for m in scene_media(scene_or_medium) if isinstance(m, AMRMedium)]

@@ -20,10 +20,14 @@ from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
+import mitsuba as mi
 import numpy as np
 
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
+from .data.io import load_volume
+from .data.metadata import physical_box
+from .data.yt_import import field_key, from_yt_blocks, load_dataset
 from .transfer.function import PRESETS, TransferFunction
 
 #: Percentiles (volume-weighted) that bound the TF domain.
@@ -112,8 +116,6 @@ def open_data(data, field=None, fields=()):
     an `AMRCells`, a `BlockVolume`, a ``.cells``/``.npz``/``.amrb`` file, a loaded yt
     dataset, or any path yt can load (then ``field`` names the field, and
     ``fields`` further fields to read onto the same cells)."""
-    from .data.io import load_volume
-    from .data.metadata import physical_box
     if isinstance(data, (AMRCells, BlockVolume)):
         lo, hi = data.bounds
         box = physical_box(data)
@@ -143,7 +145,6 @@ def field_scalars(path, field) -> Path | None:
 
 
 def _yt_load(path):
-    from .data.yt_import import load_dataset       # one line for what yt lacks (yt_import.MissingDependency)
     return load_dataset(path)
 
 
@@ -152,7 +153,6 @@ def _yt_field(field):
 
 
 def _from_yt(ds, field, fields=()):
-    from .data.yt_import import from_yt_blocks
     if field is None:
         raise ValueError(f"{ds}: give the field to render (--field NAME), e.g. density")
     cells = from_yt_blocks(ds, _yt_field(field), fields=[_yt_field(f) for f in fields])
@@ -165,22 +165,11 @@ def cells_and_weights(data, field=None):
     (weights in finest-cell volumes: 8^level); ``field``: a further field
     of the data (None: the main values). ``data`` may be a list (or any
     iterable) of data sets: the chunks of all of them."""
-    if not isinstance(data, (AMRCells, BlockVolume)):
-        for d in data:
-            yield from cells_and_weights(d, field)
+    if hasattr(data, "weighted_values"):          # one data set (`AMRCells` or `BlockVolume`)
+        yield from data.weighted_values(field)
         return
-    if isinstance(data, AMRCells):
-        values = data.values if field is None else data.fields[field]
-        yield values.astype(np.float64), np.exp2(3.0 * data.level)
-        return
-    values = data.field(field)
-    b3 = data.block ** 3
-    step = max(1, (1 << 22) // b3)
-    for s in range(0, len(data.level), step):
-        v = values[s * b3:(s + step) * b3].reshape(-1, b3)
-        w = np.broadcast_to(np.exp2(3.0 * data.level[s:s + step].astype(np.float64))[:, None], v.shape)
-        ok = ~np.isnan(v)
-        yield v[ok].astype(np.float64), w[ok]
+    for d in data:
+        yield from cells_and_weights(d, field)
 
 
 @dataclass
@@ -405,7 +394,6 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
         _check_tf_name(emission, "--emission")
         key = None
         if emission_field:
-            from .data.yt_import import field_key
             key = field_key(_yt_field(emission_field))
             if key not in volume.fields:
                 have = ", ".join(repr(n) for n in sorted(volume.fields)) or "none besides the main one"
@@ -489,7 +477,6 @@ def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: st
     """A scene dictionary for ``mi.load_dict`` that shows ``data`` (see
     `open_data`) with no scene written by hand; ``options`` go to
     `plan_scene` (``tf``, ``log``, ``value_range``, ``density_scale``)."""
-    import mitsuba as mi
     plan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **options)
     T = mi.ScalarTransform4f
 

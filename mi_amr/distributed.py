@@ -23,11 +23,17 @@ when a render needs it.
 from __future__ import annotations
 
 import os
+import pickle
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
+from tqdm import tqdm
+
+from ._llvm import ensure_llvm_path
 
 #: Chunks of one render: their seeds are ``seed * MAX_CHUNKS + index``.
 MAX_CHUNKS = 1 << 16
@@ -76,7 +82,6 @@ def chunk_seeds(seed: int, n: int) -> list[int]:
 def scene_spec(scene, params: dict | None = None, variant: str | None = None, sensor: int = 0,
                drjit_threads: int | None = None) -> SceneSpec:
     """A `SceneSpec` of an XML path (``params``: its ``-D`` parameters)."""
-    import mitsuba as mi
     variant = variant or mi.variant() or "llvm_ad_rgb"
     if isinstance(scene, dict):
         return SceneSpec(variant=variant, sensor=sensor, drjit_threads=drjit_threads)
@@ -93,14 +98,10 @@ _SCENES: dict = {}
 
 def _scene(spec: SceneSpec, scene_dict=None):
     """The scene of ``spec``, loaded once per process."""
-    from ._llvm import ensure_llvm_path
     ensure_llvm_path()
-    import mitsuba as mi
     if mi.variant() != spec.variant:
         mi.set_variant(spec.variant)
-    import mi_amr  # noqa: F401  (registers the plugins)
     if spec.drjit_threads is not None:
-        import drjit as dr
         if dr.thread_count() != spec.drjit_threads:
             dr.set_thread_count(spec.drjit_threads)
     key = (spec.variant, spec.key)
@@ -120,7 +121,6 @@ _TRANSFORM = "__mi_amr_transform4f__"
 def _to_portable(obj, where="scene"):
     """``obj`` with every Mitsuba transform replaced by its matrix; a value
     that cannot be pickled raises a TypeError naming where it is."""
-    import pickle
     if isinstance(obj, dict):
         return {k: _to_portable(v, f"{where}[{k!r}]") for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
@@ -136,7 +136,6 @@ def _to_portable(obj, where="scene"):
 
 
 def _from_portable(obj):
-    import mitsuba as mi
     if isinstance(obj, dict):
         return {k: _from_portable(v) for k, v in obj.items()}
     if isinstance(obj, tuple) and len(obj) == 2 and isinstance(obj[0], str) and obj[0] == _TRANSFORM:
@@ -149,7 +148,6 @@ def _from_portable(obj):
 def render_chunk(spec: SceneSpec, spp: int, seed: int, scene_dict=None) -> np.ndarray:
     """Render one chunk: the film's raw weighted sums (H, W, C + 1), float32,
     the weight last."""
-    import mitsuba as mi
     scene = _scene(spec, scene_dict)
     mi.render(scene, spp=int(spp), seed=int(seed), sensor=spec.sensor)
     film = scene.sensors()[spec.sensor].film()
@@ -179,8 +177,6 @@ def render_local(scene, spp: int, chunk_spp: int | None = None, seed: int = 0, s
     seeds and merge as `render` on a cluster, so the same image. ``scene``:
     an XML path (``params``: its ``-D`` parameters), a scene dictionary or a
     loaded ``mi.Scene``."""
-    import mitsuba as mi
-    from tqdm import tqdm
     plan = chunk_plan(spp, chunk_spp)
     seeds = chunk_seeds(seed, len(plan))
     if isinstance(scene, mi.Scene):
@@ -235,8 +231,6 @@ def render_frames(frames, spp: int, client=None, chunk_spp: int | None = None, s
     are scheduled together) and return their images in order.
     ``drjit_threads``: Dr.Jit threads per worker (default: all cores, or one
     on the local cluster this call starts, which has a process per core)."""
-    import mitsuba as mi
-    from tqdm import tqdm
     own = client is None
     if own:
         client = local_cluster()

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
+import OpenEXR
 
 
 def write_exr(path, image) -> Path:
     """Write a float image (H, W), (H, W, 1), (H, W, 3) or (H, W, 4) as EXR."""
-    import OpenEXR
     img = np.ascontiguousarray(np.asarray(image, dtype=np.float32))
     if img.ndim == 2:
         img = img[..., None]
@@ -26,7 +27,6 @@ def write_exr(path, image) -> Path:
 
 def read_exr(path) -> np.ndarray:
     """Read an EXR file as float32 (H, W, C), channels in RGB(A) or Y order."""
-    import OpenEXR
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
@@ -43,7 +43,6 @@ def read_exr(path) -> np.ndarray:
 
 
 def _srgb8_bitmap(image):
-    import mitsuba as mi
     img = np.nan_to_num(np.asarray(image, dtype=np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
     bmp = mi.Bitmap(np.ascontiguousarray(img), mi.Bitmap.PixelFormat.RGB)
     return bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)

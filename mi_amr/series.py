@@ -21,6 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .autoscene import open_data, plan_scene, write_scene_xml
+from .data.amrb import read_amrb, save_amrb
+from .data.volume import as_volume
+from .data.yt_import import field_key
+from .images import srgb8
+
 #: Frames per second of a movie unless told otherwise.
 FPS = 10
 
@@ -46,7 +52,6 @@ class StoredVolumes:
         self.paths = [Path(p) for p in paths]
 
     def __iter__(self):
-        from .data.amrb import read_amrb
         for p in self.paths:
             yield read_amrb(p)
 
@@ -60,9 +65,6 @@ def store_outputs(outputs, field, folder, fields=(), log=print):
     ``(stored, failed)``: ``[(output, amrb path)]`` and ``[(output,
     message)]`` for those that could not be read (each named through
     ``log`` as it fails)."""
-    from .autoscene import open_data
-    from .data.amrb import save_amrb
-    from .data.volume import as_volume
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     stored, failed = [], []
@@ -85,8 +87,6 @@ def plan_series(stored, **options):
     """One `ScenePlan` for every stored output: the first output's domain
     and camera, TF ranges and scales from all of them (``options`` go to
     `mi_amr.autoscene.plan_scene`; an emission field is the stored one)."""
-    from .autoscene import plan_scene
-    from .data.yt_import import field_key
     if options.get("emission_field"):
         options["emission_field"] = field_key(options["emission_field"])
     plan = plan_scene(stored[0][1], None, stats=StoredVolumes([p for _, p in stored]), **options)
@@ -107,7 +107,6 @@ def orbit(plan, degrees: float):
 def frame_scenes(plan, stored, folder, res: int, spp: int, orbit_degrees: float = 0.0):
     """One XML scene per stored output (``folder/NNN.xml``), the camera
     turned by ``orbit_degrees * k / n`` for frame ``k`` of ``n``."""
-    from .autoscene import write_scene_xml
     n = len(stored)
     scenes = []
     for k, (_, path) in enumerate(stored):
@@ -124,7 +123,6 @@ def encode_movie(images, path, fps: int = FPS) -> Path:
     except ImportError as e:
         raise ImportError("--movie needs imageio-ffmpeg (it ships its own ffmpeg): "
                           "pip install 'mi-amr[movie]'") from e
-    from .images import srgb8
     path = Path(path)
     frames = [srgb8(np.asarray(im, np.float32)[..., :3]) for im in images]
     h, w = frames[0].shape[:2]

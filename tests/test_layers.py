@@ -4,6 +4,7 @@ or below (imports inside functions count too), and no modules import each
 other in a circle. A module added on no floor fails here until it is placed."""
 
 import ast
+import sys
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mi_amr"
@@ -147,3 +148,85 @@ def test04_the_check_sees_an_import_that_runs_up(tmp_path):
     assert found == {"mi_amr.plugins.medium", "mi_amr.tools", "mi_amr.data.blocks"}
     assert floor_of("mi_amr.plugins.medium") > floor_of("mi_amr.data.m")
     assert floor_of("mi_amr.tools") > floor_of("mi_amr.data.m")
+
+
+#: The only imports that may wait inside a function, each with its reason.
+#: Everything else is imported at the top of its module: importing any
+#: module of the package runs the package's ``__init__`` (Mitsuba, Dr.Jit, numpy
+#: and the plugins) anyway, so deferring those saves nothing.
+LAZY_IMPORTS = {
+    # optional dependencies: a user without the extra still imports the package
+    "yt": "the mi-amr[yt] extra, and 1-2 s to import",
+    "dask": "the mi-amr[distributed] extra",
+    "distributed": "the mi-amr[distributed] extra",
+    "starlette": "the mi-amr[view] extra",
+    "uvicorn": "the mi-amr[view] extra",
+    "websockets": "the mi-amr[view] extra",
+    "mitsuba_oidn": "the mi-amr[view] extra (the denoiser)",
+    "PIL": "the mi-amr[view] extra (JPEG frames)",
+    "imageio_ffmpeg": "the mi-amr[movie] extra",
+    "playwright": "a test and benchmark dependency (dev extra)",
+    "IPython": "notebooks only",
+    "eradiate": "a peer of the benchmark, installed apart",
+    # start-up time
+    "matplotlib": "0.3-0.5 s to import; only plots and colormap presets need it",
+    "webbrowser": "only `mi-amr view` opens a browser",
+    "mi_amr.view": "the viewer needs the mi-amr[view] extra; other commands do not load it",
+    "mi_amr.bench": "`python -m mi_amr.bench` imports only the benchmark it runs",
+    # needs a variant
+    "mitsuba.ad": "Mitsuba's Python integrators are defined for the variant set at import",
+}
+
+
+def inner_imports():
+    """``(module, line, imported name)`` of every import inside a function."""
+    known = modules()
+    for name, path in sorted(known.items()):
+        tree = ast.parse(path.read_text())
+        for fn in ast.walk(tree):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for node in ast.walk(fn):
+                    if isinstance(node, ast.Import):
+                        for a in node.names:
+                            yield name, node.lineno, a.name
+                    elif isinstance(node, ast.ImportFrom):
+                        if node.level:
+                            is_package = path.name == "__init__.py"
+                            base = name.split(".") if is_package else name.split(".")[:-1]
+                            base = base[:len(base) - (node.level - 1)]
+                            target = ".".join(base + ([node.module] if node.module else []))
+                        else:
+                            target = node.module
+                        for a in node.names:        # ``from . import x``: the submodule counts
+                            sub = f"{target}.{a.name}"
+                            yield name, node.lineno, sub if sub in known else target
+
+
+def lazy_reason(target: str):
+    for prefix, reason in LAZY_IMPORTS.items():
+        if target == prefix or target.startswith(prefix + "."):
+            return reason
+    return None
+
+
+def test05_imports_wait_inside_functions_only_with_a_reason():
+    """docs/design.md section 6c: an import inside a function is one of
+    `LAZY_IMPORTS` (an optional dependency, start-up time, a variant);
+    the rest sit at the top of their modules."""
+    bad = [f"{m}:{line} imports {t} inside a function" for m, line, t in inner_imports() if lazy_reason(t) is None]
+    assert not bad, "imports inside functions without a reason (move them to the top):\n" + "\n".join(bad)
+
+
+def test06_the_lazy_check_sees_an_inner_import(tmp_path, monkeypatch):
+    """The same check on a planted module: an inner import of numpy is
+    flagged, one of yt is allowed."""
+    pkg = tmp_path / "mi_amr"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "m.py").write_text("def f():\n    import numpy\n    import yt\n    from . import view\n")
+    (pkg / "view.py").write_text("")
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", pkg)
+    found = [(m, t, lazy_reason(t)) for m, _, t in inner_imports()]
+    assert ("mi_amr.m", "numpy", None) in found
+    assert ("mi_amr.m", "yt", LAZY_IMPORTS["yt"]) in found
+    assert ("mi_amr.m", "mi_amr.view", LAZY_IMPORTS["mi_amr.view"]) in found

@@ -9,6 +9,11 @@ or ``--distributed`` (`mi_amr.bench.distributed`).
 
 import argparse
 
+from ..data.datasets import LAYOUTS
+from ..reconstruction import METHODS
+from . import protocol
+from .protocol import all_configs
+
 
 def main(argv=None) -> int:
     return dispatch(parse(argv))
@@ -31,7 +36,6 @@ def dispatch(args) -> int:
 
 def parse(argv=None) -> argparse.Namespace:
     """The options of ``python -m mi_amr.bench`` (``argv``: the process's)."""
-    from . import protocol
     p = argparse.ArgumentParser(prog="python -m mi_amr.bench", description=protocol.__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="example:\n  python -m mi_amr.bench --quick --out out/bench-quick\n"
@@ -43,8 +47,6 @@ def parse(argv=None) -> argparse.Namespace:
 
 
 def protocol_options(p):
-    from ..reconstruction import METHODS
-    from .protocol import all_configs
     p.add_argument("files", nargs="*", help="extra .cells data sets")
     p.add_argument("--out", required=True, help="results folder")
     p.add_argument("--quick", action="store_true", help="small sizes: minutes on 2 cores")
@@ -90,7 +92,6 @@ def protocol_options(p):
 
 
 def scale_options(p):
-    from ..data.datasets import LAYOUTS
     p.add_argument("--scale", type=float, nargs="+", default=None, metavar="CELLS",
                    help="run the scale benchmark instead, at these cell counts (e.g. 1e5 1e6 1e7 1e8)")
     p.add_argument("--scale-kinds", nargs="+", default=None,

@@ -8,10 +8,15 @@ same way (docs/performance/protocol.md).
 
 from __future__ import annotations
 
+import resource
 import sys
 import time
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
+
+from ..plugins.medium import live_media
 
 
 #: The benchmark camera: position, the point it looks at (the volume is the
@@ -35,7 +40,6 @@ def bench_scene(medium, res: int, integrator: dict, camera=None):
     """The benchmark view: the volume in the unit cube, sun and sky light.
     ``camera``: ``(origin, target, fov)`` instead of the benchmark's
     (`zoom_camera`)."""
-    import mitsuba as mi
     T = mi.ScalarTransform4f
     origin, target, fov = camera or (BENCH_ORIGIN, BENCH_TARGET, BENCH_FOV)
     return {"type": "scene", "integrator": integrator,
@@ -53,7 +57,6 @@ def check_alone(config):
     """Refuse to time ``config`` while amr media of another scene are alive:
     Dr.Jit dispatches virtual calls over every live instance, so a second
     scene in memory shifts timings (docs/design.md section 7)."""
-    from ..plugins.medium import live_media
     if live_media():
         raise RuntimeError(f"benchmark: {live_media()} amr media of another scene are alive while "
                            f"timing {config}; free them first")
@@ -61,7 +64,6 @@ def check_alone(config):
 
 def process_cpu_seconds() -> float:
     """CPU seconds used so far by every thread of this process."""
-    import resource
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
 
@@ -102,8 +104,6 @@ def frame_function(mi, spp: int, frozen: bool):
     the kernels are replayed without tracing Python and Mitsuba calls
     again; the same image for the same seed). A frozen ``frame.recorder``
     is the frozen function (its ``n_recordings``)."""
-    import drjit as dr
-    import numpy as np
     if not frozen:
         return lambda scene, seed: np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float64)
 

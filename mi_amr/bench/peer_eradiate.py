@@ -43,11 +43,16 @@ also every timed frame as ``OUT_DIR/<config>.frames.npy`` (rounds x H x W x 3).
 
 from __future__ import annotations
 
+import gc
+import importlib.metadata
 import json
+import resource
 import sys
 import time
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 #: Version of the job file layout (`mi_amr.bench.peers.write_job`).
@@ -140,7 +145,6 @@ def extremum_resolution(mi, scene):
 
 
 def process_cpu_seconds() -> float:
-    import resource
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
 
@@ -173,11 +177,6 @@ def frame_function(mi, dr, spp: int, frozen: bool):
 
 
 def run(job: dict, out: Path) -> dict:
-    import gc
-    import importlib.metadata
-
-    import drjit as dr
-    import mitsuba as mi
     variant = job.get("variant") or DEFAULT_VARIANT
     mi.set_variant(variant)
     out.mkdir(parents=True, exist_ok=True)

@@ -28,6 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .._llvm import find_llvm19
+from ..reconstruction import reconstruction_method
+from ..tools.reference import baked_grids
+
 ROOT = Path(__file__).resolve().parents[2]
 PEERS = ("eradiate",)
 ERADIATE_VENV = ROOT / ".venv-eradiate"
@@ -83,7 +87,6 @@ def run_eradiate(job: Path, out: Path, timeout: float, venv: Path | None = None)
     job, out = Path(job).resolve(), Path(out).resolve()     # the peer runs in ``out``
     env = dict(os.environ)
     if "DRJIT_LIBLLVM_PATH" not in env:
-        from .._llvm import find_llvm19
         if find_llvm19():
             env["DRJIT_LIBLLVM_PATH"] = find_llvm19()
     env.pop("PYTHONPATH", None)                 # nothing of this environment's Mitsuba
@@ -146,8 +149,6 @@ def run_peers(peers, name, tf_name, cells, tf, scale, args, ref_img, measured, o
     the results folder (the peer's files go to ``out/peers/<name>-<tf>``)."""
     if not peers:
         return []
-    from ..reconstruction import reconstruction_method
-    from ..tools.reference import baked_grids
     recs = []
     for peer in peers:
         if peer != "eradiate":

@@ -36,14 +36,31 @@ field and every configuration converges to the same image.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import statistics
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
+import mi_amr
 from .._llvm import ensure_llvm_path
+from ..autoscene import plan_scene
+from ..data.blocks import BlockVolume
+from ..data.datasets import make_dataset
+from ..data.io import load_cells
+from ..data.transform import apply_value_transform
+from ..data.volume import as_method, as_volume
+from ..device.grid import DeviceMacrocellGrid
+from ..strategies import SAMPLINGS, TRAVERSALS
+from ..structures.cost_model import REFINEMENTS, auto_grid
+from ..structures.value_masks import ValueBins
+from ..tools.reference import dense_bytes, reference_medium, resample_dense
+from ..transfer.device import DeviceTransferFunction
 from .harness import FROZEN_WARMUP, bench_scene, check_alone, frame_function, wait_idle
 from .peers import run_peers
 
@@ -88,7 +105,6 @@ def scattering_floor(mi, args, real_target: float, albedo) -> dict:
     collisions without a look-up). Returns its frame time (median of
     ``args.repeats`` frames, timed like the others: frozen, after warm-up,
     process idle), the density scale and the real collisions reached."""
-    import mi_amr
     one = mi_amr.dense_to_amr(np.ones((2, 2, 2), np.float32), 0.0, 1, source="scattering floor: one uniform cell")
     rgb = [float(np.clip(a, 0.0, 1.0)) for a in albedo]
     tf = mi_amr.TransferFunction([rgb + [1.0], rgb + [1.0]], (0.0, 2.0))
@@ -128,7 +144,6 @@ def all_configs():
     no structure options (its record names what it resolved to)."""
     out = ["reference", "dense16", "volpath/global", "volpath/ray", "amrvolpath/default"]
     out += [f"amrvolpath/default-{v}" for v in TRACKING_VARIANTS]
-    from ..strategies import SAMPLINGS, TRAVERSALS     # every registered pair
     out += [f"amrvolpath/{t}/{s}" for t in TRAVERSALS for s in SAMPLINGS]
     return out
 
@@ -139,11 +154,6 @@ _DENSE = {}
 def dense_volume(cells, args):
     """The reference's resampled field (finest resolution, ``nearest``) as a
     one-level `BlockVolume` of 16^3 blocks, made once per data set."""
-    import numpy as np
-
-    from ..data.blocks import BlockVolume
-    from ..data.volume import as_method
-    from ..tools.reference import resample_dense
     method = as_method(args.reconstruction)
     if not method.dense_exact:          # a dense resampling is that field exactly
         raise ValueError("dense16 resamples the nearest field: run it with --reconstruction nearest")
@@ -158,7 +168,6 @@ def dense_volume(cells, args):
 def config_scene(mi, config, cells, tf, scale, args, grid_resolution=None, grid_refinement=1) -> dict:
     """The benchmark scene of one configuration, as a dict (loadable again:
     its data are shared, and host structures are cached on them)."""
-    from ..tools.reference import reference_medium
     kind = config.split("/")
     integ = {"type": "volpath", "max_depth": args.max_depth}
     if kind[0] == "reference":
@@ -204,10 +213,6 @@ def run_config(mi, config, cells, tf, scale, args, ref_image=None, grid_resoluti
     time ``args.repeats`` frames in a row (else the caller times them, see
     `alternate_passes`, and one frame feeds the counters). ``scene_dict``:
     the configuration's scene, when the caller made it already."""
-    import drjit as dr
-    import numpy as np
-
-    from ..tools.reference import dense_bytes
     check_alone(config)
     kind = config.split("/")
     t0 = time.perf_counter()
@@ -283,9 +288,6 @@ def alternate_passes(mi, scenes: dict, args, ref_image) -> dict:
     alive while timing and slow drifts of the machine hit every
     configuration alike. Returns ``{config: (seconds per frame, MSE per
     frame)}``."""
-    import gc
-
-    import numpy as np
     frozen = bool(getattr(args, "frozen", False))
     out = {c: ([], []) for c in scenes}
     for r in range(args.repeats):
@@ -325,7 +327,6 @@ def main_args(args) -> int:
     if args.quick:
         vars(args).update(QUICK)
     ensure_llvm_path()
-    import mitsuba as mi
     mi.set_variant(args.variant)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -351,16 +352,12 @@ def load_data(args):
     """``([(name, cells)], {name: TF domain})``: the synthetic data sets (or
     ``--data`` alone, on the value scale `mi-amr render` chooses, its density
     scale entered in `SCALES`), then the extra ``.cells`` files."""
-    from ..data.datasets import make_dataset
-    from ..data.io import load_cells
     domains = {}                                  # TF domain per data set (default: the value range)
     if args.data:
         # a user's data set alone (any format `mi-amr render` reads), on its value scale
-        from ..autoscene import plan_scene
         plan = plan_scene(args.data, args.field)
         cells = plan.data.to_cells() if hasattr(plan.data, "to_cells") else plan.data
         if plan.transform == "log10":
-            from ..data.transform import apply_value_transform
             cells, _ = apply_value_transform(cells, "log10")
         name = Path(args.data).name + (f"-{args.field}" if args.field else "")
         data = [(name, cells)]
@@ -379,7 +376,6 @@ def run_case(mi, args, name, tf_name, cells, domains, out, records, sweeps):
     """One data set x TF case: its reference image, every configuration
     measured, frame times in alternating passes, the limit and the floor;
     its records go to ``records`` (printed), its grid sweep to ``sweeps``."""
-    import mi_amr
     tf = mi_amr.TransferFunction.preset(tf_name, domains.get(name, cells.value_range))
     scale = SCALES.get((name, tf_name), 100.0)
     # High-sample reference image: the default amrvolpath configuration.
@@ -474,20 +470,11 @@ def tf_change_timing(mi, args, cells):
     """Majorant recompute time for 10^5, 10^6 and 10^7 leaves (one Dr.Jit
     kernel over the leaves' value ranges), and the first frame after a TF
     change against the steady-state frame time."""
-    import drjit as dr
-    import numpy as np
-
-    import mi_amr
-    from ..transfer.device import DeviceTransferFunction
     rng = np.random.default_rng(0)
     tf = DeviceTransferFunction(mi_amr.TransferFunction.preset("spiky", (0.0, 1.0)))
     scale = mi.Float(50.0)
     dr.make_opaque(scale)
     out = {"recompute": []}
-    from types import SimpleNamespace
-
-    from ..device.grid import DeviceMacrocellGrid
-    from ..structures.value_masks import ValueBins
     for n in (10**5, 10**6, 10**7):
         a = rng.random(n, dtype=np.float32)
         b = a + rng.random(n, dtype=np.float32) * 0.2
@@ -584,8 +571,6 @@ def frozen_frame_timing(mi, scene, spp: int, rounds: int = 5, change=None):
 def grid_sweep(mi, name, tf_name, cells, tf, scale, args, ref_img):
     """Efficiency of amrvolpath/grid/hash over uniform grid resolutions, and
     of the grid `auto_grid` picks (uniform or two-level; Fig. 8 of the paper)."""
-    from ..data.volume import as_method, as_volume
-    from ..structures.cost_model import REFINEMENTS, auto_grid
     rows = []
     for r in args.sweep:
         rec, _ = run_config(mi, "amrvolpath/grid/hash", cells, tf, scale, args, ref_img, grid_resolution=r)

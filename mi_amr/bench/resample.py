@@ -49,8 +49,19 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
+import mitsuba as mi
 import numpy as np
+
+from .._llvm import ensure_llvm_path
+from ..autoscene import plan_scene
+from ..data.blocks import BlockVolume
+from ..data.datasets import write_block_dataset
+from ..data.transform import log10_values, positive_floor
+from ..progress import progress
+from ..transfer.function import TransferFunction
+from .harness import FROZEN_WARMUP, bench_scene, check_alone, frame_function, wait_idle, zoom_camera
 
 DEFAULT_DATA = ("enzo", "cosmo:1e7", "cosmo:1e8")
 DEFAULT_RESOLUTIONS = (128, 256, 512, 1024)
@@ -85,8 +96,6 @@ def data_path(spec: str, data_dir: Path):
             raise ValueError(f"bad data spec {spec!r}: expected cosmo:CELLS[:LEVELS], e.g. cosmo:1e7") from None
         path = data_dir / f"cosmo-{cells:.0e}-L{levels}.cells".replace("+", "")
         if not path.exists():
-            from ..data.datasets import write_block_dataset
-            from ..progress import progress
             with progress(cells, f"writing {path}") as bar:
                 write_block_dataset(path, cells, levels, name="cosmo", progress_bar=bar)
         return path, None, f"cosmo {cells:.0e} L{levels}"
@@ -111,7 +120,6 @@ def resample_grid(data, resolution: int, method: str = "box", bar=None):
     assumes the cells cover the domain); ``nearest``: the cell under each
     voxel centre. The voxel must be a power-of-two number of finest cells
     (so that cells and voxels align)."""
-    from ..data.cells import AMRCells
     if method not in METHODS:
         raise ValueError(f"unknown resample method {method!r} (choose from {', '.join(METHODS)})")
     lo, hi = (np.asarray(b, dtype=np.int64) for b in data.bounds)
@@ -122,10 +130,7 @@ def resample_grid(data, resolution: int, method: str = "box", bar=None):
                          f"(extent {ext.tolist()} finest cells: the voxel must be a power of two of them)")
     nx, ny, nz = (int(e) // v for e in ext)
     grid = np.zeros(nx * ny * nz, dtype=np.float32)
-    chunks = data.cell_chunks() if not isinstance(data, AMRCells) else (
-        (data.pos[s:s + (1 << 21)], data.level[s:s + (1 << 21)], data.values[s:s + (1 << 21)])
-        for s in range(0, len(data), 1 << 21))
-    for pos, level, value in chunks:
+    for pos, level, value in data.cell_chunks(1 << 21):
         p = pos - lo
         size = np.int64(1) << level.astype(np.int64)
         fine = size <= v
@@ -155,7 +160,6 @@ def resample_grid(data, resolution: int, method: str = "box", bar=None):
 def _dense_blocks(values: np.ndarray, source: str):
     """A one-level `BlockVolume` of 16^3 blocks of a NaN-free grid whose sides
     are multiples of 16, with one copy (else `BlockVolume.from_dense`)."""
-    from ..data.blocks import BlockVolume
     nz, ny, nx = values.shape
     if nx % 16 or ny % 16 or nz % 16 or np.isnan(values).any():
         return BlockVolume.from_dense(values, 16, source)
@@ -185,7 +189,6 @@ class Study:
 
     def __init__(self, mi, plan, args, camera=None):
         self.mi, self.plan, self.args, self.camera = mi, plan, args, camera
-        from ..transfer.function import TransferFunction
         self.tf = TransferFunction.load(plan.tf, plan.tf_range)
 
     def medium_common(self):
@@ -194,7 +197,6 @@ class Study:
                 "density_scale": p.density_scale, "reconstruction": "nearest"}
 
     def truth_scene(self):
-        from .harness import bench_scene
         med = {"type": "amr", "data": self.plan.data, "value_transform": self.plan.transform, **self.medium_common()}
         return bench_scene(med, self.args.res, {"type": "amrvolpath", "max_depth": self.args.max_depth},
                            self.camera)
@@ -202,7 +204,6 @@ class Study:
     def transformed(self, grid: np.ndarray) -> np.ndarray:
         """The grid on the truth's value scale (log10 in place, with the data's floor)."""
         if self.plan.transform == "log10":
-            from ..data.transform import log10_values
             flat = grid.reshape(-1)
             log10_values(flat, self.floor, out=flat)
         return grid
@@ -210,7 +211,6 @@ class Study:
     def rival_scene(self, grid: np.ndarray, renderer: str):
         """Scene of ``renderer`` on a transformed dense grid."""
         mi = self.mi
-        from .harness import bench_scene
         if renderer == "dense16":
             med = {"type": "amr", "data": _dense_blocks(grid, f"{self.plan.data.source} (dense)"),
                    "grid_resolution": 16, **self.medium_common()}
@@ -236,11 +236,9 @@ class Study:
 def densest_point(data) -> np.ndarray:
     """Centre of the cell holding the largest value, in the unit cube the
     data bounds fill (a halo's core on cosmological data)."""
-    from ..data.cells import AMRCells
     lo, hi = (np.asarray(b, dtype=np.float64) for b in data.bounds)
-    chunks = data.cell_chunks() if not isinstance(data, AMRCells) else [(data.pos, data.level, data.values)]
     best, where = -np.inf, None
-    for pos, level, value in chunks:
+    for pos, level, value in data.cell_chunks():
         i = int(np.argmax(value))
         if value[i] > best:
             best, where = float(value[i]), pos[i] + 0.5 * float(1 << int(level[i]))
@@ -250,7 +248,6 @@ def densest_point(data) -> np.ndarray:
 def render_mean(mi, scene, spp: int, seed: int, frozen: bool = True) -> np.ndarray:
     """Mean image of ``spp`` samples per pixel, `CHUNK_SPP` per call (frozen:
     replayed, no per-call trace)."""
-    from .harness import frame_function
     frames = {}
     acc, done, k = None, 0, 0
     while done < spp:
@@ -290,7 +287,6 @@ def curve(mi, scene, truth, truth_noise, args, floor=None, frozen=None):
     """``[[spp, seconds, RMSE (truth noise off), raw RMSE], ...]`` at 1, 2, 4, ...
     spp up to ``args.max_spp``; a rival's curve stops two points after it is
     within 10% of its ``floor`` (flat from there)."""
-    from .harness import FROZEN_WARMUP, frame_function, wait_idle
     out, within = [], 0
     frames = {}
     spp = 1
@@ -362,10 +358,6 @@ def _free(scene):
 
 def study_one(mi, spec: str, args) -> dict:
     """The whole study of one data set (see the module docstring)."""
-    from ..autoscene import plan_scene
-    from ..data.transform import positive_floor
-    from ..progress import progress
-    from .harness import check_alone
     path, field, name = data_path(spec, Path(args.data_dir))
     t0 = time.perf_counter()
     plan = plan_scene(str(path), args.field or field)
@@ -373,7 +365,6 @@ def study_one(mi, spec: str, args) -> dict:
     data = plan.data
     camera = None
     if getattr(args, "zoom", None):
-        from .harness import zoom_camera
         camera = zoom_camera(densest_point(data), args.zoom)
     study = Study(mi, plan, args, camera)
     values = data.values
@@ -512,7 +503,6 @@ def summarise(rec: dict) -> dict:
 # ---- run and report --------------------------------------------------------
 def run_resample(specs, out: Path, args) -> list:
     """The study of every data spec; writes resample.json/.md/.png into ``out``."""
-    import mitsuba as mi
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     records = []
@@ -618,11 +608,8 @@ def plot_resample(records, out: Path):
 
 def main_args(args):
     """Entry from `mi_amr.bench.__main__` (``--resample``)."""
-    from .._llvm import ensure_llvm_path
     ensure_llvm_path()
-    import mitsuba as mi
     mi.set_variant(args.variant)
-    from types import SimpleNamespace
     study = SimpleNamespace(
         res=args.res, truth_spp=args.truth_spp, floor_spp=args.floor_spp or
         args.truth_spp // 2, max_spp=args.max_spp, resolutions=args.resolutions, methods=args.resample_methods,

@@ -21,12 +21,25 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+import mi_amr
+from .._llvm import ensure_llvm_path
+from ..data.cells import AMRCells
+from ..data.datasets import ensure_dataset, make_dataset, write_block_dataset
+from ..data.io import load_volume, write_exabricks
+from ..native_file import save_native
+from .harness import bench_scene
 
 #: Octree-like data are generated cell by cell in memory: not above this size by default.
 OCTREE_MAX = 10**7
@@ -41,7 +54,6 @@ def data_file(kind: str, n: int, data_dir: Path, source: str = "cells", layout: 
     """The ``.cells`` file of ``kind`` with about ``n`` cells laid out as
     ``layout`` (`mi_amr.data.datasets.LAYOUTS`; written on first use,
     streaming for the block kinds), or its ``.amrb`` conversion."""
-    from ..data.datasets import ensure_dataset, write_block_dataset
     data_dir = Path(data_dir)
     suffix = "" if layout == "blocks" else f"-{layout}"
     path = data_dir / f"{kind}-{n:.0e}{suffix}.cells".replace("+", "")
@@ -52,11 +64,6 @@ def data_file(kind: str, n: int, data_dir: Path, source: str = "cells", layout: 
                 nxb = 32
             write_block_dataset(path, n, levels, nxb=nxb, layout=layout)
         elif layout == "shuffled":                 # octree-like cells in random order
-            import numpy as np
-
-            from ..data.cells import AMRCells
-            from ..data.datasets import make_dataset
-            from ..data.io import write_exabricks
             cells = make_dataset(kind, n, levels=4)
             perm = np.random.default_rng(2).permutation(len(cells))
             write_exabricks(AMRCells(cells.pos[perm], cells.level[perm], cells.values[perm], validate=False), path)
@@ -71,8 +78,6 @@ def data_file(kind: str, n: int, data_dir: Path, source: str = "cells", layout: 
         raise ValueError(f"unknown source {source!r} (choose from cells, amrb)")
     native = path.with_suffix(".amrb")
     if not native.exists():
-        from ..data.io import load_volume
-        from ..native_file import save_native
         save_native(load_volume(path), native)
     return native
 
@@ -80,25 +85,14 @@ def data_file(kind: str, n: int, data_dir: Path, source: str = "cells", layout: 
 def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dict:
     """Runs in its own process: load ``path`` into one medium of
     ``config`` (``integrator/traversal/sampling``), build, render."""
-    import os
-    import resource
-
-    from .._llvm import ensure_llvm_path
     ensure_llvm_path()
-    import mitsuba as mi
     mi.set_variant(variant)
-    import numpy as np
-
-    import mi_amr
-    from .harness import bench_scene
     def rss():
         with open("/proc/self/statm") as f:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
     def peak():
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-    import threading
 
     class RSSMonitor(threading.Thread):
         """Highest RSS seen, polled every 5 ms (the process's high-water

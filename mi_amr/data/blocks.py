@@ -253,6 +253,19 @@ class BlockVolume(mi.Object):
             raise ValueError(f"{self.source}: no field {name!r} (further fields: {have})")
         return self.fields[name]
 
+    def weighted_values(self, field: str | None = None, max_cells: int = 1 << 22):
+        """Yield ``(values float64, volume weights)`` of the present cells, a
+        few blocks at a time (weights in finest-cell volumes, 8^level);
+        ``field``: a further field (None: the values)."""
+        values = self.field(field)
+        b3 = self.block ** 3
+        step = max(1, max_cells // b3)
+        for s in range(0, len(self.level), step):
+            v = values[s * b3:(s + step) * b3].reshape(-1, b3)
+            w = np.broadcast_to(np.exp2(3.0 * self.level[s:s + step].astype(np.float64))[:, None], v.shape)
+            ok = ~np.isnan(v)
+            yield v[ok].astype(np.float64), w[ok]
+
     def field_range(self, name: str | None) -> tuple[float, float]:
         """``(min, max)`` of field ``name`` over the cells."""
         if name is None:

@@ -115,6 +115,13 @@ class AMRCells(mi.Object):
         for s in range(0, len(self), max_cells):
             yield self.pos[s:s + max_cells], self.level[s:s + max_cells], self.values[s:s + max_cells]
 
+    def weighted_values(self, field: str | None = None):
+        """Yield ``(values float64, volume weights)`` of the cells (weights
+        in finest-cell volumes, 8^level); ``field``: a further field (None:
+        the values). The same reading interface as `BlockVolume.weighted_values`."""
+        values = self.values if field is None else self.fields[field]
+        yield values.astype(np.float64), np.exp2(3.0 * self.level)
+
     @property
     def origin(self) -> np.ndarray:
         """Lower data corner aligned to the coarsest level present (the key

@@ -44,8 +44,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..parallel import ordered_map
 from .block_keys import block_offsets
 from .cells import AMRCells
+from .io import save_cells
 
 NAMES = ("cloud", "shell", "stadium", "blocks", "cosmo")
 #: Block-structured data sets: name -> (field, default cells per block side or None).
@@ -254,7 +256,6 @@ def uniform_dataset(name: str, cells: int = 128 ** 3, seed: int = 0, chunk: int 
 def ensure_dataset(path, name: str, cells: int = 20000, levels: int = 4, seed: int = 0) -> Path:
     """Write data set ``name`` to ``path`` (``.cells`` or ``.npz``) unless it
     already exists; returns the path. Used to generate larger data on first use."""
-    from .io import save_cells
     path = Path(path)
     if not path.exists() and name in BLOCK_DATASETS and path.suffix == ".cells":
         return write_block_dataset(path, cells, levels, seed, name=name)
@@ -352,7 +353,6 @@ def block_cells(lo, level, nxb, n_fine: int, seed: int, chunk: int = 1 << 21, th
     at a time; the values sample ``field`` (``cloud``, ``cosmo``) at cell centres.
     ``threads``: chunks computed in that many threads (None: every core).
     ``order``: cells inside a block x fastest ("F") or z fastest ("C")."""
-    from ..parallel import ordered_map
     f, _ = _field(field, seed)
     size = np.broadcast_to(np.asarray(nxb, dtype=np.int64), level.shape)
     if not len(level):

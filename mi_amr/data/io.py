@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..memory import CHUNK, load_bytes, require, structure_bytes
 from . import metadata
+from .amrb import read_amrb, save_amrb
 from .blocks import BlockVolume, DeferredChunk, sample_runs
 from .cells import AMRCells
-from ..memory import CHUNK, load_bytes, require, structure_bytes
-
 #: The AMR file types read and written by extension.
 FILE_TYPES = ".cells, .npz or .amrb"
 
@@ -279,7 +279,6 @@ def load_cells(path, scalars=None, *, overlap: str = "error") -> AMRCells:
     if path.suffix == ".cells":
         return read_exabricks(path, scalars, overlap=overlap)
     if path.suffix == ".amrb":
-        from .amrb import read_amrb
         return read_amrb(path).to_cells()
     raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected {FILE_TYPES})")
 
@@ -293,7 +292,6 @@ def load_volume(path, scalars=None, *, overlap: str = "error", method: str = "te
     if path.suffix == ".npz":
         return read_npz_blocks(path, overlap=overlap, method=method)
     if path.suffix == ".amrb":                # the resident form itself (`mi_amr.data.amrb`)
-        from .amrb import read_amrb
         return read_amrb(path)
     raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected {FILE_TYPES})")
 
@@ -304,7 +302,6 @@ def save_cells(cells: AMRCells | BlockVolume, path) -> Path:
     by extension."""
     path = Path(path)
     if path.suffix == ".amrb":
-        from .amrb import save_amrb
         return save_amrb(cells, path)
     if isinstance(cells, BlockVolume):
         cells = cells.to_cells()

@@ -26,8 +26,11 @@ import contextlib
 import re
 import warnings
 
+import mitsuba as mi
 import numpy as np
 
+from ..parallel import ordered_map
+from .blocks import BlockVolume
 from .cells import AMRCells
 
 #: Cells per piece handed to the block builder (an octree's io chunk, e.g. a
@@ -80,7 +83,6 @@ def from_yt_blocks(ds, field, *, overlap: str = "error", method: str = "tent", f
     three times). ``fields``: further fields to read onto the same cells
     (names or ``(type, name)`` tuples; stored under their last name, e.g.
     ``temperature``, `BlockVolume.add_field`)."""
-    from .blocks import BlockVolume
     with _reading(ds):
         layout = _layout(ds)
         src = _source(ds, layout)
@@ -226,7 +228,6 @@ class _OctreeLeaves:
         max_level, dle, _, _, dxf = self.layout
         centres = chunk.fcoords.to("code_length").d
         widths = chunk.fwidth.to("code_length").d
-        from ..parallel import ordered_map             # pieces converted on every core
         yield from ordered_map(lambda s: octree_cells(centres[s:s + PIECE], widths[s:s + PIECE], dle, dxf,
                                                       max_level, self.ds), range(0, len(centres), PIECE))
 
@@ -393,7 +394,6 @@ def world_transform(ds):
     """``to_world`` that maps the unit cube onto the dataset's domain (code
     units), for an ``amr`` medium built from `from_yt` data that covers the
     whole domain."""
-    import mitsuba as mi
     dle = [float(x) for x in ds.domain_left_edge.to("code_length").d]
     ext = [float(b - a) for a, b in zip(ds.domain_left_edge.to("code_length").d,
                                         ds.domain_right_edge.to("code_length").d)]

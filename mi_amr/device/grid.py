@@ -12,6 +12,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..structures.cost_model import refine_gain
 from .structs import jit_struct
 
 
@@ -196,7 +197,6 @@ class DeviceTwoLevelGrid:
         ones as their block maxima and minima, and which coarse macrocells
         to refine (`mi_amr.structures.cost_model.refine_gain` > 0); no host
         round trip."""
-        from ..structures.cost_model import refine_gain
         self.fine.update_majorants(tf, density_scale, minorants)
         self.coarse_min = dr.block_reduce(dr.ReduceOp.Min, dr.select(self.fine_inside, self.fine.minorant,
                                                                      float("inf")), self.refinement ** 3)

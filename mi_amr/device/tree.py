@@ -6,6 +6,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .grid import MINORANT_SHRINK
 from .structs import jit_struct
 
 
@@ -54,7 +55,6 @@ class DeviceTree:
     def update_majorants(self, tf, density_scale, minorants: bool = True):
         """Leaf majorants and minorants from the value ranges (minorants 0
         unless ``minorants``; see `DeviceMacrocellGrid.update_majorants`)."""
-        from .grid import MINORANT_SHRINK
         self.majorant = density_scale * tf.range_max_alpha(self.vmin, self.vmax)
         self.minorant = ((density_scale * MINORANT_SHRINK) * tf.range_min_alpha(self.vmin, self.vmax)
                          if minorants else dr.zeros(mi.Float, self.n_leaves))

@@ -13,17 +13,18 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
-from ..data.cells import AMRCells
 from ..data.blocks import BlockVolume
+from ..data.cells import AMRCells
 from ..data.io import load_volume
+from ..data.metadata import physical_box
 from ..data.reconstruction import METHODS
-from ..data.transform import VALUE_TRANSFORMS, apply_value_transform
+from ..data.transform import VALUE_TRANSFORMS, apply_value_transform, positive_floor
 from ..data.volume import as_volume
 from ..memory import default_memory_limit
 from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
-from ..pipeline import SAMPLINGS, TRAVERSALS, StructureOptions
+from ..pipeline import SAMPLINGS, StructureOptions, TRAVERSALS
 from ..structures.cache import HOST_CACHE
-from ..transfer.classification import MAX_DENSITY_SCALE
+from ..transfer.classification import MAX_DENSITY_SCALE, check_emission_scale
 from ..transfer.function import TransferFunction
 
 MAJORANTS = ("ray", "global")
@@ -192,8 +193,6 @@ def _emission(props, data) -> Emission | None:
         if given:
             raise ParameterError(f"amr: {', '.join(sorted(given))} given without 'emission' (the emission TF)")
         return None
-    from ..data.transform import positive_floor
-    from ..transfer.classification import check_emission_scale
     field = get_string(props, "amr", "emission_field", None)
     transform = get_string(props, "amr", "emission_transform", "none", VALUE_TRANSFORMS)
     values = _field_values(data, field)
@@ -237,7 +236,6 @@ def _to_world(props, data=None) -> "mi.ScalarTransform4f":
     data that carry a physical domain (`mi_amr.data.metadata`) are placed
     on it, anisotropic cells included; other data fill the unit cube."""
     if "to_world" not in props.keys():
-        from ..data.metadata import physical_box
         box = physical_box(data) if data is not None else None
         if box is None:
             return mi.ScalarTransform4f()

@@ -18,6 +18,7 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
+from ..device.values import device_values
 from ..memory import BYTES_PER_TREE_ITEM, BYTES_PER_TREE_NODE, BYTES_PER_TREE_PAIR, require
 from ..progress import progress
 from ..reconstruction import DEFAULT_METHOD, Reconstruction
@@ -347,7 +348,6 @@ def exact_value_ranges(tree: RegionTree, bricks, method: Reconstruction = DEFAUL
     the current variant, on every core: a brick whose cells all reach the
     leaf gives its own range, of the others only the sub-box of cells that
     reach the leaf is read."""
-    from ..device.values import device_values
     below, above = _support_half_cells(method)
     n = tree.n_leaves
     if own_lists:

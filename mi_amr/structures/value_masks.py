@@ -35,6 +35,7 @@ from ..parallel import ordered_map
 from ..progress import progress
 from ..reconstruction import Reconstruction
 from .block_windows import block_windows
+from .cache import HOST_CACHE
 
 N_BINS = 64
 ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
@@ -51,7 +52,6 @@ class ValueBins:
     @classmethod
     def of(cls, volume: BlockVolume) -> "ValueBins":
         """The bins of a data set (made once per data object: `HOST_CACHE`)."""
-        from .cache import HOST_CACHE
         return HOST_CACHE.get(volume, "value_bins", lambda: cls(*volume.value_range))
 
     def index(self, v) -> np.ndarray:

@@ -15,6 +15,12 @@ import platform
 import time
 from pathlib import Path
 
+import numpy as np
+
+from .. import distributed
+from ..images import write_png
+from ..render import set_variant as _set_variant
+
 #: name -> (scene, -D parameters, caption)
 GALLERY = {
     "cloud": ("scenes/cloud.xml", {"tf": "foggy"},
@@ -41,11 +47,7 @@ def main(argv=None):
     p.add_argument("--out", default="docs/images")
     p.add_argument("-q", "--quiet", action="store_true")
     args = p.parse_args(argv)
-    from ..render import set_variant as _set_variant
     _set_variant(args.variant)
-    import numpy as np
-    from .. import distributed
-    from ..images import write_png
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     record_path = out / "gallery.json"

@@ -14,6 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..autoscene import _yt_field, _yt_load, open_data, value_stats
+from ..data.io import load_volume
+from ..data.metadata import cell_size
+from ..memory import format_bytes
+from ..structures.footprint import medium_bytes
+
 DATA_SUFFIXES = (".cells", ".npz", ".amrb")
 
 
@@ -22,10 +28,6 @@ def describe(data, field: str | None = None, scalars: str | None = None) -> dict
     JSON types. ``field``: the yt field, or for a ``.cells`` file the
     ``NAME-FIELD.scalars`` beside it; ``scalars``: a ``.cells`` file's
     scalars file, named."""
-    from ..autoscene import _yt_load, open_data
-    from ..data.io import load_volume
-    from ..data.metadata import cell_size
-    from ..structures.footprint import medium_bytes
     path = Path(str(data))
     ds = None
     if scalars is not None:
@@ -83,7 +85,6 @@ def _main_name(field, meta) -> str:
 
 def _units(ds, field) -> str:
     """The units yt gives ``field`` ('' when it cannot say)."""
-    from ..autoscene import _yt_field
     try:
         return str(ds._get_field_info(_yt_field(field)).units)
     except Exception:           # yt's field lookup varies by frontend: units are informative only
@@ -105,7 +106,6 @@ def _level_counts(volume) -> dict:
 def _field_stats(volume, name) -> dict:
     """Range and shares of zeros and negatives of one field (None: the
     main values): per cell and weighted by cell volume."""
-    from ..autoscene import value_stats
     s = value_stats(volume, name)
     return {"min": s.min, "max": s.max,
             "positive_min": s.positive_min if s.has_positive else None,
@@ -132,7 +132,6 @@ def _domain(meta, ds) -> dict | None:
 
 
 def _mib(n) -> str:
-    from ..memory import format_bytes
     return format_bytes(float(n))
 
 

@@ -14,18 +14,21 @@ written as ``.vol`` files.
 
 from __future__ import annotations
 
-import mitsuba as mi
-import numpy as np
-
 import copy
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import mitsuba as mi
+import numpy as np
+
 from ..data.cells import AMRCells
+from ..data.volume import as_method, as_volume
+from ..device.hash_sampler import DeviceReconstruction
+from ..plugins.medium import AMRMedium
+from ..plugins.options import as_transform4f
+from ..reconstruction import Reconstruction
 from ..scene_xml import PASS_THROUGH, amr_elements, load_root, parse_scene
 from ..structures.host_reconstruction import HostReconstruction
-from ..data.volume import as_method, as_volume
-from ..reconstruction import Reconstruction
 from ..transfer.function import TransferFunction
 
 #: Default memory limit of the dense reference (sigma_t + albedo), bytes.
@@ -68,7 +71,6 @@ def resample_dense(cells: AMRCells, method: str | Reconstruction = "tent", resol
         device = mi.variant() is not None and not mi.variant().startswith("scalar")
     volume = as_volume(cells, method)
     if device:
-        from ..device.hash_sampler import DeviceReconstruction
         dev = DeviceReconstruction(volume, method)
         bits = mi.UInt32(dev.hash.level_bits)
 
@@ -102,7 +104,6 @@ def reference_medium(cells: AMRCells, tf: TransferFunction, density_scale: float
     method = as_method(method)
     sigma_t, albedo = baked_grids(cells, tf, method, resolution, memory_limit)
     filter_type = method.grid_filter
-    from ..plugins.options import as_transform4f
     to_world = as_transform4f(to_world)
 
     def grid(channels):
@@ -136,8 +137,6 @@ def reference_scene(scene_path, work_dir, resolution=None, memory_limit=None, **
     ``heterogeneous`` + ``gridvolume`` equivalent. Grids are written as
     ``.vol`` files into ``work_dir``. Returns ``(scene, media)`` where
     ``media`` lists the AMR media that were replaced."""
-    from ..plugins.medium import AMRMedium
-
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     tree = parse_scene(scene_path, params)
