@@ -84,3 +84,11 @@ def check_known(props, plugin: str, known, allow=lambda key, value: False):
         if k in known or allow(k, props[k]):
             continue
         raise ParameterError(f"{plugin}: unknown parameter {k!r} (known: {', '.join(sorted(known))})")
+
+
+def plugin_error(message: str) -> str:
+    """Mitsuba's "failed to instantiate" message without the plugin's
+    traceback: where it happened and the exception it raised (one line)."""
+    where, _, trace = message.partition("Traceback (most recent call last):")
+    lines = [ln for ln in trace.splitlines() if ln.strip()]
+    return f"{where.strip()} {lines[-1].strip()}" if lines else where.strip()

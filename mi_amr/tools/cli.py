@@ -8,6 +8,7 @@ import json
 import sys
 
 from .._llvm import ensure_llvm_path
+from ..params import plugin_error
 
 
 # Each subcommand is a call: ``render`` is `mi_amr.render`, ``info``
@@ -276,14 +277,6 @@ def main(argv=None):
         print(f"mi-amr {args.command}: interrupted", file=sys.stderr)
         return 130
     return code if isinstance(code, int) else 0
-
-
-def plugin_error(message: str) -> str:
-    """Mitsuba's "failed to instantiate" message without the plugin's
-    traceback: where it happened and the exception it raised."""
-    where, _, trace = message.partition("Traceback (most recent call last):")
-    lines = [ln for ln in trace.splitlines() if ln.strip()]
-    return f"{where.strip()} {lines[-1].strip()}" if lines else where.strip()
 
 
 if __name__ == "__main__":

@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..tools.cli import plugin_error
+from ..params import plugin_error
 from .camera import FLOOR_MARGIN, MAX_ELEVATION, OrbitCamera
 from .protocol import (CameraChange, DenoiseChange, Error, Frame, Hello, HistogramReply, Status, TFChange, ViewChange,
                        parse_message)
