@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import mitsuba as mi
 import numpy as np
 
 from .protocol import CameraChange, parse_message
@@ -136,5 +137,4 @@ class OrbitCamera:
 
     def transform(self):
         """The sensor's ``to_world`` (a ``mi.ScalarTransform4f``)."""
-        import mitsuba as mi
         return mi.ScalarTransform4f().look_at(self.origin.tolist(), list(self.target), list(self.up))

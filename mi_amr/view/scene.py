@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..transfer.classification import check_density_scale
+from ..data.yt_import import load_dataset
 from ..transfer.function import TransferFunction
 from .camera import OrbitCamera, floor_height, world_up
 from .protocol import MAX_POINTS
@@ -209,7 +210,6 @@ def data_fields(source, field) -> tuple[tuple, str, str]:
         return (), f"{Path(str(source)).suffix} data hold a single field", ""
     if not isinstance(source, (str, Path)):
         return (), "data given as an object: the field is fixed", ""
-    from ..data.yt_import import load_dataset
     ds = load_dataset(source)
     keys = [(t, n) for t, n in ds.field_list if t not in ("all", "io", "nbody") and "particle" not in n]
     names = tuple(f"{t},{n}" for t, n in keys)

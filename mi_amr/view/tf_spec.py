@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..autoscene import cells_and_weights
 from ..transfer.function import TransferFunction
 from .protocol import TFChange, parse_message
 
@@ -241,7 +242,6 @@ class Histogram:
     the display bins' edges (mapped to stored units)."""
 
     def __init__(self, volume):
-        from ..autoscene import cells_and_weights
         lo, hi = volume.value_range
         if not hi > lo:
             lo, hi = lo - 0.5, hi + 0.5
