@@ -106,3 +106,15 @@ def test03_other_samplers(llvm, monkeypatch, sampler):
     means = np.array([np.array(mi.render(scene, spp=64, seed=s), dtype=np.float64).mean() for s in range(8)])
     se = means.std(ddof=1)          # one frame's standard error (of its mean over pixels)
     assert abs(img.mean() - means.mean()) < 4.5 * se * np.sqrt(1 + 1 / 8), (img.mean(), means, se)
+
+
+@pytest.mark.parametrize("mode", ["emission_absorption", "single"])
+def test04_lighting_modes(llvm, monkeypatch, mode):
+    """The cheap lighting modes of amrvolpath (docs/design.md section 6d)
+    record their loops once too."""
+    scene_d = volume_scene(medium_dict("grid", "hash", "tent"), res=8, integrator="amrvolpath")
+    scene_d["integrator"]["mode"] = mode
+    counter = BodyCounter(monkeypatch)
+    assert np.isfinite(np.array(mi.render(mi.load_dict(scene_d), spp=1))).all()
+    counter.check(f"amrvolpath mode={mode}")
+    assert {"amrvolpath", "amr_track"} <= set(counter.calls)

@@ -13,6 +13,12 @@ through ``Medium.sample_interaction`` exactly as in volpath.
 ``amr`` media that glow (an ``emission`` TF) add their emission ``sigma_a
 L_e`` along every path segment through them, estimated at the segment's
 real collision; stock volpath has no medium emission.
+
+``mode`` chooses what a real collision in a medium does (the sci-vis
+lighting modes of Zellmann et al.'s ExaBricks-style renderer):
+``emission_absorption`` scores the albedo times the ambient light and stops,
+``single`` scores one next-event estimate and stops, ``multi`` (the default)
+is volpath's estimator. The mode is a Python constant of the kernel.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import mitsuba as mi
 
 from ..device.rng import Rng
 from ..device.tracking import TrackingCounts
-from ..params import ParameterError, check_known, get_bool, get_int
+from ..params import ParameterError, check_known, get_bool, get_int, get_string
 from .medium import AMRMedium, require_jit_rgb_variant, scene_media
 from .variant_class import VariantPlugin
 
@@ -36,7 +42,10 @@ COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped",
 #: The parameters ``amrvolpath`` accepts (docs/manual/integrator.md's table and the
 #: docstring's are tested against this set: tests/test_docs.py).
 KNOWN = {"max_depth", "rr_depth", "hide_emitters", "counters",
-         "residual_ratio_tracking", "decomposition_tracking"}
+         "residual_ratio_tracking", "decomposition_tracking", "mode"}
+#: The lighting modes (``mode``; docs/design.md section 6d), the default last:
+#: what a real collision in a medium does.
+MODES = ("emission_absorption", "single", "multi")
 
 
 def _mitsuba_helpers():
@@ -85,6 +94,25 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
          (real with probability one) and track only the residual. Default:
          per medium, as ``residual_ratio_tracking``. With zero minorants it
          is plain delta tracking.
+     * - mode
+       - |string|
+       - What a real collision in a medium does (the lighting modes of
+         sci-vis volume renderers). ``emission_absorption``: the path stops
+         there and scores the collision's albedo times the ambient light,
+         the radiance the scene's environment emitter (``constant`` or
+         ``envmap``) gives to a ray leaving in the path's direction, i.e.
+         what the ray would have seen had it escaped (1.0, white, in a
+         scene without an environment emitter); other lights are not used.
+         ``single``: one shadow ray towards one emitter chosen at random
+         (Mitsuba's emitter sampling, ratio-tracked transmittance), the
+         phase function's value times its light with no MIS weight, then
+         the path stops (single scattering). ``multi``: multiple scattering,
+         volpath's estimator (NEE with MIS, phase sampling, Russian
+         roulette). In every mode free flights use the same segments and
+         majorants (delta tracking), a glowing medium adds its emission at
+         the collision, a ray that leaves the media sees the emitters and
+         the background as usual, and surfaces are lit as in ``multi``.
+         Default: ``multi``.
     """
 
     def __init__(self, props: mi.Properties):
@@ -101,6 +129,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         # None: decided per medium (`AMRMedium.minorants_pay`)
         self.residual = get_bool(props, "amrvolpath", "residual_ratio_tracking", None)
         self.decomposition = get_bool(props, "amrvolpath", "decomposition_tracking", None)
+        # a Python constant: it shapes the kernel (docs/design.md section 6d)
+        self.mode = get_string(props, "amrvolpath", "mode", "multi", choices=MODES)
         self._counter_array = dr.zeros(mi.UInt64, len(COUNTER_NAMES))
 
     # ---- Counters ------------------------------------------------------------
@@ -242,6 +272,13 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             active &= depth < self.max_depth
             act_scatter &= active
 
+            # ---- Lighting mode (docs/design.md section 6d) ----
+            if dr.hint(self.mode == "emission_absorption", mode="scalar"):
+                # the collision's albedo (already in the throughput) times the
+                # ambient light, then the path stops there
+                L[act_scatter] += throughput * self._ambient(scene, ray, act_scatter)
+                act_scatter &= False
+
             # ---- Medium scattering: the phase function (NEE below) ----
             phase_ctx = mi.PhaseFunctionContext(sampler)
             phase = mei.medium.phase_function()
@@ -277,9 +314,18 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                                                       nee_m | nee_s, amr_media, amr_ptrs, has_other)
                 shadow_counts = shadow_counts + c
                 phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
-                L[nee_m] += throughput * phase_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf)) * emitted
+                if dr.hint(self.mode == "single", mode="scalar"):
+                    # no phase sampling follows: the light sample is the
+                    # estimator's only way to the emitters (no MIS weight)
+                    L[nee_m] += throughput * phase_val * emitted
+                else:
+                    L[nee_m] += throughput * phase_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf)) \
+                        * emitted
                 bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), nee_s)
                 L[nee_s] += throughput * bsdf_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
+
+            if dr.hint(self.mode == "single", mode="scalar"):
+                act_scatter &= False                     # single scattering: the path stops
 
             # ---- Next direction: phase sampling in media, BSDF sampling at surfaces ----
             wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, rng.next_1d(act_scatter),
@@ -311,6 +357,21 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
 
         self._count(counts, shadow_counts)
         return L, valid_ray, []
+
+    @staticmethod
+    def _ambient(scene, ray, active):
+        """The ambient light of ``emission_absorption``: the radiance of the
+        scene's environment emitter for a ray leaving along ``ray.d`` (what
+        the ray sees if it escapes), or 1.0 (white) without one."""
+        env = scene.environment()
+        if env is None:
+            return mi.Spectrum(1.0)
+        miss = dr.zeros(mi.SurfaceInteraction3f)
+        miss.t = dr.inf
+        miss.wi = -ray.d
+        miss.time = ray.time
+        miss.wavelengths = ray.wavelengths
+        return env.eval(miss, active)
 
     @staticmethod
     def _medium_interaction(ray, flight, ptr):

@@ -1,0 +1,246 @@
+"""The lighting modes of ``amrvolpath`` (``mode``: docs/design.md section
+6d) against analytic answers and brute-force random walks, for every
+traversal.
+
+The scenes are those of tests/test_emission.py: a distant camera looks down
+the z axis of the unit cube through a narrow field of view, so every
+pixel's ray crosses the medium over the same length 1 (within 2.2e-4), here
+under a constant environment. A Monte Carlo mean is compared per channel
+with its expectation within five standard errors estimated from the pixels
+(all pixels share one expectation). Kernels are few: one per mode and
+traversal, plus one with an HG phase function and one that glows.
+"""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_amr import AMRCells, TransferFunction
+from mi_amr.params import ParameterError, plugin_error
+from mi_amr.plugins.integrator import MODES, integrator_class
+
+from test_emission import flat_tf, mean_and_error, ortho_scene, two_level_cells
+
+#: The constant environment, and the albedo of the slab's one colour.
+ENV = np.array([0.6, 0.7, 0.9])
+ALBEDO = np.array([0.8, 0.5, 0.2])
+#: (traversal, sampling): every traversal, with a sampling it goes with.
+TRAVERSALS = [("grid", "hash"), ("abr", "abr"), ("brick", "brick"), ("kdtree", "hash")]
+
+
+def lit_scene(medium, mode, res=16, env=ENV, **integrator):
+    """`ortho_scene` under a constant environment of radiance ``env``."""
+    scene = ortho_scene(medium, res=res, mode=mode, **integrator)
+    scene["env"] = {"type": "constant", "radiance": {"type": "rgb", "value": list(map(float, env))}}
+    return scene
+
+
+def uniform_two_level(value=0.5):
+    """The two-level cells of tests/test_emission.py, all of one value: a
+    homogeneous slab that the traversals still cut at the level change."""
+    cells = two_level_cells()
+    return AMRCells(cells.pos, cells.level, np.full(len(cells), value))
+
+
+def slab(traversal, sampling, sigma, albedo=ALBEDO, **extra):
+    return dict({"type": "amr", "data": uniform_two_level(), "transfer_function": flat_tf(albedo, 1.0),
+                 "density_scale": sigma, "reconstruction": "nearest", "traversal": traversal,
+                 "sampling": sampling}, **extra)
+
+
+def check(mean, err, expected, tol_extra=0.0):
+    tol = 5 * np.sqrt(err ** 2 + tol_extra ** 2) + 1e-4
+    assert np.all(np.abs(mean - expected) < tol), (mean, expected, tol)
+
+
+def single_scattering_walk(sigma, albedo, env, g=0.0, n=400_000, seed=1):
+    """Brute force, independent of the renderer: analog particles entering
+    the unit cube at z = 0 (x, y uniform in [0.2, 0.8]) along +z through a
+    homogeneous medium of extinction ``sigma`` under a constant environment
+    ``env``. A particle that leaves without colliding scores ``env``; at its
+    first collision it takes a uniform direction w, weighted by albedo and
+    ``4 pi p(w)`` (Henyey-Greenstein with ``g`` about +z), and flies again:
+    if it leaves the cube without a second collision it scores that weight
+    times ``env``, else 0 (single scattering). Returns per-channel (mean,
+    standard error)."""
+    rng = np.random.default_rng(seed)
+    p = np.column_stack([rng.uniform(0.2, 0.8, n), rng.uniform(0.2, 0.8, n), rng.exponential(1.0 / sigma, n)])
+    collided = p[:, 2] <= 1.0
+    score = np.where(collided, 0.0, 1.0)
+    i = np.nonzero(collided)[0]
+    z = rng.uniform(-1, 1, len(i))
+    phi = rng.uniform(0, 2 * np.pi, len(i))
+    r = np.sqrt(1 - z * z)
+    w = np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+    hg = (1 - g * g) / (1 + g * g - 2 * g * z) ** 1.5          # 4 pi p(w), cos theta = w . (+z)
+    q = p[i] + w * rng.exponential(1.0 / sigma, len(i))[:, None]
+    escaped = ~np.all((q >= 0) & (q <= 1), axis=1)
+    light = np.zeros(n)
+    light[i] = np.where(escaped, hg, 0.0)
+    samples = score[:, None] * env + light[:, None] * (np.asarray(albedo) * env)
+    return samples.mean(axis=0), samples.std(axis=0, ddof=1) / np.sqrt(n)
+
+
+@pytest.mark.parametrize("traversal,sampling", TRAVERSALS)
+def test01_emission_absorption_slab(llvm, traversal, sampling):
+    """emission_absorption on a homogeneous slab of optical depth tau under
+    a constant environment L: the first real collision scores albedo * L,
+    a ray that escapes sees L: albedo L (1 - e^-tau) + L e^-tau."""
+    sigma = 1.3
+    scene = mi.load_dict(lit_scene(slab(traversal, sampling, sigma), "emission_absorption"))
+    mean, err = mean_and_error(mi.render(scene, spp=32, seed=3))
+    expected = ALBEDO * ENV * (1 - np.exp(-sigma)) + ENV * np.exp(-sigma)
+    check(mean, err, expected)
+    assert err.max() < 0.005                 # tight enough to tell a wrong albedo or ambient
+
+
+@pytest.mark.parametrize("traversal,sampling", TRAVERSALS)
+def test02_emission_absorption_two_level_field_that_glows(llvm, traversal, sampling):
+    """emission_absorption on the two-level field (values 0.25 then 0.75
+    along the ray, alpha = value, colour and albedo linear in the value),
+    glowing from a second field (temperature 2 then 6): along z the ray
+    crosses tau_a = s 0.25 / 2 then tau_b = s 0.75 / 2, so
+    L = [a_a L + (1 - a_a) E_a](1 - e^-tau_a)
+        + e^-tau_a [a_b L + (1 - a_b) E_b](1 - e^-tau_b) + e^-(tau_a + tau_b) L."""
+    s = 3.0
+    c0, c1 = np.array([0.9, 0.5, 0.1]), np.array([0.3, 0.6, 0.9])
+    extinction = TransferFunction([[*c0, 0.0], [*c1, 1.0]], (0.0, 1.0))
+    emission = TransferFunction([[1, 0, 0, 1], [0, 0, 1, 1]], (0.0, 8.0))          # red at 0 -> blue at 8
+    medium = {"type": "amr", "data": two_level_cells(), "transfer_function": extinction, "density_scale": s,
+              "reconstruction": "nearest", "traversal": traversal, "sampling": sampling,
+              "emission": emission, "emission_field": "temperature"}
+    scene = mi.load_dict(lit_scene(medium, "emission_absorption"))
+    mean, err = mean_and_error(mi.render(scene, spp=32, seed=5))
+    albedo = lambda v: c0 + v * (c1 - c0)                                           # noqa: E731
+    le = lambda t: np.array([1 - t / 8, 0.0, t / 8])                                # noqa: E731
+    tau_a, tau_b = s * 0.25 / 2, s * 0.75 / 2
+    a, b = albedo(0.25), albedo(0.75)
+    expected = ((a * ENV + (1 - a) * le(2.0)) * (1 - np.exp(-tau_a))
+                + np.exp(-tau_a) * (b * ENV + (1 - b) * le(6.0)) * (1 - np.exp(-tau_b))
+                + np.exp(-tau_a - tau_b) * ENV)
+    check(mean, err, expected)
+
+
+def test03_emission_absorption_without_an_environment_is_lit_white(llvm):
+    """No environment emitter: the ambient light is 1.0 (white), and an
+    escaping ray sees black: albedo (1 - e^-tau)."""
+    sigma = 1.3
+    scene = mi.load_dict(ortho_scene(slab("grid", "hash", sigma), mode="emission_absorption"))
+    mean, err = mean_and_error(mi.render(scene, spp=32, seed=4))
+    check(mean, err, ALBEDO * (1 - np.exp(-sigma)))
+
+
+@pytest.mark.parametrize("traversal,sampling", TRAVERSALS)
+def test04_single_scattering_matches_a_one_bounce_walk(llvm, traversal, sampling):
+    """single on a homogeneous slab (tau 1.5, isotropic phase) under a
+    constant environment, against `single_scattering_walk`: one shadow ray
+    with ratio tracking, the phase function's value, no MIS, then stop."""
+    sigma = 1.5
+    scene = mi.load_dict(lit_scene(slab(traversal, sampling, sigma), "single"))
+    mean, err = mean_and_error(mi.render(scene, spp=64, seed=7))
+    walk, walk_err = single_scattering_walk(sigma, ALBEDO, ENV)
+    check(mean, err, walk, walk_err)
+    # one bounce is less than the emission-absorption answer (the light
+    # of half the directions crosses more medium) and more than the
+    # unscattered light alone
+    assert np.all(mean > ENV * np.exp(-sigma) + 0.05)
+
+
+def test05_single_scattering_with_hg_phase_and_glow(llvm):
+    """single with a forward HG phase function (g 0.6, its value in the
+    light's direction matters) and a glowing medium (emission adds at the
+    collision: (1 - albedo) E (1 - e^-tau) in expectation)."""
+    sigma, g, glow = 1.5, 0.6, np.array([1.0, 0.5, 0.25])
+    medium = slab("grid", "hash", sigma, phase={"type": "hg", "g": g}, emission=flat_tf(glow, 1.0))
+    scene = mi.load_dict(lit_scene(medium, "single"))
+    mean, err = mean_and_error(mi.render(scene, spp=64, seed=8))
+    walk, walk_err = single_scattering_walk(sigma, ALBEDO, ENV, g=g)
+    expected = walk + (1 - ALBEDO) * glow * (1 - np.exp(-sigma))
+    check(mean, err, expected, walk_err)
+    isotropic, _ = single_scattering_walk(sigma, ALBEDO, ENV, g=0.0)
+    assert np.abs(walk - isotropic).max() > 10 * walk_err.max()          # the phase function shows
+
+
+def test06_multi_is_the_default_estimator(llvm):
+    """mode="multi" is the estimator without a mode: the same kernel and
+    the very same image for the same seed; and it differs from single."""
+    medium = slab("grid", "hash", 1.5)
+    default = np.array(mi.render(mi.load_dict(lit_scene(medium, "multi")), spp=8, seed=2))
+    scene = lit_scene(medium, "multi")
+    del scene["integrator"]["mode"]
+    unset = np.array(mi.render(mi.load_dict(scene), spp=8, seed=2))
+    assert np.array_equal(default, unset)
+    assert mi.load_dict({"type": "amrvolpath"}).mode == "multi"
+
+
+def test07_mode_values_are_checked_and_volpath_has_none(llvm):
+    """An unknown mode is refused with one line naming the allowed values;
+    the XML string parameter is read; stock volpath takes no mode."""
+    cls = integrator_class()
+    props = mi.Properties("amrvolpath")
+    props["mode"] = "pathtracer"
+    with pytest.raises(ParameterError) as info:
+        cls(props)
+    message = str(info.value)
+    assert "\n" not in message and "'pathtracer'" in message
+    assert all(m in message for m in MODES)
+    with pytest.raises(Exception) as info:
+        mi.load_dict({"type": "amrvolpath", "mode": "Single"})
+    line = plugin_error(str(info.value))
+    assert "\n" not in line and "unknown mode 'Single'" in line and all(m in line for m in MODES)
+    for m in MODES:
+        xml = f'<integrator version="3.0.0" type="amrvolpath"><string name="mode" value="{m}"/></integrator>'
+        assert mi.load_string(xml).mode == m
+    with pytest.raises(Exception, match="mode"):
+        mi.load_dict({"type": "volpath", "mode": "single"})
+
+
+def test08_modes_follow_tf_changes_without_recompiling(llvm):
+    """The mode is fixed at construction; a TF change (through
+    ``params.update()``) compiles nothing in a frozen render, in each of
+    the cheap modes, and the new image has the new albedo."""
+    for mode in ("emission_absorption", "single"):
+        scene = mi.load_dict(lit_scene(slab("grid", "hash", 1.3), mode, res=8))
+        params = mi.traverse(scene)
+        key = next(k for k in params.keys() if k.endswith("tf_rgba"))
+
+        @dr.freeze
+        def render(scene, seed):
+            return mi.render(scene, spp=4, seed=seed)
+
+        for seed in (1, 2, 3):
+            render(scene, dr.opaque(mi.UInt32, seed))
+        recordings = render.n_recordings
+        params[key] = mi.Float(np.tile([0.1, 0.9, 0.4, 1.0], 2))
+        params.update()
+        got = np.array(render(scene, dr.opaque(mi.UInt32, 3)))
+        assert render.n_recordings == recordings, mode
+        np.testing.assert_allclose(got, np.array(mi.render(scene, spp=4, seed=3)), rtol=1e-4, atol=1e-5)
+
+
+def test09_emission_absorption_ambient_is_the_environment_along_the_ray(llvm):
+    """With an environment map, the ambient light of a collision is what
+    the ray would see if it escaped (the map along the ray's direction, not
+    behind it): the image is the empty scene's, pixel for pixel in
+    expectation, times albedo (1 - e^-tau) + e^-tau."""
+    sigma = 1.3
+    u = (np.arange(32) + 0.5) / 32
+    c = np.cos(2 * np.pi * u)                                # smooth and periodic in longitude
+    texels = np.tile(np.stack([0.7 - 0.5 * c, 0.7 + 0.5 * c, np.full_like(u, 0.7)], -1)[None],
+                     (16, 1, 1)).astype(np.float32)
+    scene_d = ortho_scene(slab("grid", "hash", sigma), mode="emission_absorption")
+    scene_d["env"] = {"type": "envmap", "bitmap": mi.Bitmap(texels)}
+    env = mi.load_dict(scene_d["env"])
+    looks = []
+    for z in (1.0, -1.0):
+        miss = dr.zeros(mi.SurfaceInteraction3f)
+        miss.wi = mi.Vector3f(0.0, 0.0, -z)
+        looks.append(np.array(env.eval(miss)).ravel())
+    assert np.abs(looks[0] - looks[1]).max() > 0.3          # ahead and behind differ
+    mean, err = mean_and_error(mi.render(mi.load_dict(scene_d), spp=32, seed=6))
+    del scene_d["cube"]
+    background, background_err = mean_and_error(mi.render(mi.load_dict(scene_d), spp=32, seed=6))
+    factor = ALBEDO * (1 - np.exp(-sigma)) + np.exp(-sigma)
+    check(mean, err, factor * background, factor * background_err)
+    check(background, background_err, looks[0], 0.01 * looks[0])     # it does look along +z
