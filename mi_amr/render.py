@@ -23,6 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
+import drjit as dr
+import mitsuba as mi
+
+from . import distributed, series
+from ._llvm import ensure_llvm_path
+from .autoscene import DEFAULT_TF, GLOW_TF, field_scalars, plan_scene, scene_for, write_scene_xml
+from .data.io import save_cells
+from .images import write_exr, write_png
+from .plugins.medium import require_jit_rgb_variant
+
 #: Samples per pixel of ``render`` when neither ``--spp`` nor the XML scene says.
 DEFAULT_SPP = 64
 DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
@@ -32,15 +42,11 @@ DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emi
 def set_variant(variant: str):
     """Select a Mitsuba variant (a one-line exit when it is missing or not a
     JIT RGB one) with the mi-amr plugins registered; returns ``mitsuba``."""
-    from ._llvm import ensure_llvm_path
     ensure_llvm_path()
-    import mitsuba as mi
     if variant not in mi.variants():
         raise SystemExit(f"mi-amr: variant {variant!r} is not available "
                          f"(available: {', '.join(mi.variants())})")
     mi.set_variant(variant)
-    import mi_amr  # noqa: F401  (registers the plugins for this variant)
-    from .plugins.medium import require_jit_rgb_variant
     try:
         require_jit_rgb_variant("mi-amr render")
     except RuntimeError as e:
@@ -60,7 +66,6 @@ def check_finite(image, what: str = "the rendered image") -> np.ndarray:
 def write_frame(path, image, what: str = "the rendered image") -> np.ndarray:
     """The one writer of rendered images: ``image`` checked finite, as
     ``path`` (EXR) and its PNG preview beside it; returns the float32 image."""
-    from .images import write_exr, write_png
     img = check_finite(image, what)
     path = Path(path)
     write_exr(path, img)
@@ -150,7 +155,6 @@ def render_jobs(args, jobs, desc: str | None = None) -> list:
     """Render ``(scene, -D parameters)`` jobs (an XML path, or a scene
     dictionary): on a Dask cluster with ``--workers``/``--scheduler``
     (frame-parallel), else one after the other here. Returns the images."""
-    from . import distributed
     spp, workers = args.spp, args.workers
     chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
     name = desc or Path(jobs[0][0]).name
@@ -177,7 +181,6 @@ def render_jobs(args, jobs, desc: str | None = None) -> list:
 # ---- data planned into a scene --------------------------------------------
 def plan_options(args) -> dict:
     """`mi_amr.autoscene.plan_scene` options from the data flags."""
-    from .autoscene import DEFAULT_TF, GLOW_TF
     return dict(tf=args.tf or (GLOW_TF if args.emission else DEFAULT_TF),
                 log={"log": True, "linear": False}.get(args.scale),
                 value_range=tuple(args.range) if args.range else None,
@@ -192,8 +195,6 @@ def plan_data(args):
     image for the user. The XML names the data file itself, or (yt data, a
     field's own .scalars) the planned data written once as OUT.amrb/.cells.
     Returns ``(plan, xml path)``."""
-    from .autoscene import field_scalars, plan_scene, write_scene_xml
-    from .data.io import save_cells
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     plan = plan_scene(args.scene, args.field, **plan_options(args))
@@ -216,7 +217,6 @@ def data_jobs(args, plan, xml, frame_params) -> list:
     """The jobs of planned data: here, the plan's scene dictionary over the
     data in memory (``-D res`` and ``spp`` apply to it as to the XML); on a
     cluster, or for other ``-D`` names, the XML (workers load its file)."""
-    from .autoscene import scene_for
     if args.workers or args.scheduler or any(set(p) - {"res", "spp"} for p in frame_params):
         return [(str(xml), p) for p in frame_params]
     return [(scene_for(plan, res=int(p.get("res", args.res)), spp=int(p.get("spp", args.spp))), {})
@@ -234,7 +234,6 @@ def render(args):
     if args.denoise:                          # before any work: is the denoiser there?
         require_denoiser()
     set_variant(args.variant)
-    import drjit as dr
     is_xml = Path(args.scene).suffix.lower() == ".xml"
     data_flags = (args.field or args.tf or args.range or args.scale or args.emission or args.emission_field
                   or args.emission_range or args.emission_scale is not None)
@@ -290,7 +289,6 @@ def render_series(args):
     (`mi_amr.series`), a frame per output, numbered EXR/PNG frames and/or a
     movie. Outputs that cannot be read are named and left out; the exit
     status is 1 when any was."""
-    from . import series
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     outputs = series.expand_outputs(args.scene)

@@ -360,6 +360,7 @@ def test12_unread_replies_stay_bounded():
     """A page that asks and never reads: a newer histogram or status
     replaces the unsent one, and at most MAX_PENDING replies wait."""
     import asyncio
+    from concurrent.futures import ThreadPoolExecutor
 
     from mi_amr.view import protocol as p
     from mi_amr.view.server import MAX_PENDING, Outbox
@@ -372,7 +373,8 @@ def test12_unread_replies_stay_bounded():
             box.put(p.Error(f"e{k}", "tf"))
         kinds = [(await box.get()) for _ in range(len(box))]
         return kinds
-    sent = asyncio.run(flood())
+    with ThreadPoolExecutor(1) as pool:          # a loop of its own (Playwright's may run on this thread)
+        sent = pool.submit(asyncio.run, flood()).result()
     assert len(sent) <= MAX_PENDING
     assert [m.counts for m in sent if m.TYPE == "histogram"] == [(9999.0,)]
     assert [m.desc for m in sent if m.TYPE == "status"] == ["s9999"]

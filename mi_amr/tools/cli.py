@@ -5,31 +5,31 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 from .._llvm import ensure_llvm_path
 from ..params import plugin_error
+from ..render import render
+from .commands import compare, convert, dataset, frametime, reference, view
+from .info import describe, format_info
 
 
 # Each subcommand is a call: ``render`` is `mi_amr.render`, ``info``
 # `mi_amr.tools.info`, the others `mi_amr.tools.commands`.
 def cmd_render(args):
-    from ..render import render
     return render(args)
 
 
 def cmd_view(args):
-    from .commands import view
     return view(args)
 
 
 def cmd_reference(args):
-    from .commands import reference
     return reference(args)
 
 
 def cmd_frametime(args):
-    from .commands import frametime
     return frametime(args)
 
 
@@ -38,29 +38,24 @@ def cmd_info(args):
     and the memory of an ``amr`` medium over the data (`mi_amr.tools.info`);
     with ``--json`` one JSON object on one line."""
     ensure_llvm_path()
-    from .info import describe, format_info
     info = describe(args.file, args.field, args.scalars)
     print(json.dumps(info) if args.json else format_info(info))
 
 
 def cmd_convert(args):
-    from .commands import convert
     return convert(args)
 
 
 def cmd_compare(args):
-    from .commands import compare
     return compare(args)
 
 
 def cmd_dataset(args):
-    from .commands import dataset
     return dataset(args)
 
 
 def _count(text: str) -> int:
     """A positive count, written as an integer or in e-notation (1.31e9)."""
-    import math
     try:
         v = float(text)
     except ValueError:

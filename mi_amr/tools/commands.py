@@ -9,12 +9,25 @@ import json
 import os
 import shutil
 import sys
+import tempfile
 import time
 import webbrowser
 from pathlib import Path
 
+import numpy as np
+
 from .._llvm import ensure_llvm_path
-from ..render import scene_params, set_variant
+from ..autoscene import _yt_load
+from ..data.convert import dense_to_amr
+from ..data.datasets import BLOCK_DATASETS, make_dataset, write_block_dataset
+from ..data.io import load_cells, load_volume, save_cells
+from ..data.transform import apply_value_transform
+from ..data.yt_import import from_yt_blocks
+from ..images import compare_images, read_exr, write_exr
+from ..progress import progress
+from ..render import scene_params, set_variant, write_frame
+from ..scene_xml import with_amr_parameters
+from .reference import reference_scene
 
 
 #: After a failed load, how long ``mi-amr view`` waits for a page to show the
@@ -91,7 +104,6 @@ def view(args):
 def timed_render(mi, scene, spp, repeats, seed=0):
     """Median wall time of ``repeats`` renders after a warm-up render that
     compiles the kernels; returns (seconds, compile_seconds, image)."""
-    import numpy as np
     t0 = time.perf_counter()
     np.array(mi.render(scene, spp=1, seed=seed + 10_000))
     compile_s = time.perf_counter() - t0
@@ -105,10 +117,6 @@ def timed_render(mi, scene, spp, repeats, seed=0):
 
 def reference(args):
     mi = set_variant(args.variant)
-    import tempfile
-
-    from ..render import write_frame
-    from .reference import reference_scene
     with tempfile.TemporaryDirectory() as tmp:
         scene, _ = reference_scene(args.scene, tmp, **scene_params(args.define))
         write_frame(args.output, mi.render(scene, spp=args.spp, seed=args.seed))
@@ -118,11 +126,6 @@ def reference(args):
 
 def frametime(args):
     mi = set_variant(args.variant)
-    import tempfile
-
-    from ..images import compare_images
-    from ..scene_xml import with_amr_parameters
-    from .reference import reference_scene
     params = scene_params(args.define)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -161,10 +164,6 @@ def frametime(args):
 
 def convert(args):
     ensure_llvm_path()
-    import numpy as np
-
-    from ..data.convert import dense_to_amr
-    from ..data.io import load_cells, load_volume, save_cells
     src = Path(args.input)
     if src.suffix in (".cells", ".npz", ".amrb") and Path(args.output).suffix == ".amrb":
         cells = load_volume(src, overlap=args.overlap)      # streamed into blocks, never per-cell records
@@ -185,8 +184,6 @@ def convert(args):
             vol = np.fromfile(src, dtype=args.dtype).reshape(nz, ny, nx)
         cells = dense_to_amr(vol, args.threshold, args.max_level, source=str(src))
     elif args.field:
-        from ..autoscene import _yt_load
-        from ..data.yt_import import from_yt_blocks
         try:
             ds = _yt_load(src)
         except ImportError as e:
@@ -197,7 +194,6 @@ def convert(args):
         raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' (expected .cells, "
                          ".npz, .amrb, .npy or .raw, or a yt-loadable dataset with --field)")
     if args.log:
-        from ..data.transform import apply_value_transform
         cells, floor = apply_value_transform(cells, "log10")
         print(f"values replaced by log10(max(v, {floor:.6g})): {floor:.6g} is the smallest positive value")
     out = save_cells(cells, args.output)     # .amrb: with the grids a medium builds first
@@ -205,10 +201,6 @@ def convert(args):
 
 
 def compare(args):
-    import numpy as np
-
-    from ..images import read_exr, write_exr
-    from ..images import compare_images
     a, b = read_exr(args.a), read_exr(args.b)
     try:
         stats = compare_images(a, b)
@@ -234,11 +226,8 @@ def compare(args):
 
 def dataset(args):
     ensure_llvm_path()
-    from ..data.datasets import BLOCK_DATASETS, make_dataset, write_block_dataset
-    from ..data.io import save_cells
     if args.name in BLOCK_DATASETS and Path(args.output).suffix == ".cells":
         # streamed block by block: no per-cell array of the whole data set
-        from ..progress import progress
         with progress(int(args.cells), f"writing {args.output}") as bar:
             out = write_block_dataset(args.output, int(args.cells), args.levels, args.seed, args.nxb, bar,
                                       name=args.name, layout=args.layout)

@@ -41,9 +41,14 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
+from .._llvm import ensure_llvm_path
+from ..images import srgb8
 from ..params import plugin_error
+from ..progress import listen
 from .camera import FLOOR_MARGIN, MAX_ELEVATION, OrbitCamera
 from .protocol import (CameraChange, DenoiseChange, Error, Frame, Hello, HistogramReply, Status, TFChange, ViewChange,
                        parse_message)
@@ -87,9 +92,7 @@ def one_line(e: BaseException) -> str:
 
 def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:
     """A linear RGB image as the page shows it (sRGB, 8 bits, JPEG)."""
-    from PIL import Image
-
-    from ..images import srgb8
+    from PIL import Image  # lazy: the mi-amr[view] extra (JPEG frames)
     buf = io.BytesIO()
     Image.fromarray(srgb8(image)).save(buf, format="JPEG", quality=quality)
     return buf.getvalue()
@@ -182,14 +185,12 @@ class ViewEngine:
         frozen recordings, every Dr.Jit variable of it) and collect it here.
         Freed later from another thread (after this one's Dr.Jit state is
         gone), they crashed a later render."""
-        import gc
         with self._wake:
             self._views.clear()
         with JIT_LOCK:
             self.loaded = None
             gc.collect()
         try:
-            import drjit as dr
             dr.sync_thread()
         except Exception:
             pass
@@ -207,12 +208,9 @@ class ViewEngine:
 
     # ---- Loading ---------------------------------------------------------------
     def _load(self):
-        from .._llvm import ensure_llvm_path
         ensure_llvm_path()
-        import mitsuba as mi
         if mi.variant() != self.variant:
             mi.set_variant(self.variant)
-        from ..progress import listen
 
         last = [0.0]
 

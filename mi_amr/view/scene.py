@@ -19,10 +19,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
-from ..transfer.classification import check_density_scale
+import mi_amr
+from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, positive_share, scene_for
 from ..data.yt_import import load_dataset
+from ..transfer.classification import check_density_scale
 from ..transfer.function import TransferFunction
 from .camera import OrbitCamera, floor_height, world_up
 from .protocol import MAX_POINTS
@@ -43,8 +47,6 @@ class FrozenPasses:
 
     def render(self, scene, seed: int, size) -> np.ndarray:
         """One pass, (height, width, channels) float32, for ``size`` = [width, height] pixels."""
-        import drjit as dr
-        import mitsuba as mi
         key = tuple(size)
         if key not in self._frozen:
             self._frozen[key] = dr.freeze(lambda scene, seed: mi.render(scene, spp=1, seed=seed))
@@ -172,9 +174,6 @@ def scene_spec(tf: TransferFunction, stored_log: bool, density: float) -> TFSpec
 def load_scene(source, field, res: int, say) -> LoadedScene:
     """``source`` loaded for views ``res`` pixels wide; ``say(desc)``
     reports each step. Under `JIT_LOCK`, with the Mitsuba variant set."""
-    import mitsuba as mi
-
-    import mi_amr
     loaded = _load_xml(mi, source, res, say) if str(source).lower().endswith(".xml") \
         else _load_data(mi, source, field, res, say)
     loaded.medium = mi_amr.amr_media(loaded.scene)[0]
@@ -221,7 +220,6 @@ def data_fields(source, field) -> tuple[tuple, str, str]:
 
 
 def _load_data(mi, source, field, res: int, say) -> LoadedScene:
-    from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, positive_share, scene_for
     say(f"reading {source}")
     plan = plan_scene(source, field)
     stored_log = plan.transform == "log10" or positive_share(plan.data) >= MIN_POSITIVE_SHARE
@@ -241,7 +239,6 @@ def _load_data(mi, source, field, res: int, say) -> LoadedScene:
 
 
 def _load_xml(mi, source, res: int, say) -> LoadedScene:
-    import mi_amr
     say(f"loading {source}")
     scene = mi.load_file(str(source), parallel=False)
     media = mi_amr.amr_media(scene)

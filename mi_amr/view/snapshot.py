@@ -20,11 +20,16 @@ import os
 import shutil
 import tempfile
 import threading
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from ..autoscene import field_scalars, write_scene_xml
+from ..images import write_exr, write_png
+from ..native_file import save_native
+from ..scene_xml import amr_elements, parse_scene, set_parameters
 from .camera import OrbitCamera
 from .protocol import safe_name
 from .scene import LoadedScene
@@ -106,7 +111,6 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
     accumulation's mean (linear RGB, ``spp`` samples per pixel), ``shown``
     what the page shows (from the same samples). Nothing is overwritten;
     what was placed is removed again when a later file fails."""
-    from ..images import write_exr, write_png
     out_dir = Path(out_dir).resolve()
     safe_name(name)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -152,7 +156,6 @@ def _data_file(loaded: LoadedScene, out_dir: Path, tmp: Path) -> Path:
     """A file the XML can load: the source itself, the data written before
     into ``out_dir``, or (yt data, a field's own .scalars) the data written
     now as ``.amrb`` into the private folder ``tmp``."""
-    from ..autoscene import field_scalars
     src, field = Path(str(loaded.source)), loaded.field
     if src.suffix in (".cells", ".npz", ".amrb") and src.is_file() and field_scalars(src, field) is None:
         return src.resolve()
@@ -162,14 +165,12 @@ def _data_file(loaded: LoadedScene, out_dir: Path, tmp: Path) -> Path:
         raise ValueError(f"snapshot refused: {target} is a symbolic link (snapshots never write through links)")
     if target.is_file():
         return target
-    from ..native_file import save_native
     return save_native(loaded.plan.data, tmp / name)
 
 
 def _data_xml(loaded: LoadedScene, path: Path, tf_path: Path, data: Path, camera: OrbitCamera, spec: TFSpec, tf,
               spp: int):
     """The planned scene of data with the view's camera, TF and density scale."""
-    from ..autoscene import write_scene_xml
     plan = replace(loaded.plan, tf=str(tf_path), tf_range=tf.domain, density_scale=spec.density,
                    origin=camera.origin, target=camera.target, up=camera.up, fov=camera.fov,
                    notes=[f"data: {loaded.description}", f"a snapshot of mi-amr view at {spp} spp: TF "
@@ -183,9 +184,7 @@ def _scene_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCame
     """The source XML with the view's camera (a lookat), film size, sample
     count, TF (the .json) and density scale on its first amr medium;
     relative paths still resolve (a <path> to the source's folder)."""
-    import xml.etree.ElementTree as ET
 
-    from ..scene_xml import amr_elements, parse_scene, set_parameters
     src = Path(str(loaded.source)).resolve()
     tree = parse_scene(src)
     root = tree.getroot()
