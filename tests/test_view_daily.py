@@ -483,6 +483,19 @@ def test09_snapshots_never_overwrite_nor_follow_links(served, browser, tmp_path)
     finally:
         engine.close_view(view)
     assert not list(tmp_path.glob("two*")) and not list(tmp_path.glob("three*"))
+    # data the XML cannot name as they are (here a field's own .scalars; yt data alike) are written
+    # once beside the snapshots, and the reply says so
+    from dataclasses import replace
+
+    from mi_amr.view.snapshot import write_snapshot
+    shutil.copy(root / "cloud.scalars", root / "cloud-f.scalars")
+    loaded = replace(engine.loaded, field="f")
+    image = np.full((32, 32, 3), 0.5, np.float32)
+    first = write_snapshot(loaded, tmp_path / "side", "a", image, image, view.camera, view.spec, 4)
+    again = write_snapshot(loaded, tmp_path / "side", "b", image, image, view.camera, view.spec, 4)
+    assert [f.name for f in first.files] == ["a.exr", "a.png", "a.xml", "a.tf.json", "cloud-f.amrb"]
+    assert "cloud-f.amrb" in first.notes[0] and "MB" in first.notes[0]
+    assert len(again.files) == 4 and again.notes == [] and "cloud-f.amrb" in again.files[2].read_text()
 
 
 def test10_render_takes_the_scenes_own_spp(served, tmp_path, capsys):
