@@ -473,10 +473,11 @@ def _mean_alpha(volume, tf, value_range, log) -> float:
 
 
 def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: str = "amrvolpath",
-              **options) -> dict:
+              mode: str | None = None, **options) -> dict:
     """A scene dictionary for ``mi.load_dict`` that shows ``data`` (see
     `open_data`) with no scene written by hand; ``options`` go to
-    `plan_scene` (``tf``, ``log``, ``value_range``, ``density_scale``)."""
+    `plan_scene` (``tf``, ``log``, ``value_range``, ``density_scale``);
+    ``mode``: the ``amrvolpath`` lighting mode (None: its default)."""
     plan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **options)
     T = mi.ScalarTransform4f
 
@@ -490,7 +491,7 @@ def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: st
     medium.update(emission_parameters(plan))
     scene = {
         "type": "scene",
-        "integrator": {"type": integrator, "max_depth": 64},
+        "integrator": dict({"type": integrator, "max_depth": 64}, **({} if mode is None else {"mode": mode})),
         "sensor": {"type": "perspective", "fov": plan.fov,
                    "to_world": T(mi.ScalarMatrix4f(np.array(camera.matrix, dtype=np.float64).astype(np.float32))),
                    "sampler": {"type": "independent", "sample_count": spp},
@@ -531,10 +532,13 @@ def emission_parameters(plan: ScenePlan) -> dict:
     return out
 
 
-def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int = 64) -> Path:
+def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int = 64,
+                    mode: str | None = None) -> Path:
     """Write ``plan`` as an XML scene that loads ``data_file`` (``res`` and
-    ``spp`` are its defaults, ``-D res=...`` overrides them)."""
+    ``spp`` are its defaults, ``-D res=...`` overrides them; ``mode``: the
+    ``amrvolpath`` lighting mode, written unless None)."""
     path = Path(path)
+    mode_line = "" if mode is None else f"\n        <string name=\"mode\" value={quoteattr(str(mode))}/>"
     m = plan.to_world_matrix()
     matrix = " ".join(f"{x:.9g}" for x in m.ravel())
     cube_matrix = " ".join(f"{x:.9g}" for x in _cube_matrix(plan).ravel())
@@ -569,7 +573,7 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
     <default name="res" value="{res}"/>
 
     <integrator type="amrvolpath">
-        <integer name="max_depth" value="64"/>
+        <integer name="max_depth" value="64"/>{mode_line}
     </integrator>
 
     <sensor type="perspective">

@@ -34,6 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ._llvm import ensure_llvm_path
+from .scene_xml import dict_with_integrator_parameters, with_integrator_parameters
 
 #: Chunks of one render: their seeds are ``seed * MAX_CHUNKS + index``.
 MAX_CHUNKS = 1 << 16
@@ -51,6 +52,9 @@ class SceneSpec:
     variant: str = "llvm_ad_rgb"
     sensor: int = 0
     drjit_threads: int | None = None
+    #: ``(name, value)`` set on the scene's ``amrvolpath`` integrator (e.g.
+    #: ``mode``; `mi_amr.scene_xml.with_integrator_parameters`)
+    integrator: tuple = ()
     #: identifies the scene within a worker's cache
     key: str = field(default_factory=lambda: uuid.uuid4().hex)
 
@@ -80,8 +84,9 @@ def chunk_seeds(seed: int, n: int) -> list[int]:
 
 
 def scene_spec(scene, params: dict | None = None, variant: str | None = None, sensor: int = 0,
-               drjit_threads: int | None = None) -> SceneSpec:
-    """A `SceneSpec` of an XML path (``params``: its ``-D`` parameters)."""
+               drjit_threads: int | None = None, integrator: dict | None = None) -> SceneSpec:
+    """A `SceneSpec` of an XML path (``params``: its ``-D`` parameters;
+    ``integrator``: parameters set on its ``amrvolpath`` integrator)."""
     variant = variant or mi.variant() or "llvm_ad_rgb"
     if isinstance(scene, dict):
         return SceneSpec(variant=variant, sensor=sensor, drjit_threads=drjit_threads)
@@ -89,7 +94,17 @@ def scene_spec(scene, params: dict | None = None, variant: str | None = None, se
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such scene file")
     return SceneSpec(path=str(path.resolve()), params=tuple(sorted((params or {}).items())),
-                     variant=variant, sensor=sensor, drjit_threads=drjit_threads)
+                     variant=variant, sensor=sensor, drjit_threads=drjit_threads,
+                     integrator=tuple(sorted((integrator or {}).items())))
+
+
+def load_scene(path, params: dict | None = None, integrator: dict | None = None, parallel: bool = True):
+    """The XML scene at ``path`` with its ``-D`` ``params``, and
+    ``integrator`` parameters set on its ``amrvolpath`` integrator (e.g.
+    ``{"mode": "single"}``: ``mi-amr render --mode``)."""
+    if integrator:
+        return with_integrator_parameters(str(path), dict(integrator), parallel=parallel, **(params or {}))
+    return mi.load_file(str(path), parallel=parallel, **(params or {}))
 
 
 # ---- One chunk (runs on a worker, or here) ----------------------------------
@@ -107,7 +122,7 @@ def _scene(spec: SceneSpec, scene_dict=None):
     key = (spec.variant, spec.key)
     if key not in _SCENES:
         if spec.path is not None:
-            _SCENES[key] = mi.load_file(spec.path, **dict(spec.params))
+            _SCENES[key] = load_scene(spec.path, dict(spec.params), dict(spec.integrator))
         else:
             _SCENES[key] = mi.load_dict(_from_portable(scene_dict))
     return _SCENES[key]
@@ -172,21 +187,26 @@ def merge(sums) -> np.ndarray:
 
 # ---- In this process ---------------------------------------------------------
 def render_local(scene, spp: int, chunk_spp: int | None = None, seed: int = 0, sensor: int = 0,
-                 params: dict | None = None, progress: bool = False, desc: str = "render"):
+                 params: dict | None = None, progress: bool = False, desc: str = "render",
+                 integrator: dict | None = None):
     """Render the chunks of ``spp`` one after the other here; same chunks,
     seeds and merge as `render` on a cluster, so the same image. ``scene``:
     an XML path (``params``: its ``-D`` parameters), a scene dictionary or a
-    loaded ``mi.Scene``."""
+    loaded ``mi.Scene``; ``integrator``: parameters set on the (XML or
+    dictionary) scene's ``amrvolpath`` integrator, e.g. ``{"mode": "single"}``."""
     plan = chunk_plan(spp, chunk_spp)
     seeds = chunk_seeds(seed, len(plan))
     if isinstance(scene, mi.Scene):
+        if integrator:
+            raise ValueError("integrator parameters are for a scene file or dictionary, not a loaded scene")
         loaded = scene
     elif isinstance(scene, dict):
-        loaded = mi.load_dict(scene, parallel=False)
+        loaded = mi.load_dict(dict_with_integrator_parameters(scene, integrator) if integrator else scene,
+                              parallel=False)
     else:
         # on this thread: Mitsuba's parallel loader may build a medium on a worker
         # thread, where Ctrl-C cannot reach it until the whole load is over
-        loaded = mi.load_file(str(scene), parallel=False, **(params or {}))
+        loaded = load_scene(scene, params, integrator, parallel=False)
     sums = []
     with tqdm(total=spp, unit="spp", desc=desc, disable=not progress) as bar:
         for n, s in zip(plan, seeds):
@@ -226,11 +246,13 @@ def render(scene, spp: int, client=None, chunk_spp: int | None = None, seed: int
 
 def render_frames(frames, spp: int, client=None, chunk_spp: int | None = None, seed: int = 0,
                   sensor: int = 0, progress: bool = False, desc: str = "render",
-                  drjit_threads: int | None = None):
+                  drjit_threads: int | None = None, integrator: dict | None = None):
     """Render several ``(scene, params)`` frames at once (all their chunks
     are scheduled together) and return their images in order.
     ``drjit_threads``: Dr.Jit threads per worker (default: all cores, or one
-    on the local cluster this call starts, which has a process per core)."""
+    on the local cluster this call starts, which has a process per core);
+    ``integrator``: parameters set on each scene's ``amrvolpath`` integrator
+    (as `render_local`)."""
     own = client is None
     if own:
         client = local_cluster()
@@ -241,7 +263,9 @@ def render_frames(frames, spp: int, client=None, chunk_spp: int | None = None, s
         seeds = chunk_seeds(seed, len(plan))
         futures, specs = {}, []
         for f, (scene, params) in enumerate(frames):
-            spec = scene_spec(scene, params, sensor=sensor, drjit_threads=threads)
+            if isinstance(scene, dict) and integrator:
+                scene = dict_with_integrator_parameters(scene, integrator)
+            spec = scene_spec(scene, params, sensor=sensor, drjit_threads=threads, integrator=integrator)
             specs.append(spec)
             # a scene dictionary goes to every worker once; tasks name it
             # (in a list: scatter takes a dict for many named values)

@@ -156,6 +156,8 @@ def render_jobs(args, jobs, desc: str | None = None) -> list:
     dictionary): on a Dask cluster with ``--workers``/``--scheduler``
     (frame-parallel), else one after the other here. Returns the images."""
     spp, workers = args.spp, args.workers
+    # --mode: the amrvolpath integrator's lighting mode, set on every scene
+    integrator = {"mode": args.mode} if getattr(args, "mode", None) else None
     chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
     name = desc or Path(jobs[0][0]).name
     if workers or args.scheduler:
@@ -168,14 +170,14 @@ def render_jobs(args, jobs, desc: str | None = None) -> list:
         try:
             threads = max(1, (os.cpu_count() or 1) // workers) if workers and not args.scheduler else None
             return distributed.render_frames(jobs, spp, client, chunk_spp, args.seed, progress=not args.quiet,
-                                             desc=name, drjit_threads=threads)
+                                             desc=name, drjit_threads=threads, integrator=integrator)
         finally:
             cluster = getattr(client, "cluster", None)
             client.close()
             if cluster is not None and not args.scheduler:
                 cluster.close()
     return [distributed.render_local(scene, spp, chunk_spp, args.seed, params=p, progress=not args.quiet,
-                                     desc=desc or Path(scene).name) for scene, p in jobs]
+                                     desc=desc or Path(scene).name, integrator=integrator) for scene, p in jobs]
 
 
 # ---- data planned into a scene --------------------------------------------
@@ -205,7 +207,8 @@ def plan_data(args):
             data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
     else:      # a native file: it holds further fields (emission) and reopens at disk speed
         data_file = save_cells(plan.data, out.with_suffix(".amrb" if plan.data.fields else ".cells")).resolve()
-    xml = write_scene_xml(plan, data_file, out.with_suffix(".xml"), res=args.res, spp=args.spp)
+    xml = write_scene_xml(plan, data_file, out.with_suffix(".xml"), res=args.res, spp=args.spp,
+                          mode=getattr(args, "mode", None))
     if not args.quiet:
         for note in plan.notes:
             print(note)

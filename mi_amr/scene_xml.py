@@ -2,6 +2,9 @@
 
 * `with_amr_parameters`: override parameters of every ``amr`` medium
   (e.g. ``majorant="global"``) without editing the file.
+* `with_integrator_parameters` (an XML scene) and `dict_with_integrator_parameters`
+  (a scene dictionary): override parameters of the ``amrvolpath``
+  integrator (``mi-amr render --mode``).
 * `parse_scene`, `amr_elements`, `set_parameters`, `load_root`: the
   pieces, shared with the viewer's snapshots (`mi_amr.view.snapshot`) and
   the reference scenes of `mi_amr.tools.reference.reference_scene` (every
@@ -53,7 +56,13 @@ def parse_scene(path, params=None) -> ET.ElementTree:
     return tree
 
 
-def load_root(root, scene_path: Path, params: dict):
+def integrator_elements(root, plugin: str = "amrvolpath") -> list:
+    """Every ``<integrator type="amrvolpath">`` element under ``root`` (nested
+    ones, e.g. inside an ``aov`` integrator, included), in file order."""
+    return [e for e in root.iter("integrator") if e.get("type") == plugin]
+
+
+def load_root(root, scene_path: Path, params: dict, parallel: bool = True):
     resolver = mi.file_resolver()
     scene_dir = str(Path(scene_path).resolve().parent)
     resolver.prepend(scene_dir)
@@ -61,7 +70,7 @@ def load_root(root, scene_path: Path, params: dict):
     # parameters the rewrite made unused (e.g. $majorant) are dropped
     used = {k: v for k, v in params.items() if f"${k}" in text}
     try:
-        return mi.load_string(text, **used)
+        return mi.load_string(text, parallel=parallel, **used)
     finally:
         # restore the resolver: drop the directory we added
         paths = [str(resolver[i]) for i in range(len(resolver))]
@@ -81,3 +90,39 @@ def with_amr_parameters(scene_path, overrides: dict, **params):
     for med in amr_elements(root):
         set_parameters(med, overrides)
     return load_root(root, scene_path, params)
+
+
+def _no_amrvolpath(where, overrides, kinds) -> ValueError:
+    return ValueError(f"{where}: {', '.join(overrides)} is a parameter of the amrvolpath integrator, and the "
+                      f"scene's integrator is {', '.join(repr(k) for k in kinds) or 'the default (path)'}")
+
+
+def with_integrator_parameters(scene_path, overrides: dict, parallel: bool = True, **params):
+    """Load an XML scene with ``overrides`` (e.g. ``{"mode": "single"}``) set
+    on its ``amrvolpath`` integrator; a `ValueError` naming the scene's
+    integrator where it has none."""
+    tree = parse_scene(scene_path, params)
+    root = tree.getroot()
+    found = integrator_elements(root)
+    if not found:
+        raise _no_amrvolpath(scene_path, overrides, [e.get("type") for e in root.iter("integrator")])
+    for element in found:
+        set_parameters(element, overrides)
+    return load_root(root, scene_path, params, parallel=parallel)
+
+
+def dict_with_integrator_parameters(scene: dict, overrides: dict) -> dict:
+    """A copy of the scene dictionary ``scene`` with ``overrides`` set on its
+    ``amrvolpath`` integrator (the caller's dictionaries are left as they
+    are); a `ValueError` naming the scene's integrator where it has none."""
+    out = dict(scene)
+    kinds, found = [], False
+    for key, value in scene.items():
+        if isinstance(value, dict) and value.get("type") == "amrvolpath":
+            out[key] = dict(value, **overrides)
+            found = True
+        elif key == "integrator" and isinstance(value, dict):
+            kinds.append(value.get("type"))
+    if not found:
+        raise _no_amrvolpath("the scene", overrides, kinds)
+    return out

@@ -16,11 +16,15 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_amr import AMRCells, TransferFunction
+from mi_amr import AMRCells, TransferFunction, distributed
+from mi_amr.data.io import write_exabricks
+from mi_amr.images import read_exr
 from mi_amr.params import ParameterError, plugin_error
 from mi_amr.plugins.integrator import MODES, integrator_class
+from mi_amr.tools.cli import main
 
-from test_emission import flat_tf, mean_and_error, ortho_scene, two_level_cells
+from conftest import cloud_scene_xml
+from test_emission import FOV, flat_tf, mean_and_error, ortho_scene, two_level_cells
 
 #: The constant environment, and the albedo of the slab's one colour.
 ENV = np.array([0.6, 0.7, 0.9])
@@ -244,3 +248,67 @@ def test09_emission_absorption_ambient_is_the_environment_along_the_ray(llvm):
     factor = ALBEDO * (1 - np.exp(-sigma)) + np.exp(-sigma)
     check(mean, err, factor * background, factor * background_err)
     check(background, background_err, looks[0], 0.01 * looks[0])     # it does look along +z
+
+
+def amrvolpath_xml(folder, mode_line=""):
+    """A small XML scene (16x16, 4 spp) with the amrvolpath integrator and a
+    slab under a constant environment; the data file is named relative to
+    the scene (a rewritten scene must still find it)."""
+    write_exabricks(uniform_two_level(), folder / "d.cells")
+    (folder / "s.xml").write_text(f"""<scene version="3.0.0">
+    <default name="spp" value="4"/>
+    <integrator type="amrvolpath"><integer name="max_depth" value="16"/>{mode_line}</integrator>
+    <sensor type="perspective"><float name="fov" value="{FOV}"/>
+        <transform name="to_world"><lookat origin="0.5, 0.5, -20" target="0.5, 0.5, 0.5" up="0, 1, 0"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/>
+            <rfilter type="box"/></film>
+    </sensor>
+    <emitter type="constant"><rgb name="radiance" value="0.6, 0.7, 0.9"/></emitter>
+    <medium type="amr" id="m"><string name="filename" value="d.cells"/>
+        <string name="transfer_function" value="foggy"/><float name="density_scale" value="3"/>
+        <string name="reconstruction" value="nearest"/></medium>
+    <shape type="cube"><transform name="to_world"><scale value="0.5"/><translate value="0.5, 0.5, 0.5"/></transform>
+        <bsdf type="null"/><ref name="interior" id="m"/></shape>
+</scene>""")
+    return folder / "s.xml"
+
+
+def test10_render_mode_flag_on_an_xml_scene(llvm, tmp_path, capsys):
+    """``mi-amr render --mode`` renders an XML scene as if its amrvolpath
+    integrator named the mode (the same image, seed for seed), here and in
+    a cluster worker's loader; a scene with another integrator is refused
+    in one line."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    plain = amrvolpath_xml(tmp_path / "a")
+    written = amrvolpath_xml(tmp_path / "b", '<string name="mode" value="emission_absorption"/>')
+    assert main(["render", str(plain), "-o", str(tmp_path / "ea.exr"), "--mode", "emission_absorption", "-q"]) == 0
+    assert main(["render", str(plain), "-o", str(tmp_path / "multi.exr"), "-q"]) == 0
+    got, multi = read_exr(tmp_path / "ea.exr"), read_exr(tmp_path / "multi.exr")
+    want = np.array(distributed.render_local(written, 4, chunk_spp=1))         # the command's chunks
+    assert np.array_equal(got, want[..., :got.shape[-1]])
+    want = np.array(distributed.render_local(written, 4))                      # one chunk
+    assert np.abs(got - multi).max() > 0.02                      # the mode changed the image
+    spec = distributed.scene_spec(plain, integrator={"mode": "emission_absorption"})
+    chunk = distributed.render_chunk(spec, 4, distributed.chunk_seeds(0, 1)[0])
+    distributed.forget_scene(spec)
+    np.testing.assert_allclose(chunk[..., :3] / chunk[..., -1:], want[..., :3], rtol=1e-5, atol=1e-6)
+    capsys.readouterr()
+    cloud = cloud_scene_xml(tmp_path, data=uniform_two_level())          # stock volpath
+    assert main(["render", str(cloud), "-o", str(tmp_path / "c.exr"), "--mode", "single", "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "amrvolpath" in err and "'volpath'" in err, err
+
+
+def test11_render_mode_flag_on_data_keeps_the_mode_in_its_scene(llvm, tmp_path):
+    """Data rendered with ``--mode`` write an OUT.xml whose integrator names
+    the mode: re-rendering that file gives the same image."""
+    write_exabricks(uniform_two_level(), tmp_path / "d.cells")
+    args = ["--res", "16", "--spp", "4", "-q"]
+    assert main(["render", str(tmp_path / "d.cells"), "-o", str(tmp_path / "out.exr"), "--mode", "single",
+                 *args]) == 0
+    assert 'name="mode" value="single"' in (tmp_path / "out.xml").read_text()
+    assert main(["render", str(tmp_path / "out.xml"), "-o", str(tmp_path / "again.exr"), *args]) == 0
+    np.testing.assert_allclose(read_exr(tmp_path / "out.exr"), read_exr(tmp_path / "again.exr"),
+                               rtol=1e-5, atol=1e-6)

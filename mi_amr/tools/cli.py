@@ -10,6 +10,7 @@ import sys
 
 from .._llvm import ensure_llvm_path
 from ..params import plugin_error
+from ..plugins.integrator import MODES
 from ..render import render
 from .commands import compare, convert, dataset, frametime, reference, view
 from .info import describe, format_info
@@ -141,6 +142,10 @@ def build_parser():
     r.add_argument("--denoise", action="store_true",
                    help="also write OUT-denoised.exr/.png: Intel Open Image Denoise (mi-amr[view] extra)")
     _render_flags(r, None)
+    r.add_argument("--mode", choices=MODES, default=None,
+                   help="the amrvolpath integrator's lighting mode: emission_absorption (albedo times the "
+                        "ambient light), single (single scattering) or multi (default: the scene's own; "
+                        "data scenes: multi); a data scene's OUT.xml keeps it")
     r.add_argument("--chunk-spp", type=int, default=None,
                    help="samples per chunk (default: spp / max(8, 2 x workers), rounded up)")
     r.add_argument("--workers", type=int, default=None,
