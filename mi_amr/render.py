@@ -323,5 +323,5 @@ def render_series(args):
         say(f"wrote {out.stem}_000{out.suffix} ... {out.stem}_{len(images) - 1:03d}{out.suffix} (+ .png"
             f"{', -denoised' if clean else ''})")
     say(f"{len(images)} frame(s) of {len(outputs)} outputs in {seconds:.2f} s; scenes and data in {folder}")
-    series.report_failed(failed)
+    series.report_failed(failed, sys.stderr)      # the stream of now (a default is bound at import)
     return 1 if failed else 0
