@@ -9,6 +9,7 @@ import ast
 import json
 import os
 import re
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -150,6 +151,13 @@ def _defined_names(body):
     return names
 
 
+@lru_cache(maxsize=None)
+def _tree(path: Path) -> ast.Module:
+    """A source file parsed once (references to it are many)."""
+    return ast.parse(path.read_text())
+
+
+@lru_cache(maxsize=None)
 def _resolves(dotted: str) -> bool:
     """Whether ``mi_amr.a.b.c`` names a module, or a name defined in one
     (followed through ``from .x import name``), or a class attribute."""
@@ -163,8 +171,7 @@ def _resolves(dotted: str) -> bool:
     attrs = parts[i:]
     if not attrs:
         return True
-    tree = ast.parse(path.read_text())
-    node = _defined_names(tree.body).get(attrs[0])
+    node = _defined_names(_tree(path).body).get(attrs[0])
     if isinstance(node, ast.ImportFrom):                 # follow it to where it is defined
         pkg = parts[:i] if path.name == "__init__.py" else parts[:i - 1]
         mod = (pkg[:len(pkg) - node.level + 1] if node.level else []) + (node.module or "").split(".")
