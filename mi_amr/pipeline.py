@@ -201,7 +201,7 @@ class Structures:
         minorants = self.volume.covers_bounds          # else a point may have no value (sigma_t = 0)
         for name, component in COMPONENTS.items():
             if component.majorants and name in self.device:
-                self.device[name].update_majorants(c.device, c.scale, minorants)
+                self.device[name].update_majorants(c.device, c.majorant_scale, minorants)
                 mus.append(dr.max(self.device[name].majorant))
         g = mus[0] if mus else mi.Float(0.0)
         for m in mus[1:]:

@@ -355,6 +355,45 @@ class BlockVolume(mi.Object):
         cells.meta = dict(self.meta)
         return cells
 
+    def with_values(self, values) -> "BlockVolume":
+        """A volume of the same blocks with other cell ``values`` (laid out
+        as ``values``: NaN in the same empty slots, finite elsewhere; the
+        caller checks that): what an ``amr`` medium's ``values`` parameter
+        builds its structures on after ``params.update()``. Further fields
+        and metadata are kept; stored macrocell grids (of the old values)
+        are not."""
+        values = np.asarray(values, dtype=np.float32)
+        if values.shape != self.values.shape:
+            raise ValueError(f"{self.source}: {values.size} values for {self.values.size} slots")
+        return BlockVolume(self.block, self.level, self.coord, values, self.origin, self.lo, self.hi,
+                           self.n_cells, self.source, self.meta, fields=self.fields)
+
+    def value_index(self, pos, level) -> np.ndarray:
+        """For each cell ``(pos (N, 3) finest units, level (N,))`` its index
+        in ``values`` (int64, -1 for a cell these blocks do not hold, e.g.
+        one dropped by ``overlap="finest"``): block ``b``, slot ``s = x + B
+        (y + B z)`` of the cell in its block is index ``b B^3 + s``. With
+        an `AMRCells` ``c`` from which the volume was made,
+        ``values[value_index(c.pos, c.level)] == c.values``."""
+        pos = np.asarray(pos, dtype=np.int64).reshape(-1, 3)
+        level = np.asarray(level, dtype=np.int64).ravel()
+        out = np.full(len(level), -1, dtype=np.int64)
+        if not len(level) or not len(self.level):
+            return out
+        q = (pos - self.origin) >> level[:, None]
+        ok = np.all(q >= 0, axis=1) & np.all(((q << level[:, None]) + self.origin) == pos, axis=1)
+        qb = np.where(ok[:, None], q, 0) >> self.log2_block
+        packed = fits_packed(np.concatenate([self.coord.astype(np.int64), qb]))
+        keys = block_keys(self.coord, self.level, packed)
+        order = np.argsort(keys)
+        k = block_keys(qb, level, packed)
+        i = np.minimum(np.searchsorted(keys, k, sorter=order), len(keys) - 1)
+        hit = ok & (keys[order[i]] == k)
+        slot = slot_index(order[i], np.where(hit[:, None], q, 0), self.block)
+        hit &= ~np.isnan(self.values[np.where(hit, slot, 0)])
+        out[hit] = slot[hit]
+        return out
+
     def stencil_index(self):
         """Tables for one-probe tent stencils (docs/design.md section 9).
 

@@ -127,7 +127,10 @@ class BrickSampler:
         # loop state: only what this reconstruction changes (docs/design.md section 6)
         cells = CellValues(self.bricks.values, self.carried)
         state = self.method.brick_state(cells)
-        while dr.hint(i < count, label="amr_brick_list", exclude=[self, x, start, count, items, in_domain]):
+        # max_iterations=-1: sum-style reverse mode, as in the hash look-up
+        # (at most one brick contains a point for nearest; tent sums)
+        while dr.hint(i < count, label="amr_brick_list", exclude=[self, x, start, count, items, in_domain],
+                      max_iterations=-1):
             b = dr.gather(mi.UInt32, items, start + i)
             state = self.method.brick_step(self.bricks, cells, b, x, i < count, state, self.over_bounds, in_domain)
             i += 1

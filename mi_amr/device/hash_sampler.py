@@ -115,7 +115,10 @@ class DeviceReconstruction:
         # loop state: only what this reconstruction changes (docs/design.md section 6)
         cells = CellValues(self.values, carried)
         state = self.method.hash_state(cells)
-        while dr.hint(remaining != 0, label="amr_reconstruct", exclude=[self, x]):
+        # max_iterations=-1: Dr.Jit's sum-style reverse mode (docs/design.md
+        # section 13): a value enters the state once (nearest) or is summed
+        # (tent), so the loop's adjoint is the loop again
+        while dr.hint(remaining != 0, label="amr_reconstruct", exclude=[self, x], max_iterations=-1):
             L = self.method.hash_level(remaining)
             # x / 2^L is exact; fractions stay small numbers so that no
             # sub-cell offset is rounded away near 2^24 (float32 spacing 1)

@@ -19,6 +19,7 @@ from ..device.grid import DeviceTwoLevelGrid
 from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
 from ..device.tracking import (DecompositionTracking, DeltaTracking, FreeFlight, LocalRay, RatioTracking,
                                ResidualRatioTracking, SpanMajorant, Transmittance, walk_segments)
+from ..device.values import device_values
 from ..params import ParameterError
 from ..pipeline import Structures
 from ..transfer.classification import Classification
@@ -302,6 +303,16 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
        - |float|
        - Bytes a structure may need (``MI_AMR_MEMORY_LIMIT`` or half the
          physical memory); larger ones are refused before they are built.
+
+    Scene parameters (``mi.traverse``): ``density_scale``, ``tf_rgba`` (N x 4,
+    row major), ``tf_domain``, for a medium that glows ``emission_scale``,
+    ``emission_rgba`` and ``emission_domain``, and ``values``: the cell
+    values, the flat array in resident order (block ``b``, slot ``s`` ->
+    index ``b B^3 + s``, NaN in empty slots; `value_index` maps an
+    ``AMRCells`` to it). All but the domains are differentiable: gradients
+    flow through the collision terms in Mitsuba's ``prbvolpath``;
+    majorants stay detached. ``params.update()`` re-majorises every leaf
+    after a change (docs/design.md section 13).
     """
 
     def __init__(self, props: mi.Properties):
@@ -329,24 +340,35 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self.classification = Classification(options.tf, options.density_scale,
                                              emission=None if emission is None else emission.tf,
                                              emission_scale=1.0 if emission is None else emission.scale)
-        self.structures = Structures(options.volume, options.structures, self.classification,
-                                     options.world_scale, cells=options.cells).build()
+        self._build_structures(options.volume, options.cells)
+        # the cell values as the scene parameter ``values``: a variable of
+        # this medium's own (the same device array until it changes), so
+        # that a gradient or an update through it never reaches another
+        # medium on the same data (`_apply_values`)
+        self._values = mi.Float(device_values(self.volume))
+        self._ray_majorant = _RayMajorant()
+        self._volpath_checked = False            # `_warn_if_volpath_is_slower` ran for this medium
+        # whether amrvolpath's minorant estimators pay on these data (decided
+        # once, with the TF given at load: a later TF change compiles nothing)
+        self.minorant_fraction = self.structures.minorant_fraction()
+        self.minorants_pay = self.minorant_fraction >= MINORANTS_PAY_FRACTION
+
+    def _build_structures(self, volume, cells=None):
+        """Build the structures the traversal and sampling need on
+        ``volume``, listen to the classification and compute every majorant."""
+        options, emission = self.options, self.options.emission
+        self.structures = Structures(volume, options.structures, self.classification,
+                                     options.world_scale, cells=cells).build()
         # a medium that glows from a field of its own (or the values under a
         # transform): the flight's one look-up reconstructs that field too
         self._carried = None
         if emission is not None and (emission.field is not None or emission.transform != "none"):
             self._carried = self.structures.field_values(emission.field, emission.transform)
         self.classification.on_change = self.structures.reclassify
-        self._ray_majorant = _RayMajorant()
         two_level = (options.structures.traversal == "grid"
                      and isinstance(self.structures.device.get("grid"), DeviceTwoLevelGrid))
         self._span_stop = SPAN_STOP_SHARE if two_level else None
-        self._volpath_checked = False            # `_warn_if_volpath_is_slower` ran for this medium
         self.structures.update_majorants()
-        # whether amrvolpath's minorant estimators pay on these data (decided
-        # once, with the TF given at load: a later TF change compiles nothing)
-        self.minorant_fraction = self.structures.minorant_fraction()
-        self.minorants_pay = self.minorant_fraction >= MINORANTS_PAY_FRACTION
 
     # ---- Read-only views --------------------------------------------------------
     @property
@@ -587,12 +609,58 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         ``params.update()`` then reclassifies the medium exactly as
         `set_transfer_function` (`set_emission`) does."""
         self.classification.traverse(callback)
+        callback.put("values", self._values, mi.ParamFlags.Differentiable)
         callback.put("phase_function", self.phase_function(), mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys=None):
         """Validate the updated parameters (a bad value raises and the last
-        valid ones are put back), then use them (`Classification.apply_parameters`)."""
+        valid ones are put back), then use them (`_apply_values`,
+        `Classification.apply_parameters`)."""
+        if not keys or "values" in keys:
+            self._apply_values()
         self.classification.apply_parameters(keys or None)
+
+    def _apply_values(self):
+        """Take the cell values ``params.update()`` wrote into ``values``.
+
+        They must keep the layout: finite where a cell is, NaN in the empty
+        slots (else a `ParameterError`, and the last valid values are put
+        back). The kernels then read that very variable (with its gradient,
+        if enabled). New values rebuild the structures on them (every
+        leaf's value range, then the majorants from the TF: docs/design.md
+        section 13); unchanged values (gradients just enabled) only make
+        the look-ups read the variable."""
+        var, old = self._values, self.volume.values
+        host = np.asarray(dr.detach(var).numpy(), dtype=np.float32)
+        empty = np.isnan(old)
+        if host.shape != old.shape or not np.array_equal(np.isnan(host), empty) \
+                or not np.all(np.isfinite(host[~empty])):
+            mi.set_property(var, mi.Float(np.array(old, dtype=np.float32)))
+            dr.make_opaque(var)
+            raise ParameterError(f"amr: values must hold {old.size} values, finite where a cell is and NaN "
+                                 f"in the {int(empty.sum())} empty slots (the layout of `value_index`); "
+                                 f"the last valid values were put back")
+        dr.make_opaque(var)
+        if np.array_equal(host, old, equal_nan=True):
+            for struct in self.structures.device.values():
+                if "values" in getattr(struct, "JIT_FIELDS", {}):
+                    struct.values = var
+            return
+        volume = self.volume.with_values(host)
+        volume._device_values = var          # `device_values`: the structures read the parameter itself
+        with dr.suspend_grad():              # host builds: no gradient graph
+            self._build_structures(volume)
+
+    def value_index(self, cells=None) -> np.ndarray:
+        """For each cell of ``cells`` (an `AMRCells`; default: the cells
+        given as ``data``, else `cells`) its index in the ``values``
+        parameter (int64; -1 where this medium holds no such cell): block
+        ``b``, slot ``s`` of the resident `volume` is index ``b B^3 + s``
+        (`BlockVolume.value_index`). ``params[key][value_index()]`` lists
+        the cells' values in the order of ``cells``; the other slots are
+        NaN (no cell)."""
+        cells = self.cells if cells is None else cells
+        return self.volume.value_index(cells.pos, cells.level)
 
     def set_transfer_function(self, tf: TransferFunction, density_scale=None):
         """Use a new TF (new table, domain or size) and/or density scale: the

@@ -30,6 +30,14 @@ to the constructor, after the new state is in place.
 All Dr.Jit variables are opaque and the tables live in memory of their own
 (`mi_amr.device.structs.owned`), so no change recompiles a kernel or
 records a frozen function again.
+
+Gradients (docs/design.md section 13): ``density_scale``, ``tf_rgba``,
+``emission_scale`` and ``emission_rgba`` are differentiable scene
+parameters. A traversed variable with gradients enabled is kept as it is
+on an update (not replaced by a fresh copy) and the kernels read that very
+variable (the TF table of ``device`` is then the traversed array itself),
+so the collision terms carry its gradient; majorants and minorants are
+computed from host tables and `majorant_scale`, detached.
 """
 
 from __future__ import annotations
@@ -92,11 +100,17 @@ class Classification:
 
     # ---- The one update path --------------------------------------------------
     def set(self, tf: TransferFunction | None = None, density_scale: float | None = None,
-            emission: TransferFunction | None = None, emission_scale: float | None = None):
+            emission: TransferFunction | None = None, emission_scale: float | None = None,
+            keep_gradients: bool = True):
         """Use a new TF and/or density scale, emission TF and/or emission
         scale (None keeps the current one): validated first (a bad value
         raises and changes nothing), then uploaded, then the listener is
-        told (when extinction changed: emission moves no majorant)."""
+        told (when extinction changed: emission moves no majorant).
+
+        ``keep_gradients``: a traversed variable with gradients enabled
+        already holds the new value (``params.update()`` wrote it) and stays
+        as it is, so that the kernels read it and its gradient reaches the
+        caller; False replaces it too (the last valid state put back)."""
         only_emission = tf is None and density_scale is None and (emission is not None or emission_scale is not None)
         tf = self.tf if tf is None else _check_tf(tf)
         scale = self.density_scale if density_scale is None else check_density_scale(density_scale)
@@ -106,12 +120,13 @@ class Classification:
         emission = self.emission if emission is None else _check_tf(emission)
         e_scale = self.emission_scale_value if emission_scale is None else check_emission_scale(emission_scale)
         self.tf, self.density_scale = tf, scale
-        self.device.set(tf)
-        _upload(self.tf_rgba, self.tf_domain, self.scale, tf, scale)
+        _upload(self.tf_rgba, self.tf_domain, self.scale, tf, scale, keep_gradients)
+        self.device.set(tf, _attached(self.tf_rgba))
         if self.glows:
             self.emission, self.emission_scale_value = emission, e_scale
-            self.emission_device.set(emission)
-            _upload(self.emission_rgba, self.emission_domain, self.emission_scale, emission, e_scale)
+            _upload(self.emission_rgba, self.emission_domain, self.emission_scale, emission, e_scale,
+                    keep_gradients)
+            self.emission_device.set(emission, _attached(self.emission_rgba))
         listener = self._listener() if self._listener is not None else None
         if listener is not None and not only_emission:
             listener(self)
@@ -152,7 +167,7 @@ class Classification:
             if e_scale is not None:
                 check_emission_scale(e_scale)
         except ValueError:
-            self.set()                      # the last valid state, back into the variables
+            self.set(keep_gradients=False)  # the last valid state, back into the variables
             raise
         self.set(tf, scale, emission, e_scale)
 
@@ -172,16 +187,23 @@ class Classification:
 
     # ---- Views ----------------------------------------------------------------
     def traverse(self, callback):
-        """Expose ``density_scale``, ``tf_rgba`` and ``tf_domain`` (not
-        differentiable) to ``mi.traverse``; for a medium that glows also
-        ``emission_scale``, ``emission_rgba`` and ``emission_domain``."""
-        callback.put("density_scale", self.scale, mi.ParamFlags.NonDifferentiable)
-        callback.put("tf_rgba", self.tf_rgba, mi.ParamFlags.NonDifferentiable)
+        """Expose ``density_scale`` and ``tf_rgba`` (differentiable) and
+        ``tf_domain`` (not: it moves the table's entries) to
+        ``mi.traverse``; for a medium that glows also ``emission_scale``,
+        ``emission_rgba`` (differentiable) and ``emission_domain``."""
+        callback.put("density_scale", self.scale, mi.ParamFlags.Differentiable)
+        callback.put("tf_rgba", self.tf_rgba, mi.ParamFlags.Differentiable)
         callback.put("tf_domain", self.tf_domain, mi.ParamFlags.NonDifferentiable)
         if self.glows:
-            callback.put("emission_scale", self.emission_scale, mi.ParamFlags.NonDifferentiable)
-            callback.put("emission_rgba", self.emission_rgba, mi.ParamFlags.NonDifferentiable)
+            callback.put("emission_scale", self.emission_scale, mi.ParamFlags.Differentiable)
+            callback.put("emission_rgba", self.emission_rgba, mi.ParamFlags.Differentiable)
             callback.put("emission_domain", self.emission_domain, mi.ParamFlags.NonDifferentiable)
+
+    @property
+    def majorant_scale(self):
+        """The density scale without its gradient: majorants and minorants
+        are bounds, not terms of the estimate, and stay detached."""
+        return dr.detach(self.scale)
 
     def host_majorants(self, vmin, vmax) -> np.ndarray:
         """``density_scale * max alpha`` over each value range (numpy, inverse
@@ -233,11 +255,21 @@ def check_density_scale(v) -> float:
     return v
 
 
-def _upload(rgba, domain, scale, tf: TransferFunction, value: float) -> None:
+def _upload(rgba, domain, scale, tf: TransferFunction, value: float, keep_gradients: bool = True) -> None:
     """Write ``tf``'s table and domain and the scale ``value`` into the
     traversed variables in place (SceneParameters hold them), opaque so that
-    a new value never recompiles a kernel."""
-    mi.set_property(rgba, owned(mi.Float, tf.rgba))
+    a new value never recompiles a kernel. With ``keep_gradients``, a
+    variable with gradients enabled holds its value already and is left as
+    it is: replacing it would cut the caller's gradient."""
+    if not (keep_gradients and dr.grad_enabled(rgba)):
+        mi.set_property(rgba, owned(mi.Float, tf.rgba))
     mi.set_property(domain, mi.Float(tf.domain))
-    mi.set_property(scale, mi.Float(value))
+    if not (keep_gradients and dr.grad_enabled(scale)):
+        mi.set_property(scale, mi.Float(value))
     dr.make_opaque(scale, rgba, domain)
+
+
+def _attached(table):
+    """``table`` where it carries gradients (the kernels must read that very
+    variable), else None (the device TF uploads a copy of its own)."""
+    return table if dr.grad_enabled(table) else None

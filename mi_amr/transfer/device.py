@@ -22,11 +22,15 @@ class DeviceTransferFunction:
     def __init__(self, tf: TransferFunction):
         self.set(tf)
 
-    def set(self, tf: TransferFunction):
-        """Upload a (new) TF: table, range-max sparse table, domain, size."""
+    def set(self, tf: TransferFunction, rgba=None):
+        """Upload a (new) TF: table, range-max sparse table, domain, size.
+        ``rgba``: the table as a Dr.Jit array with gradients enabled (the
+        traversed ``tf_rgba``), read by the kernels as it is so that its
+        gradient flows; the sparse tables of the majorants come from
+        ``tf``'s host table, detached."""
         self.tf = tf
         n = len(tf)
-        self.rgba = owned(mi.Float, tf.rgba)
+        self.rgba = owned(mi.Float, tf.rgba) if rgba is None else rgba
         self.sparse = owned(mi.Float, tf.sparse_table())
         self.sparse_min = owned(mi.Float, tf.sparse_table(np.minimum))
         self.n = mi.UInt32(n)
