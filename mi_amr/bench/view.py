@@ -1,30 +1,57 @@
-"""How interactive ``mi-amr view`` is, measured in the page.
+"""How interactive ``mi-amr view`` is, measured in the page, for each lighting mode.
 
 ``python -m mi_amr.bench --view DATA [--view-field F] [--res 256] --out DIR``
 serves DATA as ``mi-amr view`` does, opens the page in Debian's chromium
-(Playwright), waits for the first refined frame, then, ``--repeats`` times
-each, drags the camera (an orbit) and a TF control point for ``seconds``
-with a mouse move every 40 ms, and lets go. Read in the page
-(``window.viewerStats``): frames on screen per second during the drag, the
-time from a change to the first frame showing it (median and 90th
-percentile), and the time from the last change to the first denoised image
-(the preview's, then the first at full size).
+(Playwright) and, for each lighting mode the page can refine in (chosen in
+its selector), ``--repeats`` times each, drags the camera (an orbit) and a
+TF control point for ``seconds`` with a mouse move every 40 ms, and lets
+go. While the hand moves, frames are fast passes (emission_absorption, 1
+spp, ``--view-preview-scale`` of the resolution); once it rests, the mode
+refines. Read in the page (``window.viewerStats``): frames on screen per
+second during the drag; the time from a change to the first frame after it
+and to the first frame rendered from it (median and 90th percentile); the
+fast passes' render time; the time from the last change to the first
+picture in the chosen mode (preview or full size), to the first full-size
+one, and to the first denoised full-size one. Beside them, timed here on
+the loaded scene: the fast pass on the same view and on an empty medium
+(every TF opacity 0: rays, surfaces and the traversal only), the bound of
+the fast frames, and a full-size pass of each mode. The first picture: from
+the start (load included) and, with the viewer loaded and warm, from
+opening a page.
+
 Writes ``DIR/view.json`` and ``DIR/view.md``.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
 
+from ..plugins.integrator import MODES
+from ..view.engine import FAST_MODE, JIT_LOCK, ViewEngine
+from ..view.server import ViewServer
 
-def _drag(page, box, kind: str, seconds: float):
-    """Drag on ``box`` (the view or the TF editor) for ``seconds``."""
+#: Chromium's flags for a quiet headless run.
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+#: Reset before each drag (``window.viewerStats``).
+RESET = ("window.viewerStats.latencies = []; window.viewerStats.renderLatencies = [];"
+         "window.viewerStats.frameTimes = []; window.viewerStats.denoiseLatencies = [];"
+         "window.viewerStats.fullDenoiseLatencies = []; window.viewerStats.refinedLatencies = [];"
+         "window.viewerStats.fullLatencies = []; window.viewerStats.fastRenderMs = [];"
+         "window.viewerStats.fastWidths = [];")
+
+
+def _drag(page, box, kind: str, seconds: float, move_ms: float = 16):
+    """Drag on ``box`` (the view or the TF editor) for ``seconds``, the
+    mouse moving every ``move_ms``."""
     if kind == "camera":
-        x0, y0, dx, dy = box["x"] + 0.3 * box["width"], box["y"] + 0.5 * box["height"], 6.0, 0.0
+        x0, y0, dx, dy = box["x"] + 0.3 * box["width"], box["y"] + 0.5 * box["height"], 2.5, 0.0
     else:                                 # the tallest spiky peak, dragged down and up
         x0, y0, dx, dy = box["x"] + 8 + 0.8 * (box["width"] - 16), box["y"] + 8, 0.0, 4.0
     page.mouse.move(x0, y0)
@@ -35,85 +62,189 @@ def _drag(page, box, kind: str, seconds: float):
         step = k % 40 if kind == "tf" else k
         sign = 1 if (k // 40) % 2 == 0 or kind == "camera" else -1
         page.mouse.move(x0 + dx * step, y0 + dy * (step if sign > 0 else 40 - step))
-        page.wait_for_timeout(40)
+        page.wait_for_timeout(move_ms)
     page.mouse.up()
     return time.monotonic() - t0
 
 
-def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int = 3,
-            preview_scale: float = 0.5) -> dict:
-    from playwright.sync_api import sync_playwright
+def _median(xs):
+    return statistics.median(xs) if xs else None
 
-    from ..view.engine import ViewEngine
-    from ..view.server import ViewServer
+
+def _p90(xs):
+    xs = sorted(xs)
+    return xs[int(0.9 * (len(xs) - 1))] if xs else None
+
+
+def _first_frame(page, url) -> tuple[float, float]:
+    """When (``time.monotonic``) the page opened at ``url`` showed its first
+    frame, and its first full-size one."""
+    page.goto(url)
+    page.wait_for_function("window.viewerStats.lastFrame", timeout=600_000, polling=10)
+    first = time.monotonic()
+    page.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview",
+                           timeout=600_000, polling=10)
+    return first, time.monotonic()
+
+
+def pass_times(engine: ViewEngine, camera, spec, size, mode, n: int = 12) -> list[float]:
+    """Milliseconds of ``n`` frozen passes of ``size`` in ``mode`` (the
+    camera turning a degree each, as in a drag), on the engine's scene."""
+    out = []
+    loaded = engine.loaded
+    with JIT_LOCK:
+        for k in range(n + 2):
+            t = time.perf_counter()
+            loaded.apply(replace(camera, azimuth=camera.azimuth + k), spec, size)
+            loaded.render(90_000 + k, size, mode)
+            if k >= 2:                            # the first may record
+                out.append(1e3 * (time.perf_counter() - t))
+    return out
+
+
+def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int = 3,
+            preview_scale: float = 0.5, modes=None, move_ms: float = 16) -> dict:
+    from playwright.sync_api import sync_playwright   # lazy: a benchmark dependency
     exe = shutil.which("chromium")
     if exe is None:
         raise SystemExit("the viewer benchmark needs Debian's chromium (make setup installs it)")
     t0 = time.monotonic()
-    engine = ViewEngine(data, field, res=res, preview_scale=preview_scale).start()
+    engine = ViewEngine(data, field, res=res, preview_scale=preview_scale)
+    ready_at = []
+    engine.on_status(lambda st: ready_at.append(time.monotonic()) if st.state == "ready" and not ready_at else None)
+    engine.start()
     server = ViewServer(engine, quiet=True, out_dir="/tmp").start()
-    out = {"data": str(data), "res": res, "preview_scale": preview_scale, "runs": []}
+    out = {"data": str(data), "res": res, "preview_scale": preview_scale, "fast_mode": FAST_MODE, "move_ms": move_ms,
+           "cpus": os.cpu_count(), "load_average_start": os.getloadavg(), "runs": [], "passes": {}}
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=exe, args=[
-                "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                "--disable-component-update", "--disable-sync", "--no-first-run"])
+            browser = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS)
             page = browser.new_page(viewport={"width": 1200, "height": 800})
-            page.goto(server.url)
-            page.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview",
-                                   timeout=600_000)
-            out["first_picture_s"] = time.monotonic() - t0
-            for r in range(repeats):
-                for kind, testid in (("camera", "view"), ("tf", "tf-editor")):
-                    page.wait_for_timeout(1500)
-                    box = page.get_by_test_id(testid).bounding_box()
-                    page.evaluate("window.viewerStats.latencies = []; window.viewerStats.frameTimes = [];"
-                                  "window.viewerStats.denoiseLatencies = [];"
-                                  "window.viewerStats.fullDenoiseLatencies = [];")
-                    start = page.evaluate("performance.now()")
-                    took = _drag(page, box, kind, seconds)
-                    end = page.evaluate("performance.now()")
-                    page.wait_for_function("window.viewerStats.fullDenoiseLatencies.length > 0", timeout=60_000)
-                    s = page.evaluate("window.viewerStats")
-                    shown = [t for t in s["frameTimes"] if start <= t <= end]
-                    lat = sorted(s["latencies"])
-                    out["runs"].append({
-                        "kind": kind, "round": r, "drag_s": took, "frames_per_s": len(shown) / ((end - start) / 1e3),
-                        "latency_median_ms": statistics.median(lat) if lat else None,
-                        "latency_p90_ms": lat[int(0.9 * (len(lat) - 1))] if lat else None,
-                        "denoised_after_ms": s["denoiseLatencies"][0],
-                        "full_denoised_after_ms": s["fullDenoiseLatencies"][0]})
+            first, refined = _first_frame(page, server.url)
+            out["load_s"] = ready_at[0] - t0 if ready_at else None
+            out["first_picture_s"], out["first_refined_s"] = first - t0, refined - t0
+            modes = [m for m in (modes or MODES) if m in engine.loaded.modes] or [engine.mode]
+            # opening a page when the data are loaded and the viewer is warm
+            page.wait_for_timeout(3000)
+            fresh = browser.new_page(viewport={"width": 1200, "height": 800})
+            t = time.monotonic()
+            first, refined = _first_frame(fresh, server.url)
+            out["page_first_picture_s"], out["page_first_refined_s"] = first - t, refined - t
+            fresh.close()
+            for mode in modes:
+                page.get_by_test_id("mode").select_option(mode)
+                page.wait_for_function(f"""() => {{ const f = window.viewerStats.lastFrame;
+                    return f && f.mode === {json.dumps(mode)} && !f.preview; }}""", timeout=600_000)
+                deadline = time.monotonic() + 120
+                while engine._warm and time.monotonic() < deadline:      # its passes recorded ahead
+                    time.sleep(0.1)
+                for r in range(repeats):
+                    for kind, testid in (("camera", "view"), ("tf", "tf-editor")):
+                        page.wait_for_timeout(1500)
+                        box = page.get_by_test_id(testid).bounding_box()
+                        page.evaluate(RESET)
+                        start, changes0 = page.evaluate("[performance.now(), window.viewerStats.changes]")
+                        took = _drag(page, box, kind, seconds, move_ms)
+                        end, changes1 = page.evaluate("[performance.now(), window.viewerStats.changes]")
+                        page.wait_for_function("window.viewerStats.fullLatencies.length > 0", timeout=120_000)
+                        page.wait_for_timeout(600)
+                        s = page.evaluate("window.viewerStats")
+                        shown = [t for t in s["frameTimes"] if start <= t <= end]
+                        out["runs"].append({
+                            "mode": mode, "kind": kind, "round": r, "drag_s": took,
+                            "frames_per_s": len(shown) / ((end - start) / 1e3),
+                            "changes_per_s": (changes1 - changes0) / ((end - start) / 1e3),
+                            "latency_median_ms": _median(s["latencies"]), "latency_p90_ms": _p90(s["latencies"]),
+                            "render_latency_median_ms": _median(s["renderLatencies"]),
+                            "render_latency_p90_ms": _p90(s["renderLatencies"]),
+                            "fast_render_median_ms": _median(s["fastRenderMs"]),
+                            "fast_sizes": sorted(set(s["fastWidths"])),
+                            "refined_after_ms": (s["refinedLatencies"] or [None])[0],
+                            "full_after_ms": (s["fullLatencies"] or [None])[0],
+                            "full_denoised_after_ms": (s["fullDenoiseLatencies"] or [None])[0]})
             page.screenshot(path=str(Path("/tmp") / "mi-amr-view-bench.png"))
+            view = next(iter(engine._views.values()))
+            camera, spec = view.camera, view.spec
             browser.close()
+        # the passes themselves, on the loaded scene: the fast one on this view and on an empty medium
+        small, full = engine._sizes()
+        empty = replace(spec, points=((0.0, 0.0), (1.0, 0.0)))
+        fast = engine._fast_mode()
+        out["passes"]["fast"] = {"size": small, "ms": pass_times(engine, camera, spec, small, fast)}
+        out["passes"]["fast_empty"] = {"size": small, "ms": pass_times(engine, camera, empty, small, fast)}
+        for mode in modes:
+            out["passes"][f"full_{mode}"] = {"size": full, "ms": pass_times(engine, camera, spec, full, mode, 6)}
+        out["load_average_end"] = os.getloadavg()
     finally:
         server.stop()
         engine.stop()
     return out
 
 
+def _spread(xs, fmt="{:.0f}") -> str:
+    xs = [x for x in xs if x is not None]
+    if not xs:
+        return "-"
+    lo, mid, hi = min(xs), statistics.median(xs), max(xs)
+    return f"{fmt.format(mid)} ({fmt.format(lo)}-{fmt.format(hi)})"
+
+
 def report(result: dict) -> str:
-    lines = [f"`mi-amr view` on {result['data']}, {result['res']}x{result['res']}, preview scale "
-             f"{result['preview_scale']}; first refined picture in the page after "
-             f"{result['first_picture_s']:.1f} s (load included)", "",
-             "| drag | round | frames/s on screen | change -> frame, median / p90 ms | last change -> denoised (preview / full size) ms |",
-             "|---|---|---|---|---|"]
+    la = result.get("load_average_start", (0, 0, 0))
+    lines = [f"`mi-amr view` on {result['data']}, {result['res']}x{result['res']}, fast passes "
+             f"{result['fast_mode']} at preview scale {result['preview_scale']} (or smaller, to keep a "
+             f"frame budget), the mouse moving every {result['move_ms']:g} ms; load average at the start "
+             f"{la[0]:.1f} on {result.get('cpus')} CPUs.", "",
+             f"First picture in the page: {result['first_picture_s']:.1f} s after the start (the load took "
+             f"{result['load_s'] or 0:.1f} s), the first full-size one after {result['first_refined_s']:.1f} s; "
+             "a page opened on the loaded viewer: "
+             f"{result['page_first_picture_s']:.2f} s, refined {result['page_first_refined_s']:.2f} s.", "",
+             "| mode | drag | round | frames/s on screen (changes/s sent) | change -> next frame, median / p90 ms | "
+             "change -> frame of it, median / p90 ms | fast pass ms (widths) | last change -> mode's first / "
+             "full size / denoised full ms |",
+             "|---|---|---|---|---|---|---|---|"]
+    f = lambda x: "-" if x is None else f"{x:.0f}"      # noqa: E731
     for r in result["runs"]:
-        lines.append(f"| {r['kind']} | {r['round']} | {r['frames_per_s']:.1f} | {r['latency_median_ms']:.0f} / "
-                     f"{r['latency_p90_ms']:.0f} | {r['denoised_after_ms']:.0f} / {r['full_denoised_after_ms']:.0f} |")
+        lines.append(f"| {r['mode']} | {r['kind']} | {r['round']} | {r['frames_per_s']:.1f} "
+                     f"({r['changes_per_s']:.0f}) | "
+                     f"{f(r['latency_median_ms'])} / {f(r['latency_p90_ms'])} | "
+                     f"{f(r['render_latency_median_ms'])} / {f(r['render_latency_p90_ms'])} | "
+                     f"{f(r['fast_render_median_ms'])} ({', '.join(map(str, r['fast_sizes']))}) | "
+                     f"{f(r['refined_after_ms'])} / {f(r['full_after_ms'])} / "
+                     f"{f(r['full_denoised_after_ms'])} |")
+    lines += ["", "Summary, median (min-max) over the rounds:", "",
+              "| mode | drag | frames/s | change -> next frame median ms | last change -> mode's first ms |",
+              "|---|---|---|---|---|"]
+    for mode in dict.fromkeys(r["mode"] for r in result["runs"]):
+        for kind in ("camera", "tf"):
+            rs = [r for r in result["runs"] if r["mode"] == mode and r["kind"] == kind]
+            lines.append(f"| {mode} | {kind} | {_spread([r['frames_per_s'] for r in rs], '{:.1f}')} | "
+                         f"{_spread([r['latency_median_ms'] for r in rs])} | "
+                         f"{_spread([r['refined_after_ms'] for r in rs])} |")
+    lines += ["", "Passes timed on the loaded scene (camera turning, frozen replays), median (min-max) ms:", ""]
+    for name, p in result["passes"].items():
+        lines.append(f"* {name} at {p['size'][0]}x{p['size'][1]}: {_spread(p['ms'], '{:.1f}')}")
+    fast = result["passes"].get("fast_empty")
+    if fast:
+        bound = 1e3 / statistics.median(fast["ms"])
+        lines.append(f"* the empty-medium fast pass bounds the drag at {bound:.0f} frames/s; the fast pass on "
+                     f"this view at {1e3 / statistics.median(result['passes']['fast']['ms']):.0f} frames/s")
     return "\n".join(lines) + "\n"
 
 
-def run(data, field, res, out_dir, repeats=3, seconds=4.0, preview_scale=0.5):
-    result = measure(data, field, res, seconds, repeats, preview_scale)
+def run(data, field, res, out_dir, repeats=3, seconds=4.0, preview_scale=0.5, modes=None, move_ms=16):
+    result = measure(data, field, res, seconds, repeats, preview_scale, modes, move_ms)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "view.json").write_text(json.dumps(result, indent=1))
+    (out_dir / "view.json").write_text(json.dumps(result, indent=1, default=float))
     (out_dir / "view.md").write_text(report(result))
     print(report(result))
 
 
 def main_args(args) -> int:
-    """Entry from `mi_amr.bench.__main__` (``--view``)."""
-    run(args.view, args.view_field, args.res, Path(args.out), args.repeats, preview_scale=args.view_preview_scale)
+    """Entry from `mi_amr.bench.__main__` (``--view``): every lighting mode,
+    or those of ``args.view_modes`` where given."""
+    run(args.view, args.view_field, args.res, Path(args.out), args.repeats, preview_scale=args.view_preview_scale,
+        modes=getattr(args, "view_modes", None), move_ms=getattr(args, "view_move_ms", 16.0))
     print(f"wrote {args.out}/view.json and view.md")
     return 0

@@ -175,7 +175,12 @@ def build_parser():
     v.add_argument("--res", type=int, default=256, help="image width (default 256)")
     v.add_argument("--max-spp", type=int, default=1024, help="stop refining at this many spp (default 1024)")
     v.add_argument("--preview-scale", type=float, default=0.5,
-                   help="resolution of the first pass after a change, while dragging (default 0.5; 1: off)")
+                   help="resolution of the passes while the camera or the TF moves (rendered in "
+                        "emission_absorption) and of the first pass in the page's mode after it stops "
+                        "(default 0.5; 1: full size)")
+    v.add_argument("--mode", choices=MODES, default=None,
+                   help="the lighting mode the page refines in, and starts its selector at (default: the "
+                        "scene's amrvolpath mode, multi for data); drags render in emission_absorption")
     v.add_argument("--variant", default="llvm_ad_rgb")
     v.set_defaults(func=cmd_view)
 

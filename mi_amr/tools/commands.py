@@ -26,7 +26,7 @@ from ..data.yt_import import from_yt_blocks
 from ..images import compare_images, read_exr, write_exr
 from ..progress import progress
 from ..render import scene_params, set_variant, write_frame
-from ..scene_xml import with_amr_parameters
+from ..scene_xml import integrator_elements, parse_scene, with_amr_parameters
 from .reference import reference_scene
 
 
@@ -48,6 +48,11 @@ def view(args):
         raise FileNotFoundError(f"{args.scene}: no such file or directory")
     if scene.suffix.lower() == ".xml" and args.field:
         raise ValueError("--field is for data, not XML scenes")
+    if scene.suffix.lower() == ".xml" and args.mode is not None:
+        root = parse_scene(scene).getroot()
+        if not integrator_elements(root):
+            kinds = ", ".join(sorted({str(e.get("type")) for e in root.iter("integrator")})) or "none"
+            raise ValueError(f"--mode {args.mode}: the scene's integrator is {kinds}: lighting modes need amrvolpath")
     if not 0 <= port <= 65535:
         raise ValueError(f"--port {port}: a port is 0 (any free one) to 65535")
     if not host or not (is_loopback(host) or args.allow_remote):
@@ -66,7 +71,7 @@ def view(args):
     except SystemExit as e:
         raise ValueError(str(e.code).removeprefix("mi-amr: ")) from None
     engine = ViewEngine(args.scene, args.field, res=args.res, max_spp=args.max_spp,
-                        preview_scale=args.preview_scale, variant=args.variant)
+                        preview_scale=args.preview_scale, variant=args.variant, mode=args.mode)
     try:
         server = ViewServer(engine, host, port, out_dir=out)
     except (OSError, OverflowError) as e:

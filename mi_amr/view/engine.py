@@ -10,10 +10,25 @@ and TF into the scene: the camera through ``mi.traverse``, the TF through
 pass itself is a ``dr.freeze``-recorded ``mi.render``, replayed without
 tracing. A change restarts the view's accumulation; a pass rendered for a
 state that changed meanwhile is shown (the newest picture there is) but
-accumulated into nothing; the first pass after a change is rendered at
-``preview_scale`` of the resolution (quick feedback while a control is
-dragged). With the denoiser (`mitsuba_oidn`) on, a view sees denoised
-previews and denoised images of its accumulation at 1, 2, 4, 8, 16 spp,
+accumulated into nothing.
+
+Lighting modes (``amrvolpath``'s ``mode``, docs/design.md section 6d): each
+view refines in its own mode (``mode``, default the scene's), while a
+camera or TF change is answered by a *fast* pass: `FAST_MODE`
+(emission_absorption), 1 spp at ``preview_scale`` of the resolution, shown
+raw. Once no camera or TF change has come for `SETTLE` seconds the view's
+mode takes over: one pass at the fast passes' size (denoised where the
+denoiser is on), then full-size passes that accumulate. The fast
+passes keep to `FAST_BUDGET`: while their running mean takes longer, they
+render at the next smaller size of `FAST_LADDER` (down to half of the
+preview size), and at a larger one again once it fits. Every pass kind is a
+frozen recording of the one scene (`LoadedScene.render`); the ones a view
+needs are recorded ahead while no view waits for a picture (`_warm_up`):
+a page's first picture, and a drag's switch of size, replay instead of
+tracing.
+
+With the denoiser (`mitsuba_oidn`) on, a view sees denoised previews of
+its mode and denoised images of its accumulation at 1, 2, 4, 8, 16 spp,
 then about each second (`DENOISE_INTERVAL`) and at ``max_spp``; between
 them each pass re-sends the last denoised image with the real spp count.
 Switching the denoiser keeps the accumulation.
@@ -36,6 +51,7 @@ from __future__ import annotations
 import gc
 import io
 import itertools
+import math
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -48,10 +64,11 @@ import numpy as np
 from .._llvm import ensure_llvm_path
 from ..images import srgb8
 from ..params import plugin_error
+from ..plugins.integrator import MODES
 from ..progress import listen
 from .camera import FLOOR_MARGIN, MAX_ELEVATION, OrbitCamera
-from .protocol import (CameraChange, DenoiseChange, Error, Frame, Hello, HistogramReply, Status, TFChange, ViewChange,
-                       parse_message)
+from .protocol import (CameraChange, DenoiseChange, Error, Frame, Hello, HistogramReply, ModeChange, Status, TFChange,
+                       ViewChange, parse_message)
 from .protocol import Describe, EditorRequest, FieldChange, TFFile, TFLoad, TFSave
 from .scene import LoadedScene, load_scene
 from .snapshot import Snapshot, SnapshotBudget, write_snapshot
@@ -63,6 +80,15 @@ DEFAULT_MAX_SPP = 1024
 DENOISE_INTERVAL = 1.0
 #: Passes of one state that may fail in a row before its view stops rendering (until it changes).
 MAX_FAILURES = 3
+#: The lighting mode of the passes that answer a camera or TF change (drag frames).
+FAST_MODE = "emission_absorption"
+#: Seconds without a camera or TF change after which a view's own mode refines.
+SETTLE = 0.1
+#: The fast passes' film sizes, as shares of ``preview_scale`` of the resolution.
+FAST_LADDER = (1.0, 0.75, 0.5)
+#: Seconds a fast pass may take (a running mean): beyond, the next smaller
+#: size of `FAST_LADDER` is used; a larger one once it would fit in 3/4 of it.
+FAST_BUDGET = 0.03
 #: Held around every Dr.Jit call of a viewer (scene changes, frozen passes):
 #: recording a frozen function while another thread traces or renders is
 #: not safe. Code that renders in the same process while a viewer runs (a
@@ -107,7 +133,10 @@ class View:
     send: object                         # send(protocol.Frame header, jpeg bytes), thread-safe
     notify: object = None                # notify(protocol message) to the view's page, thread-safe
     denoise: bool = True
+    mode: str | None = None              # the lighting mode it refines in (None: the scene's integrator)
     version: int = 0                     # bumped by every change message (the page counts them too)
+    changed_at: float = -1e9             # the last camera or TF change (time.monotonic)
+    fast_epoch: int = -1                 # the epoch a fast pass was shown for
     epoch: int = 0                       # bumped by every change of the picture: the accumulation restarts
     accum: np.ndarray | None = None
     spp: int = 0
@@ -130,16 +159,28 @@ class ViewEngine:
 
     ``res``: image width (the height follows the scene's film aspect);
     ``max_spp``: where each view stops refining; ``preview_scale``: the
-    resolution of the first pass after a change (1: no preview)."""
+    resolution of the fast passes and of the first pass in a view's mode
+    after a change (1: full size); ``mode``: the lighting mode views start
+    in (None: the scene's integrator's own; a mode needs ``amrvolpath``);
+    ``fast_ladder``: the fast passes' sizes as shares of the preview size,
+    largest first (`FAST_LADDER`)."""
 
     def __init__(self, source, field: str | None = None, *, res: int = 256, max_spp: int = DEFAULT_MAX_SPP,
-                 preview_scale: float = 0.5, variant: str = "llvm_ad_rgb"):
+                 preview_scale: float = 0.5, variant: str = "llvm_ad_rgb", mode: str | None = None,
+                 fast_ladder=FAST_LADDER):
         if not 16 <= res <= 4096:
             raise ValueError(f"res must lie in [16, 4096], got {res}")
         if not 1 <= max_spp <= 1_000_000:
             raise ValueError(f"max_spp must lie in [1, 1000000], got {max_spp}")
         if not 0.1 <= preview_scale <= 1:
             raise ValueError(f"preview_scale must lie in [0.1, 1], got {preview_scale}")
+        if mode is not None and mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
+        self.mode = mode                         # after the load: the scene's when None
+        if not fast_ladder or any(not 0 < f <= 1 for f in fast_ladder) or list(fast_ladder) != sorted(fast_ladder,
+                                                                                                      reverse=True):
+            raise ValueError(f"fast_ladder: shares in (0, 1], largest first, got {fast_ladder!r}")
+        self.fast_ladder = tuple(float(f) for f in fast_ladder)
         self.source, self.field, self.res, self.max_spp = source, field, int(res), int(max_spp)
         self.preview_scale, self.variant = float(preview_scale), variant
         self.status = Status("loading", "starting", 0, None)
@@ -156,6 +197,9 @@ class ViewEngine:
         self._denoise, self.denoiser_missing = denoiser()
         self._denoise_lock = threading.Lock()    # one denoise at a time (render thread, snapshots)
         self._thread = threading.Thread(target=self._run, name="mi-amr view", daemon=True)
+        self._warm = []                          # (size, mode) recorded ahead (`_warm_up`)
+        self._fast_level = 0                     # the fast passes' size: FAST_LADDER[level]
+        self._fast_ms = {}                       # film size -> running mean of its fast passes (s)
 
     @property
     def colormaps(self) -> tuple:
@@ -225,6 +269,11 @@ class ViewEngine:
                 self.loaded = load_scene(self.source, self.field, self.res, lambda desc: self._set_status(desc=desc))
         finally:
             stop_listening()
+        if self.mode is not None and self.mode not in self.loaded.modes:
+            raise ValueError(f"--mode {self.mode}: {self.loaded.mode_note}")
+        self.mode = self.mode or self.loaded.scene_mode
+        self._warm = self._warm_list()
+        encode_jpeg(np.zeros((8, 8, 3), np.float32))  # the JPEG encoder loaded now, not at the first frame
 
     # ---- Views -------------------------------------------------------------------
     def open_view(self, send, notify=None) -> View:
@@ -235,7 +284,7 @@ class ViewEngine:
             raise RuntimeError("the data are still loading")
         with self._wake:
             v = View(next(self._ids), self.loaded.initial_camera, self.loaded.initial_spec, send, notify,
-                     denoise=self._denoise is not None)
+                     denoise=self._denoise is not None, mode=self.mode)
             self._views[v.id] = v
             self._wake.notify_all()
             return v
@@ -250,13 +299,15 @@ class ViewEngine:
         s = self.loaded
         return Hello(view.id, view.camera, view.spec, tuple(s.colormaps), s.log_available, self._denoise is not None,
                      self.denoiser_missing, view.denoise, tuple(s.size), self.max_spp, s.description,
-                     colormap_stops(s.colormaps, s.scene_rgb), editor=self._editor_extras())
+                     colormap_stops(s.colormaps, s.scene_rgb), editor=self._editor_extras(),
+                     modes=s.modes or None, mode=view.mode, fast_mode=self._fast_mode(),
+                     mode_note=s.mode_note or None)
 
     def change(self, view: View, change: ViewChange | dict) -> bool:
-        """Apply a camera, TF or denoise change to ``view`` (a page message
-        as a dict is parsed first; a `ValueError` names what is wrong, and
-        the view is then unchanged). Returns whether the histogram's range
-        or units changed."""
+        """Apply a camera, TF, denoise or mode change to ``view`` (a page
+        message as a dict is parsed first; a `ValueError` names what is
+        wrong, and the view is then unchanged). Returns whether the
+        histogram's range or units changed."""
         if isinstance(change, dict):
             change = parse_message(change)
         with self._wake:
@@ -278,10 +329,24 @@ class ViewEngine:
                     view.redisplay = view.accum_epoch == view.epoch
                     self._wake.notify_all()
                     return False
+                case ModeChange(mode=mode):
+                    if mode not in self.loaded.modes:
+                        raise ValueError(f"mode: {self.loaded.mode_note or 'one of ' + ', '.join(self.loaded.modes)}")
+                    view.mode = mode
+                    view.version += 1
+                    view.epoch += 1
+                    view.fast_epoch = view.epoch         # the picture did not move: no fast pass
+                    for size in self._ladder() if mode != self._fast_mode() else ():   # its previews, ahead
+                        if (size, mode) not in self._warm and not self.loaded.recorded(size, mode):
+                            self._warm.append((size, mode))
+                    view.broken = None
+                    self._wake.notify_all()
+                    return False
                 case _:
                     raise ValueError(f"not a view change: {type(change).__name__}")
             view.version += 1
             view.epoch += 1
+            view.changed_at = time.monotonic()
             view.broken = None
             self._wake.notify_all()
             return (before.range, before.log) != (view.spec.range, view.spec.log)
@@ -366,6 +431,7 @@ class ViewEngine:
             with JIT_LOCK:
                 del old                          # its Dr.Jit objects go on this thread
                 gc.collect()
+            self._warm = self._warm_list()
             self._set_status(desc=f"field {name}")
             for v in views:
                 if v.notify is not None:
@@ -393,30 +459,124 @@ class ViewEngine:
         turn = 0
         while True:
             self._serve_field_requests()
+            warm = None
             with self._wake:
                 if self._stop:
                     break
-                views = [v for v in self._views.values() if self._needs_work(v)]
-                if not views:
-                    self._wake.wait(0.25)
+                now = time.monotonic()
+                plans = [(v, *self._next_pass(v, now)) for v in self._views.values()]
+                work = [(v, kind) for v, kind, _ in plans if kind is not None]
+                # no view waits for a picture (only refinements of one shown): record ahead
+                if self._warm and all(kind is None and at == math.inf or kind == "full" and v.accum_epoch == v.epoch
+                                      for v, kind, at in plans):
+                    warm = self._warm.pop(0)
+                elif not work:
+                    wake_at = min((at for _, _, at in plans), default=math.inf)
+                    self._wake.wait(min(0.25, max(0.001, wake_at - now)))
                     continue
-                turn += 1
-                view = views[turn % len(views)]
-                epoch, camera, spec, redisplay = view.epoch, view.camera, view.spec, view.redisplay
-                preview = self.preview_scale < 1 and view.preview_epoch != epoch and view.accum_epoch != epoch
+                else:
+                    turn += 1
+                    view, kind = work[turn % len(work)]
+                    epoch, version, camera, spec, mode = view.epoch, view.version, view.camera, view.spec, view.mode
+            if warm is not None:
+                self._warm_up(*warm)
+                continue
             try:
-                if redisplay:
+                if kind == "redisplay":
                     self._redisplay(view)
                 else:
-                    self._pass(view, epoch, camera, spec, preview)
+                    self._pass(view, kind, epoch, version, camera, spec, mode)
             except Exception as e:                   # this view's trouble, nobody else's
                 self._failed(view, epoch, camera, spec, e)
         self._release()
 
-    def _needs_work(self, v: View) -> bool:
+    def _fast_mode(self) -> str | None:
+        """The mode of the passes that answer a camera or TF change:
+        `FAST_MODE`, or None (the scene's integrator) without modes."""
+        return FAST_MODE if FAST_MODE in self.loaded.modes else None
+
+    def _ladder(self) -> list:
+        """The fast passes' film sizes, [width, height], largest first (`FAST_LADDER`)."""
+        full = list(self.loaded.size)
+        sizes = [[max(8, int(full[0] * self.preview_scale * f)), max(8, int(full[1] * self.preview_scale * f))]
+                 for f in self.fast_ladder]
+        return [q for k, q in enumerate(sizes) if q not in sizes[:k]]
+
+    def _sizes(self, mode=None) -> tuple[list, list]:
+        """(the film size of the fast passes, or of a preview in ``mode``;
+        the full one), [width, height]. A preview takes the fast passes'
+        size where that is recorded for its mode, else the preview size."""
+        ladder = self._ladder()
+        small = ladder[min(self._fast_level, len(ladder) - 1)]
+        if mode is not None and mode != self._fast_mode() and not self.loaded.recorded(small, mode):
+            small = ladder[0]
+        return small, list(self.loaded.size)
+
+    def _fast_timed(self, size, seconds: float):
+        """A fast pass of ``size`` took ``seconds``: update its running mean,
+        then step down the ladder when over `FAST_BUDGET`, or up when the
+        larger size (its time scaled by the pixels) fits in 3/4 of it; only
+        to sizes recorded already (no tracing in the middle of a drag)."""
+        key = tuple(size)
+        mean = self._fast_ms.get(key)
+        mean = seconds if mean is None else 0.7 * mean + 0.3 * seconds
+        self._fast_ms[key] = mean
+        ladder, fast = self._ladder(), self._fast_mode()
+        level = min(self._fast_level, len(ladder) - 1)
+        if list(size) != ladder[level]:
+            return
+        scaled = lambda q: mean * q[0] * q[1] / (size[0] * size[1])       # noqa: E731
+        step = 0
+        if mean > FAST_BUDGET and level + 1 < len(ladder) and self.loaded.recorded(ladder[level + 1], fast):
+            step = 1
+        elif level > 0 and self.loaded.recorded(ladder[level - 1], fast) and \
+                scaled(ladder[level - 1]) < 0.75 * FAST_BUDGET:
+            step = -1
+        if step:                                 # the new size's mean starts from this one, scaled
+            self._fast_level = level + step
+            self._fast_ms[tuple(ladder[level + step])] = scaled(ladder[level + step])
+
+    def _next_pass(self, v: View, now: float) -> tuple[str | None, float]:
+        """What ``v`` needs next and when: ``("redisplay" | "fast" |
+        "preview" | "full", now)``, or ``(None, when)``: nothing before
+        ``when`` (the hand is still moving; inf: nothing at all)."""
         if v.broken:
-            return False
-        return v.redisplay or v.accum_epoch != v.epoch or v.spp < self.max_spp
+            return None, math.inf
+        if v.redisplay:
+            return "redisplay", now
+        e = v.epoch
+        if v.accum_epoch == e:
+            return ("full", now) if v.spp < self.max_spp else (None, math.inf)
+        if v.fast_epoch != e and v.preview_epoch != e:
+            return "fast", now
+        if now < v.changed_at + SETTLE:
+            return None, v.changed_at + SETTLE
+        if v.preview_epoch != e and self.preview_scale < 1:
+            return "preview", now
+        return "full", now
+
+    def _warm_list(self) -> list:
+        """The recordings a view needs, in the order it needs them: the fast
+        pass, the engine's mode at preview size, then at full size; then
+        both at the smaller fast sizes."""
+        ladder, full, fast = self._ladder(), list(self.loaded.size), self._fast_mode()
+        preview = self.preview_scale < 1
+        items = [(ladder[0], fast)] + ([(ladder[0], self.mode)] if preview else []) + [(full, self.mode)]
+        for size in ladder[1:]:
+            items += [(size, fast)] + ([(size, self.mode)] if preview else [])
+        return [item for k, item in enumerate(items) if item not in items[:k]]
+
+    def _warm_up(self, size, mode):
+        """Record (and throw away) one pass of ``size`` in ``mode`` with the
+        start camera and TF, so that a view's first such pass replays."""
+        with JIT_LOCK:
+            if self.loaded.recorded(size, mode):
+                return
+            try:
+                self.loaded.apply(self.loaded.initial_camera, self.loaded.initial_spec, size)
+                self.loaded.render(next(self._seeds), size, mode)
+            except Exception:                        # a view's own pass will say what is wrong
+                self.loaded.forget(size, mode)
 
     def _denoise_due(self, view: View, spp: int) -> bool:
         """Denoise the accumulation now: at 1, 2, 4, 8, 16 spp, then each
@@ -428,19 +588,25 @@ class ViewEngine:
         with self._denoise_lock:
             return self._denoise(image)
 
-    def _pass(self, view: View, epoch: int, camera, spec, preview: bool):
-        full = self.loaded.size
-        size = [max(8, int(full[0] * self.preview_scale)), max(8, int(full[1] * self.preview_scale))] \
-            if preview else list(full)
+    def _pass(self, view: View, kind: str, epoch: int, rendered: int, camera, spec, mode):
+        """One pass of ``kind`` ("fast", "preview" or "full") for ``view``'s
+        state of ``epoch`` (its version ``rendered``), then its frame."""
+        pass_mode = self._fast_mode() if kind == "fast" else mode
+        small, full = self._sizes(pass_mode)
+        size = full if kind == "full" else small
         t0 = time.perf_counter()
         with JIT_LOCK:
             try:
                 self.loaded.apply(camera, spec, size)
-                image = self.loaded.render(next(self._seeds), size)
+                image = self.loaded.render(next(self._seeds), size, pass_mode)
             except Exception:
-                self.loaded.forget(size)             # its recording and what the scene holds
+                self.loaded.forget(size, pass_mode)  # its recording and what the scene holds
                 raise
-        render_ms = round(1e3 * (time.perf_counter() - t0), 1)
+        took = time.perf_counter() - t0
+        render_ms = round(1e3 * took, 1)
+        if kind == "fast":
+            self._fast_timed(size, took)
+        preview = kind != "full"
         with self._wake:
             if view.closed:
                 return
@@ -450,10 +616,13 @@ class ViewEngine:
                 # the view changed while this pass ran (a drag): show it, as the
                 # newest picture there is, but accumulate nothing into it
                 preview, shown, spp, denoise = True, image, 1, False
-            elif preview:
+            elif kind == "fast":                     # raw: a drag frame is about speed
+                view.fast_epoch = epoch
+                shown, spp, denoise = image, 1, False
+            elif kind == "preview":
                 view.preview_epoch = epoch
                 shown, spp = image, 1
-                denoise = view.denoise and self._denoise is not None          # clean while dragging, too
+                denoise = view.denoise and self._denoise is not None
             else:
                 if view.accum_epoch != epoch:
                     view.accum, view.spp, view.accum_epoch = image.astype(np.float64), 1, epoch
@@ -467,9 +636,11 @@ class ViewEngine:
                 if denoise and not self._denoise_due(view, spp):
                     shown = None                     # the last denoised image, with the real count
             version, send, old = view.version, view.send, (view.denoised_spp, view.denoised_jpeg)
+        extra = {"mode": pass_mode, "rendered": rendered, "fast": kind == "fast"}
         if shown is None:
             if old[1]:
-                send(Frame(version, spp, True, False, size[0], size[1], render_ms, self.max_spp, old[0]), old[1])
+                send(Frame(version, spp, True, False, size[0], size[1], render_ms, self.max_spp, old[0], **extra),
+                     old[1])
             return
         if denoise:                                  # outside the lock: the page's changes go on
             shown = self._denoised(shown)
@@ -479,7 +650,8 @@ class ViewEngine:
                 if view.accum_epoch == epoch and view.spp == spp:
                     view.denoised, view.denoised_spp, view.denoised_jpeg = shown, spp, jpeg
                     view.denoised_at = time.monotonic()
-        send(Frame(version, spp, bool(denoise), bool(preview), size[0], size[1], render_ms, self.max_spp), jpeg)
+        send(Frame(version, spp, bool(denoise), bool(preview), size[0], size[1], render_ms, self.max_spp, **extra),
+             jpeg)
 
     def _redisplay(self, view: View):
         """The accumulation shown again, denoised or not (the denoiser was switched)."""
@@ -487,7 +659,7 @@ class ViewEngine:
             view.redisplay = False
             if view.accum_epoch != view.epoch or view.accum is None:
                 return
-            epoch, spp, version, send = view.epoch, view.spp, view.version, view.send
+            epoch, spp, version, send, mode = view.epoch, view.spp, view.version, view.send, view.mode
             mean = view.accum / spp
             denoise = view.denoise and self._denoise is not None
             have = view.denoised if denoise and view.denoised_spp == spp else None
@@ -499,7 +671,8 @@ class ViewEngine:
                     view.denoised, view.denoised_spp, view.denoised_jpeg = shown, spp, jpeg
                     view.denoised_at = time.monotonic()
         h, w = mean.shape[:2]
-        send(Frame(version, spp, bool(denoise), False, w, h, 0.0, self.max_spp), jpeg)
+        send(Frame(version, spp, bool(denoise), False, w, h, 0.0, self.max_spp, mode=mode, rendered=version,
+                   fast=False), jpeg)
 
     def _failed(self, view: View, epoch: int, camera, spec, e: Exception):
         """A pass of ``view`` failed: back to its last state that rendered,
@@ -537,12 +710,12 @@ class ViewEngine:
             if view.accum is None or view.accum_epoch != view.epoch:
                 raise ValueError("no image yet: wait for the first full frame")
             image = (view.accum / view.spp).astype(np.float32)
-            camera, spec, spp = view.camera, view.spec, view.spp
+            camera, spec, spp, mode = view.camera, view.spec, view.spp, view.mode
             denoise = view.denoise and self._denoise is not None
             shown = view.denoised if denoise and view.denoised_spp == spp else None
         if shown is None:
             shown = self._denoised(image) if denoise else image
-        return write_snapshot(self.loaded, out_dir, name, image, shown, camera, spec, spp, budget)
+        return write_snapshot(self.loaded, out_dir, name, image, shown, camera, spec, spp, budget, mode=mode)
 
     def snapshot(self, view: View, out_dir, name: str) -> list[Path]:
         """`take_snapshot`'s four files: [exr, png, xml, tf.json]."""

@@ -10,6 +10,7 @@ fields}``; a change message's missing fields keep the view's value:
   in world units; `camera.OrbitCamera`)
 * ``tf``: `TFChange` (the TF editor's state, display units; `tf_spec`)
 * ``denoise``: `DenoiseChange`
+* ``mode``: `ModeChange` (the lighting mode the view refines in)
 * ``histogram``: `HistogramRequest`; ``snapshot``: `SnapshotRequest`
 * ``ack``: `Ack` (the newest frame is on screen)
 * the TF editor's requests (`EditorRequest`): ``tf_save`` (`TFSave`, answered
@@ -35,6 +36,8 @@ import math
 import re
 from dataclasses import dataclass, field, fields
 from typing import ClassVar
+
+from ..plugins.integrator import MODES
 
 #: Largest message accepted from a page (characters of JSON text).
 MAX_MESSAGE = 64 * 1024
@@ -101,6 +104,14 @@ class DenoiseChange(Message):
 
 
 @dataclass(frozen=True)
+class ModeChange(Message):
+    """Refine in this lighting mode (``amrvolpath``'s ``mode``, one of
+    `MODES`); camera and TF drags render in the fast mode meanwhile."""
+    TYPE: ClassVar[str] = "mode"
+    mode: str
+
+
+@dataclass(frozen=True)
 class HistogramRequest(Message):
     """Ask for the histogram under the view's TF editor."""
     TYPE: ClassVar[str] = "histogram"
@@ -119,8 +130,8 @@ class Ack(Message):
     TYPE: ClassVar[str] = "ack"
 
 
-ViewChange = CameraChange | TFChange | DenoiseChange
-PageMessage = CameraChange | TFChange | DenoiseChange | HistogramRequest | SnapshotRequest | Ack
+ViewChange = CameraChange | TFChange | DenoiseChange | ModeChange
+PageMessage = CameraChange | TFChange | DenoiseChange | ModeChange | HistogramRequest | SnapshotRequest | Ack
 
 
 # ---- Server to page -----------------------------------------------------------------------------
@@ -140,7 +151,9 @@ class Hello(Message):
     """What a page needs to draw its controls: its view's ``camera``
     (`OrbitCamera`) and ``tf`` (`TFSpec`), the scene's colormaps (and their
     colours, ``{name: ["#rrggbb", ...]}`` over u), the film ``size``
-    [width, height] in pixels."""
+    [width, height] in pixels; ``modes``: the lighting modes the view may
+    refine in (None: the scene's integrator has none, ``mode_note`` says
+    why), ``mode`` the view's, ``fast_mode`` the one of drag frames."""
     TYPE: ClassVar[str] = "hello"
     view: int
     camera: object
@@ -156,6 +169,10 @@ class Hello(Message):
     colormap_stops: dict
     out_dir: str | None = _optional()          # where snapshots go (added by the server)
     editor: dict | None = _optional()          # the TF editor's and camera's extras (`ViewEngine.describe`)
+    modes: tuple[str, ...] | None = _optional()
+    mode: str | None = _optional()
+    fast_mode: str | None = _optional()
+    mode_note: str | None = _optional()
 
 
 @dataclass(frozen=True)
@@ -175,7 +192,11 @@ class Frame(Message):
     """A binary frame's header: the view ``version`` it shows, its samples
     per pixel, ``width`` x ``height`` pixels, render time in ms;
     ``shown_spp``: the samples of the picture when fewer than ``spp`` (a
-    denoised image follows the accumulation about each second)."""
+    denoised image follows the accumulation about each second); ``mode``:
+    the lighting mode it was rendered in (None: the scene's integrator has
+    none); ``rendered``: the view version whose state it shows (``version``
+    is the newest when it was sent: a drag frame may show an older state);
+    ``fast``: a drag frame, rendered in the fast mode."""
     TYPE: ClassVar[str] = "frame"
     version: int
     spp: int
@@ -186,6 +207,9 @@ class Frame(Message):
     render_ms: float
     max_spp: int
     shown_spp: int | None = _optional()
+    mode: str | None = _optional()
+    rendered: int | None = _optional()
+    fast: bool | None = _optional()
 
 
 @dataclass(frozen=True)
@@ -370,6 +394,12 @@ def _denoise(f: dict) -> DenoiseChange:
     return DenoiseChange(f["on"])
 
 
+def _mode(f: dict) -> ModeChange:
+    if f.get("mode") not in MODES:
+        raise ValueError(f"mode: one of {', '.join(MODES)}")
+    return ModeChange(f["mode"])
+
+
 def _snapshot(f: dict) -> SnapshotRequest:
     return SnapshotRequest(safe_name(f.get("name")))
 
@@ -388,7 +418,7 @@ def safe_name(name) -> str:
 
 #: Each page message type: its class and the parser of its fields.
 _PARSERS = {cls.TYPE: (cls, parse_fields) for cls, parse_fields in (
-    (CameraChange, _camera), (TFChange, _tf), (DenoiseChange, _denoise),
+    (CameraChange, _camera), (TFChange, _tf), (DenoiseChange, _denoise), (ModeChange, _mode),
     (HistogramRequest, lambda f: HistogramRequest()), (SnapshotRequest, _snapshot), (Ack, lambda f: Ack()),
     (TFSave, lambda f: TFSave()), (TFLoad, lambda f: TFLoad(_text("text", f.get("text")))),
     (FieldChange, lambda f: FieldChange(_text("name", f.get("name"), MAX_NAME))), (Describe, lambda f: Describe()))}

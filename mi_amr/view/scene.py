@@ -7,6 +7,13 @@ alone by `mi_amr.autoscene`) or an XML scene with an ``amr`` medium into a
 the ``dr.freeze``-recorded 1-spp passes, and a view's starting camera and
 TF. Dropping the object releases all of it (on the thread that rendered).
 
+Lighting modes: when the scene's integrator is ``amrvolpath``, one
+integrator object per mode (`MODES`; the scene's own serves its mode, the
+others are copies of its parameters with another ``mode``) renders the one
+scene through ``mi.render(scene, integrator=...)``: no second scene, so
+no second medium for Dr.Jit to dispatch over, and each (mode, film size)
+has its frozen recording.
+
 An XML scene's own TF table is kept exactly: the editor starts from its
 entries (or, for a table of more than `MAX_POINTS` entries, from
 `EDITOR_POINTS` samples of its opacity), and while a view's curve, colours,
@@ -26,6 +33,7 @@ import numpy as np
 import mi_amr
 from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, positive_share, scene_for
 from ..data.yt_import import load_dataset
+from ..plugins.integrator import MODES, AMRVolpathIntegrator
 from ..transfer.classification import check_density_scale
 from ..transfer.function import TransferFunction
 from .camera import OrbitCamera, floor_height, world_up
@@ -39,25 +47,36 @@ EDITOR_POINTS = 65
 
 class FrozenPasses:
     """1-spp ``mi.render`` passes of one scene, ``dr.freeze``-recorded once
-    per film size (a replay does not see the film's size, a scalar of the
-    recorded kernels: one recording must never serve another size)."""
+    per film size and integrator (a replay does not see the film's size, a
+    scalar of the recorded kernels: one recording must never serve another
+    size; an integrator's mode is a Python constant of its kernels)."""
 
     def __init__(self):
         self._frozen = {}
 
-    def render(self, scene, seed: int, size) -> np.ndarray:
-        """One pass, (height, width, channels) float32, for ``size`` = [width, height] pixels."""
-        key = tuple(size)
-        if key not in self._frozen:
-            self._frozen[key] = dr.freeze(lambda scene, seed: mi.render(scene, spp=1, seed=seed))
-        image = np.array(self._frozen[key](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
+    def render(self, scene, seed: int, size, integrator=None, key=None) -> np.ndarray:
+        """One pass, (height, width, channels) float32, for ``size`` = [width,
+        height] pixels, by ``integrator`` (None: the scene's), whose
+        recordings ``key`` names (the mode)."""
+        k = (tuple(size), key)
+        if k not in self._frozen:
+            if integrator is None:
+                self._frozen[k] = dr.freeze(lambda scene, seed: mi.render(scene, spp=1, seed=seed))
+            else:
+                self._frozen[k] = dr.freeze(lambda scene, seed: mi.render(scene, integrator=integrator, spp=1,
+                                                                          seed=seed))
+        image = np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
         if image.shape[:2] != (size[1], size[0]):
             raise RuntimeError(f"rendered {image.shape[:2]}, expected {(size[1], size[0])}")
         return image
 
-    def forget(self, size):
-        """Drop the recording for ``size`` (after a failed pass)."""
-        self._frozen.pop(tuple(size), None)
+    def recorded(self, size, key=None) -> bool:
+        """Whether a recording for ``size`` and ``key`` exists."""
+        return (tuple(size), key) in self._frozen
+
+    def forget(self, size, key=None):
+        """Drop the recording for ``size`` and ``key`` (after a failed pass)."""
+        self._frozen.pop((tuple(size), key), None)
 
 
 @dataclass
@@ -89,6 +108,15 @@ class LoadedScene:
     passes: FrozenPasses = field(default_factory=FrozenPasses)
     applied: dict = field(default_factory=dict)  # the camera, size and spec the scene holds now
     histogram: Histogram | None = None
+    integrators: dict = field(default_factory=dict)  # lighting mode -> amrvolpath integrator ({}: none)
+    scene_mode: str | None = None               # the scene's own integrator's mode
+    mode_note: str = ""                         # why there are no modes
+
+    @property
+    def modes(self) -> tuple:
+        """The lighting modes the scene renders in (`MODES`; () when its
+        integrator is not ``amrvolpath``)."""
+        return tuple(m for m in MODES if m in self.integrators)
 
     @property
     def log_available(self) -> bool:
@@ -137,13 +165,22 @@ class LoadedScene:
             self.medium.set_transfer_function(self.table(spec), spec.density)
             self.applied["spec"] = spec
 
-    def render(self, seed: int, size) -> np.ndarray:
-        """One 1-spp pass of what `apply` put in, [width, height] = ``size``."""
-        return self.passes.render(self.scene, seed, size)
+    def render(self, seed: int, size, mode: str | None = None) -> np.ndarray:
+        """One 1-spp pass of what `apply` put in, [width, height] = ``size``,
+        in the lighting ``mode`` (None: the scene's integrator as it is)."""
+        if mode is None:
+            return self.passes.render(self.scene, seed, size)
+        if mode not in self.integrators:
+            raise ValueError(f"mode {mode}: {self.mode_note or 'not one of ' + ', '.join(self.modes)}")
+        return self.passes.render(self.scene, seed, size, self.integrators[mode], mode)
 
-    def forget(self, size):
+    def recorded(self, size, mode: str | None = None) -> bool:
+        """Whether a pass of ``size`` in ``mode`` is recorded (replays compile nothing)."""
+        return self.passes.recorded(size, mode)
+
+    def forget(self, size, mode: str | None = None):
         """After a failed pass: drop its recording, re-apply everything next time."""
-        self.passes.forget(size)
+        self.passes.forget(size, mode)
         self.applied.clear()
 
     def shares(self, spec: TFSpec) -> list[float]:
@@ -189,7 +226,32 @@ def load_scene(source, field, res: int, say) -> LoadedScene:
     loaded.keys = {"to_world": prefix + "to_world", "size": prefix + "film.size"}
     params[loaded.keys["size"]] = loaded.size
     params.update()
+    loaded.integrators, loaded.scene_mode, loaded.mode_note = mode_integrators(loaded.scene)
     return loaded
+
+
+def integrator_props(integrator, mode: str) -> dict:
+    """``mi.load_dict`` properties of an ``amrvolpath`` integrator with the
+    parameters of ``integrator`` (one) and the lighting ``mode``."""
+    props = {"type": "amrvolpath", "mode": mode, "rr_depth": int(integrator.rr_depth),
+             "max_depth": -1 if integrator.max_depth == 0xFFFFFFFF else int(integrator.max_depth),
+             "hide_emitters": bool(integrator.hide_emitters)}
+    for name, value in (("residual_ratio_tracking", integrator.residual),
+                        ("decomposition_tracking", integrator.decomposition)):
+        if value is not None:                    # None: each medium's own choice
+            props[name] = bool(value)
+    return props
+
+
+def mode_integrators(scene) -> tuple[dict, str | None, str]:
+    """``(integrators, the scene's mode, note)``: an ``amrvolpath``
+    integrator per lighting mode, the scene's own for its mode and copies of
+    its parameters for the others; ``({}, None, why)`` for another integrator."""
+    own = scene.integrator()
+    if not isinstance(own, AMRVolpathIntegrator):
+        kind = own.class_name() if own is not None else "none"
+        return {}, None, f"the scene's integrator is {kind}: lighting modes need amrvolpath"
+    return ({m: own if m == own.mode else mi.load_dict(integrator_props(own, m)) for m in MODES}, own.mode, "")
 
 
 def ground_boxes(scene) -> np.ndarray:

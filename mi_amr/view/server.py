@@ -247,7 +247,7 @@ async def _handle(message, engine, view, out_dir, loop, acked, budget=None) -> p
             case p.Ack():
                 acked.set()
                 return None
-            case p.CameraChange() | p.TFChange() | p.DenoiseChange():
+            case p.CameraChange() | p.TFChange() | p.DenoiseChange() | p.ModeChange():
                 if engine.change(view, msg):          # a new range or units: a new histogram
                     return engine.histogram(view)
                 return None

@@ -1,7 +1,7 @@
 """A view written to files: ``NAME.exr`` (the accumulated image, linear),
 ``NAME.png`` (what the page shows), ``NAME.tf.json`` (the medium's TF) and
-``NAME.xml``, the scene with the view's camera and TF, which ``mi-amr
-render`` renders to the same picture: for data the planned scene
+``NAME.xml``, the scene with the view's camera, TF and lighting mode, which
+``mi-amr render`` renders to the same picture: for data the planned scene
 (`mi_amr.autoscene.write_scene_xml`), for an XML scene the source rewritten
 (`mi_amr.scene_xml`). An XML scene's TF left as it was is written with
 the scene's own table values (`LoadedScene.table`).
@@ -29,7 +29,7 @@ import numpy as np
 from ..autoscene import field_scalars, write_scene_xml
 from ..images import write_exr, write_png
 from ..native_file import save_native
-from ..scene_xml import amr_elements, parse_scene, set_parameters
+from ..scene_xml import amr_elements, integrator_elements, parse_scene, set_parameters
 from .camera import OrbitCamera
 from .protocol import safe_name
 from .scene import LoadedScene
@@ -106,9 +106,11 @@ def place(written: Path, target: Path):
 
 
 def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, shown: np.ndarray,
-                   camera: OrbitCamera, spec: TFSpec, spp: int, budget: SnapshotBudget | None = None) -> Snapshot:
+                   camera: OrbitCamera, spec: TFSpec, spp: int, budget: SnapshotBudget | None = None,
+                   mode: str | None = None) -> Snapshot:
     """The files of a view (module docstring) in ``out_dir``: ``image`` the
-    accumulation's mean (linear RGB, ``spp`` samples per pixel), ``shown``
+    accumulation's mean (linear RGB, ``spp`` samples per pixel, rendered in
+    the lighting ``mode``; None: the scene's integrator as it is), ``shown``
     what the page shows (from the same samples). Nothing is overwritten;
     what was placed is removed again when a later file fails."""
     out_dir = Path(out_dir).resolve()
@@ -132,9 +134,9 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
             if data.parent == Path(tmp):              # written now: placed beside the snapshot
                 side = [(data, out_dir / data.name)]
                 data = out_dir / data.name
-            _data_xml(loaded, private[2], paths[3], data, camera, spec, tf, spp)
+            _data_xml(loaded, private[2], paths[3], data, camera, spec, tf, spp, mode)
         else:
-            _scene_xml(loaded, private[2], paths[3], camera, spec, spp)
+            _scene_xml(loaded, private[2], paths[3], camera, spec, spp, mode)
         try:
             for src, target in list(zip(private, paths)) + side:
                 place(src, target)
@@ -169,21 +171,23 @@ def _data_file(loaded: LoadedScene, out_dir: Path, tmp: Path) -> Path:
 
 
 def _data_xml(loaded: LoadedScene, path: Path, tf_path: Path, data: Path, camera: OrbitCamera, spec: TFSpec, tf,
-              spp: int):
-    """The planned scene of data with the view's camera, TF and density scale."""
+              spp: int, mode: str | None = None):
+    """The planned scene of data with the view's camera, TF, density scale and lighting mode."""
     plan = replace(loaded.plan, tf=str(tf_path), tf_range=tf.domain, density_scale=spec.density,
                    origin=camera.origin, target=camera.target, up=camera.up, fov=camera.fov,
                    notes=[f"data: {loaded.description}", f"a snapshot of mi-amr view at {spp} spp: TF "
                           f"{tf_path.name} ({'log10' if spec.log else 'linear'} display over "
                           f"[{spec.range[0]:.4g}, {spec.range[1]:.4g}], colormap {spec.colormap}), "
-                          f"density_scale {spec.density:.4g}"])
-    write_scene_xml(plan, data, path, res=loaded.size[0], spp=spp)
+                          f"density_scale {spec.density:.4g}" + (f", lighting mode {mode}" if mode else "")])
+    write_scene_xml(plan, data, path, res=loaded.size[0], spp=spp, mode=mode)
 
 
-def _scene_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCamera, spec: TFSpec, spp: int):
+def _scene_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCamera, spec: TFSpec, spp: int,
+               mode: str | None = None):
     """The source XML with the view's camera (a lookat), film size, sample
-    count, TF (the .json) and density scale on its first amr medium;
-    relative paths still resolve (a <path> to the source's folder)."""
+    count, TF (the .json) and density scale on its first amr medium, and
+    the lighting ``mode`` on its amrvolpath integrators; relative paths
+    still resolve (a <path> to the source's folder)."""
 
     src = Path(str(loaded.source)).resolve()
     tree = parse_scene(src)
@@ -202,4 +206,7 @@ def _scene_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCame
             set_parameters(sensor.find(child), values)
     set_parameters(amr_elements(root)[0], {"transfer_function": str(tf_path), "density_scale": float(spec.density)},
                    drop=("tf_min", "tf_max"))
+    if mode is not None:
+        for element in integrator_elements(root):
+            set_parameters(element, {"mode": mode})
     tree.write(path)

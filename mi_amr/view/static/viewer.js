@@ -1,5 +1,5 @@
 // mi-amr view: the page. One websocket to the server (mi_amr/view/server.py):
-// JSON messages out (camera, tf, denoise, snapshot, ack), JSON and binary
+// JSON messages out (camera, tf, denoise, mode, snapshot, ack), JSON and binary
 // frames in. Every control change is sent at most once per animation frame;
 // the server renders the newest state and drops what went stale. The TF
 // editor: tf_editor.js; the orbit camera's arithmetic: camera.js.
@@ -16,16 +16,24 @@ const view = $("view"), ctx = view.getContext("2d");
 let ws = null, camera = null;
 let cameraLimits = { home: null, max_elevation: 85, floor_margin: 0.01 };   // from the server's hello
 let version = 0;                 // change messages sent (the server's view version)
-const changeTimes = new Map();   // version -> time it was sent
+const changeTimes = new Map();   // version -> time it was sent (until a frame came after it)
+const renderTimes = new Map();   // version -> time it was sent (until a frame rendered from it came)
 let dragging = null;             // camera drag state
 let pendingCamera = false;
 const denoisedShown = { version: -1, full: false };   // of the newest version
+const refinedShown = { version: -1, full: false };    // the newest version in the chosen mode
 
-// Figures read by people (the stats line) and by tests (window.viewerStats).
+// Figures read by people (the stats line) and by tests and the benchmark
+// (window.viewerStats): latencies from a change to the first frame after it
+// (latencies) and to the first frame rendered from it (renderLatencies); from
+// the last change to the first picture of the chosen mode, at preview or full
+// size (refinedLatencies) and at full size (fullLatencies), and to the first
+// denoised one (denoiseLatencies, fullDenoiseLatencies).
 const stats = window.viewerStats = {
-  frames: 0, denoisedFrames: 0, lastFrame: null, frameTimes: [], latencies: [],
-  denoiseLatencies: [], fullDenoiseLatencies: [], lastChange: 0, errors: [], snapshots: [], ready: false,
-  fatal: null,
+  frames: 0, denoisedFrames: 0, lastFrame: null, frameTimes: [], latencies: [], renderLatencies: [],
+  denoiseLatencies: [], fullDenoiseLatencies: [], refinedLatencies: [], fullLatencies: [],
+  lastChange: 0, errors: [], snapshots: [], ready: false, fatal: null, mode: null, frameModes: {},
+  fastRenderMs: [], fastWidths: [], changes: 0,
 };
 
 function send(msg) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(msg)); }
@@ -34,8 +42,11 @@ function changed() {             // a change message is about to go out
   version += 1;
   const now = performance.now();
   changeTimes.set(version, now);
+  renderTimes.set(version, now);
   stats.lastChange = now;
+  stats.changes += 1;
   if (changeTimes.size > 500) changeTimes.delete(changeTimes.keys().next().value);
+  if (renderTimes.size > 500) renderTimes.delete(renderTimes.keys().next().value);
 }
 
 function flush() {               // once per animation frame: the newest camera and TF
@@ -85,6 +96,7 @@ function onJson(msg) {
     $("denoise").checked = msg.denoise;
     $("denoise").disabled = !msg.denoiser;
     $("denoise-note").textContent = msg.denoiser ? "" : `denoiser missing: ${msg.denoiser_missing}`;
+    showModes(msg);
     showStatus("rendering…");
     stats.ready = true;
   } else if (msg.type === "histogram") {
@@ -120,7 +132,29 @@ async function onFrame(buffer) {
   for (const [v, t] of changeTimes) {             // first frame of (or after) each change
     if (v <= header.version) { stats.latencies.push(now - t); changeTimes.delete(v); }
   }
-  if (stats.latencies.length > 500) stats.latencies.splice(0, stats.latencies.length - 500);
+  const rendered = header.rendered ?? header.version;
+  for (const [v, t] of renderTimes) {             // first frame rendered from each change (or a later one)
+    if (v <= rendered) { stats.renderLatencies.push(now - t); renderTimes.delete(v); }
+  }
+  for (const key of ["latencies", "renderLatencies"]) {
+    if (stats[key].length > 500) stats[key].splice(0, stats[key].length - 500);
+  }
+  const mode = header.mode ?? "scene";
+  stats.frameModes[mode] = (stats.frameModes[mode] || 0) + 1;
+  if (header.fast) {
+    stats.fastRenderMs.push(header.render_ms); stats.fastWidths.push(header.width);
+    if (stats.fastRenderMs.length > 500) { stats.fastRenderMs.shift(); stats.fastWidths.shift(); }
+  }
+  if (rendered === version && !header.fast && (header.mode ?? null) === stats.mode) {   // the chosen mode
+    if (refinedShown.version !== version) {
+      refinedShown.version = version; refinedShown.full = false;
+      stats.refinedLatencies.push(now - stats.lastChange);
+    }
+    if (!header.preview && !refinedShown.full) {
+      refinedShown.full = true;
+      stats.fullLatencies.push(now - stats.lastChange);
+    }
+  }
   if (header.denoised) {        // the first denoised image (preview, then full size) after the last change
     stats.denoisedFrames += 1;
     if (header.version === version && denoisedShown.version !== version) {
@@ -138,11 +172,35 @@ async function onFrame(buffer) {
 }
 
 function sppText(h) {            // the real count; the denoised picture's own when older; "done" at the end
-  if (h.preview) return h.denoised ? "preview, denoised" : "preview";
+  const mode = h.mode ? ` · ${h.mode}` : "";
+  if (h.fast) return `moving: preview${mode}`;
+  if (h.preview) return (h.denoised ? "preview, denoised" : "preview") + mode;
   const denoised = h.denoised ? (h.shown_spp ? `, denoised at ${h.shown_spp} spp` : ", denoised") : "";
   const done = h.spp >= h.max_spp && !h.shown_spp ? ` · done: refined to ${h.spp} spp` : "";
-  return `${h.spp} spp${denoised}${done}`;
+  return `${h.spp} spp${denoised}${done}${mode}`;
 }
+
+// ---- lighting mode: what the picture refines in (drags render in the fast one) -------------
+let fastMode = null;
+function showModes(msg) {
+  const select = $("mode");
+  select.replaceChildren(...(msg.modes || []).map((m) => new Option(m, m, false, m === msg.mode)));
+  select.disabled = !msg.modes;
+  fastMode = msg.fast_mode ?? null;
+  modeNote(msg.mode ?? null, msg.modes ? "" : msg.mode_note || "");
+}
+
+function modeNote(mode, why) {
+  stats.mode = mode;
+  $("mode-note").textContent = why || (fastMode && mode && fastMode !== mode
+    ? `${fastMode} while the camera or the TF moves` : "");
+}
+
+$("mode").addEventListener("change", () => {
+  modeNote($("mode").value, "");
+  changed();
+  send({ type: "mode", mode: $("mode").value });
+});
 
 // ---- camera: orbit (drag), pan (shift/right drag), zoom (wheel) ---------------------
 // Orbit and zoom keep the elevation within the poles and the eye above the
