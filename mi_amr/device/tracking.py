@@ -32,11 +32,13 @@ The consumers:
 * `ResidualRatioTracking` (Novak et al. 2014): with the segment's minorant
   as control extinction ``mu_c`` (``0 <= mu_c <= sigma_t``), the
   transmittance takes the factor ``exp(-mu_c * length)`` of each segment
-  analytically, and each tentative collision (rate ``mu - mu_c``) multiplies
-  it by ``1 - (sigma_t - mu_c) / (mu - mu_c)``.
+  analytically (then Russian roulette, as after a collision), and each
+  tentative collision (rate ``mu - mu_c``) multiplies it by ``1 - (sigma_t -
+  mu_c) / (mu - mu_c)``.
 * `DecompositionTracking` (Kutz et al. 2017): two exponential clocks run,
   the control one (rate ``mu_c``) and the residual one (rate ``mu -
-  mu_c``); if the control clock rings first the collision is real with
+  mu_c``), drawn as one clock of rate ``mu`` that is the control one with
+  probability ``mu_c / mu``; if the control clock rings first the collision is real with
   probability one and needs no look-up, otherwise it is real with
   probability ``(sigma_t - mu_c) / (mu - mu_c)``. A real collision needs the
   albedo, which for a TF of several colours is itself a look-up: then the
@@ -73,6 +75,22 @@ from .structs import jit_struct
 #: it adds is lost in the rest of the path's, and the work it saves is not;
 #: measured in docs/performance/frame-cost.md section 5.
 RATIO_RR_THRESHOLD = 0.5
+
+
+def _tally(counter, increment):
+    """``counter + increment``, or None where the estimator does not count
+    (a Python constant: no loop variable, no work per iteration)."""
+    return None if counter is None else counter + increment
+
+
+def _counted(counter):
+    """A count for `TrackingCounts`: zeros where none was kept."""
+    return mi.UInt32(0) if counter is None else counter
+
+
+def _counter(count: bool):
+    """The initial value of a count: 0, or None when not counting."""
+    return mi.UInt32(0) if count else None
 
 
 class _Fields:
@@ -156,6 +174,10 @@ def walk_segments(segments, ray: LocalRay, active, consumer, max_iterations):
         state = consumer.enter(state, ray, seg, need & seg.valid, t, seg_end)
         # ---- The consumer's move in the segment ----
         state, t, alive = consumer.step(state, ray, t, seg_end, alive)
+        # every walker's segments end at t_hi: a lane that got there has no
+        # segment left, and stops now rather than at the next iteration's
+        # failed advance (which draws nothing: the same random numbers)
+        alive &= t < ray.t_hi
         it += 1
     # a lane still alive here was stopped by the bound
     return consumer.result(state, ray, WalkEnd(t=t, exhausted=it >= max_iterations, cut=alive))
@@ -189,15 +211,19 @@ class _Tracking:
     ``lookup(u, active) -> (value, sigma_t)`` at local points (sigma_t per
     world length), or ``(value, sigma_t, carried)`` when one look-up also
     reconstructs a further field (`AMRMedium.point_query`). Subclasses provide the initial state (`begin`), the
-    collision hook (`collide`) and the result."""
+    collision hook (`collide`) and the result. ``count``: keep the event
+    counts (look-ups, collisions, steps) in the loop state; without it they
+    are Python constants (no loop variables) and the result's counts are 0
+    but ``capped``."""
 
     label = "amr_track"
 
-    def __init__(self, lookup, sampler, carries: bool = False):
+    def __init__(self, lookup, sampler, carries: bool = False, count: bool = True):
         self.lookup = lookup
         self.sampler = sampler
         #: whether ``lookup`` returns a carried field's value too
         self.carries = carries
+        self.count = count
 
     def control(self, state):
         """The current segment's control extinction ``mu_c``: none here, a
@@ -207,7 +233,7 @@ class _Tracking:
     def enter(self, state, ray, seg, entered, t, seg_end):
         """The walk's hook: the new segment's majorant, one more step."""
         state.mu = dr.select(entered, seg.mu, state.mu)
-        state.steps += dr.select(entered, 1, 0)
+        state.steps = _tally(state.steps, dr.select(entered, 1, 0))
         return state
 
     def clocks(self, state, ray, t, mu_c, residual, alive):
@@ -238,7 +264,7 @@ class _Tracking:
             # a symbolic conditional: a SIMD packet in which no lane looks
             # up the density (all stepping through segments) skips it
             found = lookup(x, look)
-        state.lookups += dr.select(look, 1, 0)
+        state.lookups = _tally(state.lookups, dr.select(look, 1, 0))
         carried = found[2] if self.carries else 0.0
         state, alive = self.collide(state, TentativeCollision(inside, by_control, look, found[0], found[1], mu_c,
                                                               residual, carried), alive)
@@ -272,15 +298,16 @@ class DeltaTracking(_Tracking):
     ``albedo_of(value, active) -> rgb`` is called once, after the loop, for
     the lanes that collided (a null collision needs no colour)."""
 
-    def __init__(self, lookup, albedo_of, sampler, carries: bool = False):
-        super().__init__(lookup, sampler, carries)
+    def __init__(self, lookup, albedo_of, sampler, carries: bool = False, count: bool = True):
+        super().__init__(lookup, sampler, carries, count)
         self.albedo_of = albedo_of
 
     def begin(self, ray, active):
+        n = self.count
         return DeltaState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), collided=mi.Bool(False),
                           value=mi.Float(0.0), carried=mi.Float(0.0) if self.carries else None,
-                          looked=mi.Bool(False), sigma_t=mi.Float(0.0), lookups=mi.UInt32(0),
-                          null=mi.UInt32(0), real=mi.UInt32(0), steps=mi.UInt32(0))
+                          looked=mi.Bool(False), sigma_t=mi.Float(0.0), lookups=_counter(n),
+                          null=_counter(n), real=_counter(n), steps=_counter(n))
 
     def real_sigma_t(self, c: TentativeCollision):
         """sigma_t reported at a real collision: the one looked up."""
@@ -297,13 +324,13 @@ class DeltaTracking(_Tracking):
             state.carried = dr.select(accept & ~c.by_control, c.carried, state.carried)
         state.looked = dr.select(accept, ~c.by_control, state.looked)
         state.sigma_t = dr.select(accept, self.real_sigma_t(c), state.sigma_t)
-        state.null += dr.select(c.inside & ~accept, 1, 0)
-        state.real += dr.select(accept, 1, 0)
+        state.null = _tally(state.null, dr.select(c.inside & ~accept, 1, 0))
+        state.real = _tally(state.real, dr.select(accept, 1, 0))
         return state, alive & ~accept
 
     def result(self, state, ray, end: WalkEnd) -> FreeFlight:
-        counts = TrackingCounts(state.lookups, state.null, state.real, state.steps,
-                                dr.select(end.exhausted, 1, 0))
+        counts = TrackingCounts(_counted(state.lookups), _counted(state.null), _counted(state.real),
+                                _counted(state.steps), dr.select(end.exhausted, 1, 0))
         return FreeFlight(collided=state.collided, t=ray.world_t(end.t),
                           albedo=self.albedo_of(state.value, state.collided), sigma_t=state.sigma_t,
                           value=state.value, carried=state.carried, looked=state.collided & state.looked,
@@ -323,8 +350,8 @@ class DecompositionTracking(DeltaTracking):
     reports ``mu_c`` as its sigma_t; the value left in the state colours it
     (any value has that one colour)."""
 
-    def __init__(self, lookup, albedo_of, sampler, known_albedo, carries: bool = False):
-        super().__init__(lookup, albedo_of, sampler, carries)
+    def __init__(self, lookup, albedo_of, sampler, known_albedo, carries: bool = False, count: bool = True):
+        super().__init__(lookup, albedo_of, sampler, carries, count)
         self.known_albedo = known_albedo
 
     def begin(self, ray, active):
@@ -341,13 +368,18 @@ class DecompositionTracking(DeltaTracking):
         return state
 
     def clocks(self, state, ray, t, mu_c, residual, alive):
-        t_c, _ = super().clocks(state, ray, t, mu_c, residual, alive)
-        # the control clock (rate mu_c) may ring first
-        ctl = alive & (mu_c > 0.0)
-        xi_c = state.rng.next_1d(ctl)
-        t_ctl = t - dr.log(1.0 - xi_c) * dr.rcp(dr.select(ctl, mu_c, 1.0)) * ray.scale
-        by_control = ctl & (t_ctl < t_c)
-        return dr.select(by_control, t_ctl, t_c), by_control
+        # the earlier of the control clock (rate mu_c) and the residual one
+        # (rate mu - mu_c) rings at rate mu, and it is the control clock with
+        # probability mu_c / mu: one exponential and one uniform (drawn only
+        # where mu_c > 0, so that with mu_c = 0 the random numbers are those
+        # of delta tracking) instead of two exponentials
+        mu = mu_c + residual
+        go = alive & (mu > 0.0)
+        xi = state.rng.next_1d(go)
+        t_c = t - dr.log(1.0 - xi) * dr.rcp(dr.select(go, mu, 1.0)) * ray.scale
+        ctl = go & (mu_c > 0.0)
+        by_control = ctl & (state.rng.next_1d(ctl) * mu < mu_c)
+        return dr.select(go, t_c, float("inf")), by_control
 
     def real_sigma_t(self, c: TentativeCollision):
         return dr.select(c.by_control, c.mu_c, c.sigma_t)
@@ -369,25 +401,31 @@ class RatioTracking(_Tracking):
     """Ratio tracking with Russian roulette below `RATIO_RR_THRESHOLD`."""
 
     def begin(self, ray, active):
+        n = self.count
         return RatioState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), T=mi.Float(1.0),
-                          lookups=mi.UInt32(0), null=mi.UInt32(0), steps=mi.UInt32(0))
+                          lookups=_counter(n), null=_counter(n), steps=_counter(n))
 
     def collide(self, state, c: TentativeCollision, alive):
         # T *= 1 - (sigma_t - mu_c) / (mu - mu_c) at every tentative collision
         excess = c.sigma_t - c.mu_c
         inv_res = dr.rcp(dr.select(c.residual > 0.0, c.residual, 1.0))
         state.T = dr.select(c.inside, state.T * dr.maximum(1.0 - excess * inv_res, 0.0), state.T)
-        state.null += dr.select(c.inside, 1, 0)
-        # Russian roulette below RATIO_RR_THRESHOLD: go on with probability
-        # T / threshold and T = threshold, else stop with T = 0 (unbiased)
-        low = c.inside & (state.T < RATIO_RR_THRESHOLD)
-        survive = state.rng.next_1d(low) * RATIO_RR_THRESHOLD < state.T
-        state.T = dr.select(low, dr.select(survive, RATIO_RR_THRESHOLD, 0.0), state.T)
+        state.null = _tally(state.null, dr.select(c.inside, 1, 0))
+        state = self.roulette(state, c.inside)
         return state, alive & (state.T > 0.0)
 
+    @staticmethod
+    def roulette(state, where):
+        """Russian roulette below RATIO_RR_THRESHOLD: go on with probability
+        T / threshold and T = threshold, else stop with T = 0 (unbiased)."""
+        low = where & (state.T < RATIO_RR_THRESHOLD)
+        survive = state.rng.next_1d(low) * RATIO_RR_THRESHOLD < state.T
+        state.T = dr.select(low, dr.select(survive, RATIO_RR_THRESHOLD, 0.0), state.T)
+        return state
+
     def result(self, state, ray, end: WalkEnd) -> Transmittance:
-        counts = TrackingCounts(state.lookups, state.null, mi.UInt32(0), state.steps,
-                                dr.select(end.exhausted, 1, 0))
+        counts = TrackingCounts(_counted(state.lookups), _counted(state.null), mi.UInt32(0),
+                                _counted(state.steps), dr.select(end.exhausted, 1, 0))
         return Transmittance(T=state.T, counts=counts)
 
 
@@ -411,7 +449,11 @@ class ResidualRatioTracking(RatioTracking):
         state.mu_c = dr.select(entered, dr.clip(seg.mu_min, 0.0, seg.mu), state.mu_c)
         # the control part of this segment's transmittance, analytically
         state.T = dr.select(entered, state.T * dr.exp(-state.mu_c * (seg_end - t) * dr.rcp(ray.scale)), state.T)
-        return state
+        # and the same Russian roulette as at a collision once it falls below
+        # RATIO_RR_THRESHOLD: a ray the minorants mostly block stops here (the
+        # step ends a lane with T = 0); with mu_c = 0, T never falls here and
+        # no number is drawn (the random numbers of plain ratio tracking)
+        return self.roulette(state, entered)
 
 
 # ---- The ray-wise majorant ----------------------------------------------------------

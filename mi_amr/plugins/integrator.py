@@ -199,8 +199,9 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         # and the path loop is recorded once (docs/design.md section 6);
         # any other sampler (stratified, low-discrepancy) is used as it is.
         rng = Rng.derive(sampler, active) if sampler.class_name() == "IndependentSampler" else sampler
-        counts = TrackingCounts()
-        shadow_counts = TrackingCounts()
+        # the event counts, None (Python constants, no loop variables) unless counted
+        counts = TrackingCounts() if self.counters_enabled else None
+        shadow_counts = TrackingCounts() if self.counters_enabled else None
 
         # read-only names stay out of the loop state (docs/design.md section
         # 6); a sampler other than the independent one is carried as `rng`,
@@ -229,8 +230,9 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             for k in range(len(amr_media)):
                 is_k = active_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.decomposition, amr_media[k])
-                flight = amr_media[k].free_flight(ray, si.t, rng, is_k, control)
-                counts = counts + flight.counts
+                flight = amr_media[k].free_flight(ray, si.t, rng, is_k, control, self.counters_enabled)
+                if dr.hint(self.counters_enabled, mode="scalar"):
+                    counts = counts + flight.counts
                 real = is_k & flight.collided
                 mei[real] = self._medium_interaction(ray, flight, amr_ptrs[k])
                 if dr.hint(amr_media[k].glows, mode="scalar"):
@@ -312,7 +314,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 ref = dr.select(nee_m, mi.Interaction3f(mei), mi.Interaction3f(si))
                 emitted, ds, c = self._sample_emitter(ref, scene, rng, medium, channel,
                                                       nee_m | nee_s, amr_media, amr_ptrs, has_other)
-                shadow_counts = shadow_counts + c
+                if dr.hint(self.counters_enabled, mode="scalar"):
+                    shadow_counts = shadow_counts + c
                 phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
                 if dr.hint(self.mode == "single", mode="scalar"):
                     # no phase sampling follows: the light sample is the
@@ -409,7 +412,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         total = mi.Float(0.0)
         T = mi.Spectrum(1.0)
         medium = mi.MediumPtr(medium)
-        counts = TrackingCounts()
+        counts = TrackingCounts() if self.counters_enabled else None
         it = mi.UInt32(0)
         while dr.hint(active, label="amrvolpath_shadow",
                       exclude=[self, scene, ds, max_dist, time, wavelengths, amr_media, amr_ptrs, has_other,
@@ -424,10 +427,11 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             for k in range(len(amr_media)):
                 is_k = in_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.residual, amr_media[k])
-                estimate = amr_media[k].transmittance(ray, seg, rng, is_k, control)
-                c = estimate.counts
-                c.real = mi.UInt32(dr.select(is_k, 1, 0))      # shadow counts: crossings
-                counts = counts + c
+                estimate = amr_media[k].transmittance(ray, seg, rng, is_k, control, self.counters_enabled)
+                if dr.hint(self.counters_enabled, mode="scalar"):
+                    c = estimate.counts
+                    c.real = mi.UInt32(dr.select(is_k, 1, 0))      # shadow counts: crossings
+                    counts = counts + c
                 T[is_k] *= estimate.T
             if dr.hint(has_other, mode="scalar"):
                 is_other = in_medium
@@ -462,7 +466,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             # there counts as blocked (never leaks light) and is reported
             cut = active & (it >= MAX_SHADOW_CROSSINGS)
             T[cut] = 0.0
-            counts.capped += dr.select(cut, 1, 0)
+            if dr.hint(self.counters_enabled, mode="scalar"):
+                counts.capped += dr.select(cut, 1, 0)
             active &= ~cut
         return emitter_val * T, ds, counts
 

@@ -530,25 +530,29 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         s = m * dr.norm(d * dr.rcp(m))
         return o, flush_tiny(d * dr.rcp(s)), s
 
-    def free_flight(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False) -> FreeFlight:
+    def free_flight(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False,
+                    count: bool = True) -> FreeFlight:
         """Delta tracking through local-majorant segments along ``ray`` up to
         ``t_max`` (decomposition tracking against the minorants with
         ``control``): a `FreeFlight`, its ``t`` in world units along ``ray``.
         ``sampler``: a Mitsuba sampler or an `Rng`, which seeds the
-        tracking's own random stream."""
+        tracking's own random stream; ``count``: keep the event counts (else
+        they read 0, and cost nothing)."""
         carries = self._carried is not None
         lookup = self.point_query if carries else self.value_local
         if control:
-            tracking = DecompositionTracking(lookup, self.albedo_of, sampler, self.tf_device.rgb_constant, carries)
+            tracking = DecompositionTracking(lookup, self.albedo_of, sampler, self.tf_device.rgb_constant, carries,
+                                             count)
         else:
-            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries)
+            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count)
         return self._track(ray, t_max, active, tracking)
 
-    def transmittance(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False) -> Transmittance:
+    def transmittance(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False,
+                      count: bool = True) -> Transmittance:
         """Ratio-tracking estimate of transmittance along ``ray`` over
         ``[0, t_max]`` (residual ratio tracking against the minorants with
-        ``control``): a `Transmittance`."""
-        tracking = (ResidualRatioTracking if control else RatioTracking)(self.value_local, sampler)
+        ``control``): a `Transmittance` (``count`` as in `free_flight`)."""
+        tracking = (ResidualRatioTracking if control else RatioTracking)(self.value_local, sampler, count=count)
         return self._track(ray, t_max, active, tracking)
 
     def _track(self, ray, t_max, active, tracking):

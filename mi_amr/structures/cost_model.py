@@ -142,6 +142,11 @@ def auto_grid(cells: BlockVolume, tf, density_scale: float, world_scale: float =
     r = g.res
     shape = (r[2], r[1], r[0])
     vmin, vmax = g.vmin.reshape(shape), g.vmax.reshape(shape)
+    if constant_field(cells, g):
+        # one value everywhere: the look-up term is the same at every
+        # resolution (and with minorants equal to the majorants there are no
+        # look-ups at all), so the fewest steps win: one macrocell
+        cands = [1] + cands
     if masks:
         bin_alpha = range_majorants_host(tf, *g.bins.edges(), 1.0)
         mask = g.masks.reshape(shape)
@@ -172,6 +177,15 @@ def auto_grid(cells: BlockVolume, tf, density_scale: float, world_scale: float =
     allowed = [p for p in costs if p.refinement in refinements]
     best = min(allowed, key=lambda p: (costs[p], p.refinement, p.resolution))
     return best, costs
+
+
+def constant_field(cells: BlockVolume, grid: MacrocellGrid) -> bool:
+    """Whether ``cells`` hold one value and fill their bounding box (so every
+    point has that value): sigma_t is then the same everywhere for any TF and
+    density scale, and one macrocell is the best grid for all of them
+    (a uniform field, the cheapest AMR there is: docs/performance/modes.md)."""
+    lo, hi = float(np.min(grid.vmin)), float(np.max(grid.vmax))
+    return bool(cells.covers_bounds) and np.isfinite(lo) and lo == hi
 
 
 def _candidates(cells, candidates=CANDIDATES) -> list:
