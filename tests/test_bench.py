@@ -3,10 +3,16 @@
 import json
 import math
 
+import mitsuba as mi
+import numpy as np
 import pytest
 
+import mi_amr
+from mi_amr.bench import modes as modes_bench
 from mi_amr.bench.__main__ import main
+from mi_amr.bench.harness import bench_scene
 from mi_amr.bench.protocol import all_configs
+from mi_amr.plugins.integrator import MODES
 
 
 def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):
@@ -248,3 +254,59 @@ def test09_scale_bench_reports_the_first_picture(tmp_path):
         assert r["file"].endswith("." + r["source"])
     assert records[0]["cells"] == records[1]["cells"] and records[2]["cells"] == records[3]["cells"]
     assert "**first picture s**" in (out / "scale.md").read_text()
+
+
+def test10_modes_bench_reports_each_mode_beside_the_empty_frame_and_the_floor(llvm, tmp_path):
+    """``--modes``: per case the empty frame and every mode, with its share
+    of the empty frame and its real collisions; the floor's rows per mode.
+    Properties, not timings: emission_absorption and single stop at the same
+    first real collision (the same random numbers up to it), so they count
+    the same collisions, and multi at least as many; the uniform field and
+    Mitsuba's homogeneous medium render the same picture (unbiased, within
+    the frames' own noise)."""
+    out = tmp_path / "modes"
+    code = main(["--modes", "--out", str(out), "--cells", "800", "--res", "16", "--repeats", "2",
+                 "--datasets", "cloud", "--tfs", "spiky", "--modes-cells",
+                 "--modes-floor-res", "16", "--modes-floor-spp", "4"])
+    assert code == 0
+    result = json.loads((out / "modes.json").read_text())
+    (case,) = result["cases"]
+    assert (case["dataset"], case["tf"], case["spp"]) == ("cloud", "spiky", 1)
+    assert case["empty_s"] > 0 and len(case["empty_frames"]["wall"]) == 2
+    modes = case["modes"]
+    assert list(modes) == list(MODES)
+    for m in MODES:
+        r = modes[m]
+        assert r["fps"] == pytest.approx(1.0 / r["frame_s"])
+        lo, hi = r["vs_empty"]["range"]
+        assert 0 < lo <= r["vs_empty"]["median"] <= hi
+        assert len(r["frames"]["wall"]) == len(r["frames"]["cpu"]) == 2
+    assert modes["emission_absorption"]["real_per_frame"] == modes["single"]["real_per_frame"] > 0
+    assert modes["multi"]["real_per_frame"] >= modes["single"]["real_per_frame"]
+    rows = result["floor"]["rows"]
+    n = 16 * 16 * 3 * 2                                   # pixel channels x frames per mean
+    for m in MODES:
+        h, a = rows[f"homogeneous/{m}"], rows[f"uniform amr/{m}"]
+        assert h["variance"] > 0 and a["variance"] > 0
+        assert abs(h["mean"] - a["mean"]) < 5 * math.sqrt((h["variance"] + a["variance"]) / n), m
+        assert a["efficiency_vs_homogeneous"] > 0 and a["vs_homogeneous"]["median"] > 0
+    text = (out / "modes.md").read_text()
+    assert "## Frames/s per mode (16x16, 1 spp)" in text and "## The floor" in text
+    assert "python -m mi_amr.bench --modes" in text
+
+
+def test11_a_uniform_field_takes_one_macrocell_and_no_look_up(llvm):
+    """The floor's field (one level, one value): the cost model gives it one
+    macrocell whatever the TF, its minorants equal its majorants, and
+    amrvolpath's flights and shadow rays look nothing up."""
+    tf = mi_amr.TransferFunction(np.tile([0.9, 0.9, 0.9, 1.0], (2, 1)), (0.0, 1.0))
+    medium = modes_bench.amr_medium(modes_bench.uniform_cells(8), tf, 8.0)
+    scene = mi.load_dict(bench_scene(medium, 16, {"type": "amrvolpath", "counters": True}))
+    med = mi_amr.amr_media(scene)[0]
+    assert med.structures.grid.host.res.tolist() == [1, 1, 1]
+    assert med.minorants_pay
+    mi.render(scene, spp=4)
+    c = scene.integrator().counters()
+    assert c["real"] > 0 and c["shadow_crossings"] > 0
+    assert c["lookups"] <= 1e-4 * c["real"] and c["shadow_lookups"] <= 1e-4 * c["shadow_crossings"]
+    del scene, med

@@ -3,11 +3,14 @@
 `main` is `parse` (the options of every study), `dispatch` (which study the
 options ask for) and that study's ``main_args``: the protocol
 (`mi_amr.bench.protocol`, the default), ``--scale`` (`mi_amr.bench.scale`),
-``--resample`` (`mi_amr.bench.resample`), ``--view`` (`mi_amr.bench.view`)
-or ``--distributed`` (`mi_amr.bench.distributed`).
+``--resample`` (`mi_amr.bench.resample`), ``--view`` (`mi_amr.bench.view`),
+``--distributed`` (`mi_amr.bench.distributed`) or ``--modes``
+(`mi_amr.bench.modes`: frames/s per lighting mode, and the uniform field
+against Mitsuba's homogeneous medium).
 """
 
 import argparse
+import sys
 
 from ..data.datasets import LAYOUTS
 from ..reconstruction import METHODS
@@ -25,6 +28,8 @@ def dispatch(args) -> int:
         from .view import main_args
     elif args.distributed:
         from .distributed import main_args
+    elif args.modes:
+        from .modes import main_args
     elif args.scale:
         from .scale import main_args
     elif args.resample is not None:
@@ -41,9 +46,12 @@ def parse(argv=None) -> argparse.Namespace:
                                 epilog="example:\n  python -m mi_amr.bench --quick --out out/bench-quick\n"
                                        "  python -m mi_amr.bench --datasets cloud --tfs spiky "
                                        "--configs reference amrvolpath/default --out out/b")
-    for options in (protocol_options, scale_options, resample_options, view_options, distributed_options):
+    for options in (protocol_options, scale_options, resample_options, view_options, distributed_options,
+                    modes_options):
         options(p)
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)      # the command, for the tables
+    return args
 
 
 def protocol_options(p):
@@ -140,6 +148,27 @@ def view_options(p):
                         "while dragging, change-to-frame and change-to-denoised times (--res, --repeats)")
     p.add_argument("--view-field", default=None, help="field of --view's data")
     p.add_argument("--view-preview-scale", type=float, default=0.5, help="--view: the viewer's preview scale")
+
+
+def modes_options(p):
+    p.add_argument("--modes", action="store_true",
+                   help="frames/s of amrvolpath's lighting modes beside the empty-medium frame (--res, 1 spp "
+                        "unless --spp; --datasets x --tfs, then --modes-cells), and the uniform field against "
+                        "Mitsuba's homogeneous medium (docs/performance/modes.md)")
+    p.add_argument("--modes-cells", type=float, nargs="*", default=[1e7, 1e8], metavar="CELLS",
+                   help="--modes: large data sets after the protocol's (octree-like cloud up to 1e7 cells, "
+                        "block-structured above; files in --data-dir); default 1e7 1e8")
+    p.add_argument("--modes-floor", action=argparse.BooleanOptionalAction, default=True,
+                   help="--modes: time the uniform field against homogeneous (default)")
+    p.add_argument("--modes-frames", type=int, default=5,
+                   help="--modes: frames timed per pass, their median kept (default 5)")
+    p.add_argument("--modes-figure", metavar="PNG", default=None,
+                   help="--modes: also render scenes/demo.xml in the three modes side by side into PNG, with "
+                        "each mode's 1-spp frame timed (the README's figure)")
+    p.add_argument("--modes-figure-res", type=int, default=256, help="--modes-figure: each picture's size")
+    p.add_argument("--modes-figure-spp", type=int, default=64, help="--modes-figure: samples per pixel")
+    p.add_argument("--modes-floor-res", type=int, default=128, help="--modes: frame size of the floor (128)")
+    p.add_argument("--modes-floor-spp", type=int, default=16, help="--modes: samples per pixel of the floor (16)")
 
 
 def distributed_options(p):
