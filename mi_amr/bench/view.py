@@ -4,8 +4,10 @@
 serves DATA as ``mi-amr view`` does, opens the page in Debian's chromium
 (Playwright) and, for each lighting mode the page can refine in (chosen in
 its selector), ``--repeats`` times each, drags the camera (an orbit) and a
-TF control point for ``seconds`` with a mouse move every 40 ms, and lets
-go. While the hand moves, frames are fast passes (emission_absorption, 1
+TF control point for ``seconds``, the pointer moving every 16 ms (a 60-Hz
+pointer: the moves dispatched in the page between a real press and
+release; ``driver="mouse"``: each through Playwright, whose round trips
+cap the moves at about 20 a second on this machine), and lets go. While the hand moves, frames are fast passes (emission_absorption, 1
 spp, ``--view-preview-scale`` of the resolution); once it rests, the mode
 refines. Read in the page (``window.viewerStats``): frames on screen per
 second during the drag; the time from a change to the first frame after it
@@ -27,7 +29,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import statistics
+import subprocess
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -47,9 +52,29 @@ RESET = ("window.viewerStats.latencies = []; window.viewerStats.renderLatencies 
          "window.viewerStats.fastWidths = [];")
 
 
-def _drag(page, box, kind: str, seconds: float, move_ms: float = 16):
+#: The moves of a drag dispatched in the page itself, every ``moveMs`` (a
+#: pointer of 60 Hz), between a real press and release.
+IN_PAGE_DRAG = """([testid, x0, y0, dx, dy, tf, seconds, moveMs]) => new Promise((done) => {
+    const el = document.querySelector(`[data-testid=${testid}]`);
+    const t0 = performance.now();
+    let k = 0;
+    const timer = setInterval(() => {
+        k += 1;
+        const step = tf ? k % 40 : k, up = !tf || Math.floor(k / 40) % 2 === 0;
+        el.dispatchEvent(new PointerEvent("pointermove", { clientX: x0 + dx * step,
+            clientY: y0 + dy * (up ? step : 40 - step), pointerId: 1, pointerType: "mouse", buttons: 1,
+            bubbles: true }));
+        if (performance.now() - t0 >= 1000 * seconds) { clearInterval(timer); done(k); }
+    }, moveMs);
+})"""
+
+
+def _drag(page, box, kind: str, seconds: float, move_ms: float = 16, driver: str = "page"):
     """Drag on ``box`` (the view or the TF editor) for ``seconds``, the
-    mouse moving every ``move_ms``."""
+    pointer moving every ``move_ms``: dispatched in the page (``driver``
+    "page", as a real pointer's events come), or each through Playwright's
+    mouse ("mouse": a round trip to the browser per move, which bounds the
+    moves per second on a busy machine)."""
     if kind == "camera":
         x0, y0, dx, dy = box["x"] + 0.3 * box["width"], box["y"] + 0.5 * box["height"], 2.5, 0.0
     else:                                 # the tallest spiky peak, dragged down and up
@@ -57,12 +82,16 @@ def _drag(page, box, kind: str, seconds: float, move_ms: float = 16):
     page.mouse.move(x0, y0)
     page.mouse.down()
     t0, k = time.monotonic(), 0
-    while time.monotonic() - t0 < seconds:
-        k += 1
-        step = k % 40 if kind == "tf" else k
-        sign = 1 if (k // 40) % 2 == 0 or kind == "camera" else -1
-        page.mouse.move(x0 + dx * step, y0 + dy * (step if sign > 0 else 40 - step))
-        page.wait_for_timeout(move_ms)
+    if driver == "page":
+        page.evaluate(IN_PAGE_DRAG, ["view" if kind == "camera" else "tf-editor", x0, y0, dx, dy, kind == "tf",
+                                     seconds, move_ms])
+    else:
+        while time.monotonic() - t0 < seconds:
+            k += 1
+            step = k % 40 if kind == "tf" else k
+            sign = 1 if (k // 40) % 2 == 0 or kind == "camera" else -1
+            page.mouse.move(x0 + dx * step, y0 + dy * (step if sign > 0 else 40 - step))
+            page.wait_for_timeout(move_ms)
     page.mouse.up()
     return time.monotonic() - t0
 
@@ -87,15 +116,49 @@ def _first_frame(page, url) -> tuple[float, float]:
     return first, time.monotonic()
 
 
-def pass_times(engine: ViewEngine, camera, spec, size, mode, n: int = 12) -> list[float]:
+def cli_first_picture(browser, data, field=None, res: int = 256) -> dict:
+    """As a new user meets it: ``mi-amr view DATA`` started as a process
+    (imports included), the page opened as soon as the URL is printed;
+    seconds from the start to the URL, the first frame on screen and the
+    first full-size one."""
+    cmd = [sys.executable, "-m", "mi_amr.tools.cli", "view", str(data), "--no-browser", "--res", str(res),
+           "--out", "/tmp"] + (["--field", field] if field else [])
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        url = None
+        for line in proc.stdout:
+            if line.startswith("mi-amr view: http"):
+                url = line.split(": ", 1)[1].strip()
+                break
+        if url is None:
+            raise RuntimeError(f"mi-amr view printed no URL (status {proc.wait()})")
+        listening = time.monotonic() - t0
+        page = browser.new_page(viewport={"width": 1200, "height": 800})
+        first, refined = _first_frame(page, url)
+        page.close()
+        return {"url_s": listening, "first_picture_s": first - t0, "first_refined_s": refined - t0}
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def pass_times(engine: ViewEngine, camera, spec, size, mode, n: int = 12, tf: bool = False) -> list[float]:
     """Milliseconds of ``n`` frozen passes of ``size`` in ``mode`` (the
-    camera turning a degree each, as in a drag), on the engine's scene."""
+    camera turning a degree each, as in a drag; ``tf``: the TF's density
+    changing instead, majorants recomputed each time), on the engine's scene."""
     out = []
     loaded = engine.loaded
     with JIT_LOCK:
         for k in range(n + 2):
             t = time.perf_counter()
-            loaded.apply(replace(camera, azimuth=camera.azimuth + k), spec, size)
+            if tf:
+                loaded.apply(camera, replace(spec, density=spec.density * (1 + 0.01 * (k % 2))), size)
+            else:
+                loaded.apply(replace(camera, azimuth=camera.azimuth + k), spec, size)
             loaded.render(90_000 + k, size, mode)
             if k >= 2:                            # the first may record
                 out.append(1e3 * (time.perf_counter() - t))
@@ -103,11 +166,15 @@ def pass_times(engine: ViewEngine, camera, spec, size, mode, n: int = 12) -> lis
 
 
 def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int = 3,
-            preview_scale: float = 0.5, modes=None, move_ms: float = 16) -> dict:
+            preview_scale: float = 0.5, modes=None, move_ms: float = 16, driver: str = "page") -> dict:
     from playwright.sync_api import sync_playwright   # lazy: a benchmark dependency
     exe = shutil.which("chromium")
     if exe is None:
         raise SystemExit("the viewer benchmark needs Debian's chromium (make setup installs it)")
+    with sync_playwright() as p:                  # first, as a new user starts it (its own process)
+        browser = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS)
+        cli = cli_first_picture(browser, data, field, res)
+        browser.close()
     t0 = time.monotonic()
     engine = ViewEngine(data, field, res=res, preview_scale=preview_scale)
     ready_at = []
@@ -115,22 +182,27 @@ def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int
     engine.start()
     server = ViewServer(engine, quiet=True, out_dir="/tmp").start()
     out = {"data": str(data), "res": res, "preview_scale": preview_scale, "fast_mode": FAST_MODE, "move_ms": move_ms,
-           "cpus": os.cpu_count(), "load_average_start": os.getloadavg(), "runs": [], "passes": {}}
+           "driver": driver,
+           "cpus": os.cpu_count(), "load_average_start": os.getloadavg(), "runs": [], "passes": {}, "cli": cli}
     try:
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS)
-            page = browser.new_page(viewport={"width": 1200, "height": 800})
-            first, refined = _first_frame(page, server.url)
+            # a page opened at the start (as mi-amr view opens the browser): the load included
+            first_page = browser.new_page(viewport={"width": 1200, "height": 800})
+            first, refined = _first_frame(first_page, server.url)
             out["load_s"] = ready_at[0] - t0 if ready_at else None
             out["first_picture_s"], out["first_refined_s"] = first - t0, refined - t0
+            first_page.close()
             modes = [m for m in (modes or MODES) if m in engine.loaded.modes] or [engine.mode]
-            # opening a page when the data are loaded and the viewer is warm
-            page.wait_for_timeout(3000)
-            fresh = browser.new_page(viewport={"width": 1200, "height": 800})
+            # a page opened on the loaded viewer, once it recorded its passes ahead
+            deadline = time.monotonic() + 300
+            while (engine._warm or engine._views) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            out["warm_s"] = time.monotonic() - t0
+            page = browser.new_page(viewport={"width": 1200, "height": 800})
             t = time.monotonic()
-            first, refined = _first_frame(fresh, server.url)
+            first, refined = _first_frame(page, server.url)
             out["page_first_picture_s"], out["page_first_refined_s"] = first - t, refined - t
-            fresh.close()
             for mode in modes:
                 page.get_by_test_id("mode").select_option(mode)
                 page.wait_for_function(f"""() => {{ const f = window.viewerStats.lastFrame;
@@ -144,7 +216,7 @@ def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int
                         box = page.get_by_test_id(testid).bounding_box()
                         page.evaluate(RESET)
                         start, changes0 = page.evaluate("[performance.now(), window.viewerStats.changes]")
-                        took = _drag(page, box, kind, seconds, move_ms)
+                        took = _drag(page, box, kind, seconds, move_ms, driver)
                         end, changes1 = page.evaluate("[performance.now(), window.viewerStats.changes]")
                         page.wait_for_function("window.viewerStats.fullLatencies.length > 0", timeout=120_000)
                         page.wait_for_timeout(600)
@@ -171,6 +243,8 @@ def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int
         empty = replace(spec, points=((0.0, 0.0), (1.0, 0.0)))
         fast = engine._fast_mode()
         out["passes"]["fast"] = {"size": small, "ms": pass_times(engine, camera, spec, small, fast)}
+        out["passes"]["fast_tf_changing"] = {"size": small, "ms": pass_times(engine, camera, spec, small, fast,
+                                                                              tf=True)}
         out["passes"]["fast_empty"] = {"size": small, "ms": pass_times(engine, camera, empty, small, fast)}
         for mode in modes:
             out["passes"][f"full_{mode}"] = {"size": full, "ms": pass_times(engine, camera, spec, full, mode, 6)}
@@ -193,12 +267,17 @@ def report(result: dict) -> str:
     la = result.get("load_average_start", (0, 0, 0))
     lines = [f"`mi-amr view` on {result['data']}, {result['res']}x{result['res']}, fast passes "
              f"{result['fast_mode']} at preview scale {result['preview_scale']} (or smaller, to keep a "
-             f"frame budget), the mouse moving every {result['move_ms']:g} ms; load average at the start "
+             f"frame budget), the pointer moving every {result['move_ms']:g} ms "
+             f"({'in the page' if result.get('driver', 'page') == 'page' else 'through Playwright'}); "
+             "load average at the start "
              f"{la[0]:.1f} on {result.get('cpus')} CPUs.", "",
              f"First picture in the page: {result['first_picture_s']:.1f} s after the start (the load took "
              f"{result['load_s'] or 0:.1f} s), the first full-size one after {result['first_refined_s']:.1f} s; "
-             "a page opened on the loaded viewer: "
-             f"{result['page_first_picture_s']:.2f} s, refined {result['page_first_refined_s']:.2f} s.", "",
+             f"a page opened on the loaded viewer (its passes recorded ahead after {result['warm_s']:.1f} s): "
+             f"{result['page_first_picture_s']:.2f} s, refined {result['page_first_refined_s']:.2f} s. "
+             f"`mi-amr view` as a process (imports included), the page opened when it printed the URL "
+             f"({result['cli']['url_s']:.1f} s): first picture {result['cli']['first_picture_s']:.1f} s, first "
+             f"full-size one {result['cli']['first_refined_s']:.1f} s after the start.", "",
              "| mode | drag | round | frames/s on screen (changes/s sent) | change -> next frame, median / p90 ms | "
              "change -> frame of it, median / p90 ms | fast pass ms (widths) | last change -> mode's first / "
              "full size / denoised full ms |",
@@ -232,8 +311,9 @@ def report(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(data, field, res, out_dir, repeats=3, seconds=4.0, preview_scale=0.5, modes=None, move_ms=16):
-    result = measure(data, field, res, seconds, repeats, preview_scale, modes, move_ms)
+def run(data, field, res, out_dir, repeats=3, seconds=4.0, preview_scale=0.5, modes=None, move_ms=16,
+        driver="page"):
+    result = measure(data, field, res, seconds, repeats, preview_scale, modes, move_ms, driver)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "view.json").write_text(json.dumps(result, indent=1, default=float))
