@@ -11,21 +11,24 @@ import json
 import shutil
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import replace
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
+from mi_amr.bench.view import report
 from mi_amr.data.datasets import make_dataset
 from mi_amr.data.io import save_cells
 from mi_amr.images import read_exr, srgb8
 from mi_amr.plugins.integrator import MODES
+from mi_amr.tools.cli import main
 from mi_amr.view import protocol as p
 from mi_amr.view.engine import FAST_BUDGET, FAST_MODE, JIT_LOCK, SETTLE, ViewEngine
 from mi_amr.view.camera import OrbitCamera
 from mi_amr.view.scene import LoadedScene, integrator_props, mode_integrators
+from mi_amr.view.server import ViewServer
 from mi_amr.view.tf_spec import TFSpec
 
 pytest.importorskip("starlette")
@@ -37,7 +40,6 @@ MAX_SPP = 16
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
     """A viewer of a 20,000-cell cloud at 64x64 (fast passes 32x32 alone), on loopback."""
-    from mi_amr.view.server import ViewServer
     root = tmp_path_factory.mktemp("modes")
     src = save_cells(make_dataset("cloud", cells=20000, seed=0), root / "cloud.cells")
     engine = ViewEngine(src, res=RES, max_spp=MAX_SPP, preview_scale=0.5, fast_ladder=(1.0,)).start()
@@ -312,3 +314,40 @@ def test04_the_page_drags_fast_refines_in_its_mode_and_snapshots_it(served, brow
 
     assert errors == []
     page.close()
+
+
+def test05_the_benchmark_report_says_each_mode_and_the_bound():
+    """The view benchmark's report: a row per round, the median and the
+    spread of each mode and drag over the rounds, and the fast passes'
+    bound from the empty medium."""
+    run = {"drag_s": 4.0, "changes_per_s": 57.0, "latency_p90_ms": 80.0, "render_latency_median_ms": 70.0,
+           "render_latency_p90_ms": 90.0, "fast_render_median_ms": 30.0, "fast_sizes": [64],
+           "full_after_ms": 700.0, "full_denoised_after_ms": 700.0}
+    runs = [dict(run, mode=m, kind=k, round=r, frames_per_s=fps, latency_median_ms=lat, refined_after_ms=ref)
+            for m, k, r, fps, lat, ref in (("multi", "camera", 0, 21.0, 30.0, 150.0),
+                                           ("multi", "camera", 1, 27.0, 40.0, 250.0),
+                                           ("multi", "camera", 2, 24.0, 35.0, 200.0),
+                                           ("multi", "tf", 0, 15.0, 50.0, 180.0))]
+    result = {"data": "d.amrb", "res": 256, "preview_scale": 0.5, "fast_mode": FAST_MODE, "move_ms": 16,
+              "driver": "page", "cpus": 2, "load_average_start": (1.5, 1.0, 1.0), "load_s": 7.0,
+              "first_picture_s": 8.0, "first_refined_s": 9.0, "warm_s": 10.0, "page_first_picture_s": 0.6,
+              "page_first_refined_s": 1.5, "cli": {"url_s": 1.0, "first_picture_s": 9.5, "first_refined_s": 10.5},
+              "runs": runs, "passes": {"fast": {"size": [64, 64], "ms": [20.0, 25.0, 30.0]},
+                                       "fast_empty": {"size": [64, 64], "ms": [8.0, 10.0, 12.0]}}}
+    text = report(result)
+    assert text.count("| multi | camera |") == 4 and "| multi | camera | 1 | 27.0 (57) | 40 / 80 |" in text
+    assert "| multi | camera | 24.0 (21.0-27.0) | 35 (30-40) | 200 (150-250) |" in text
+    assert "| multi | tf | 15.0 (15.0-15.0) | 50 (50-50) | 180 (180-180) |" in text
+    assert "bounds the drag at 100 frames/s; the fast pass on this view at 40 frames/s" in text
+    assert "first picture 9.5 s" in text and "0.60 s" in text
+
+
+def test06_view_mode_on_a_scene_without_amrvolpath_is_one_line(capsys, tmp_path):
+    """``mi-amr view --mode`` on an XML scene whose integrator is volpath is
+    refused in one line, before anything is served; a bad mode is argparse's."""
+    scene = Path(__file__).resolve().parents[1] / "scenes" / "blocks.xml"
+    assert main(["view", str(scene), "--mode", "single", "--no-browser", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--mode single" in err[0] and "volpath" in err[0] and "amrvolpath" in err[0]
+    with pytest.raises(SystemExit):
+        main(["view", str(scene), "--mode", "ambient", "--no-browser"])

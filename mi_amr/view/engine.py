@@ -427,11 +427,12 @@ class ViewEngine:
                 views = list(self._views.values())
                 for v in views:
                     v.spec, v.epoch = new.initial_spec, v.epoch + 1      # version: the page's count
+                # another scene: its own recordings and fast-pass times
+                self._warm, self._fast_ms, self._fast_level = self._warm_list(), {}, 0
                 self._wake.notify_all()
             with JIT_LOCK:
                 del old                          # its Dr.Jit objects go on this thread
                 gc.collect()
-            self._warm = self._warm_list()
             self._set_status(desc=f"field {name}")
             for v in views:
                 if v.notify is not None:
