@@ -433,6 +433,7 @@ class ViewEngine:
             with JIT_LOCK:
                 del old                          # its Dr.Jit objects go on this thread
                 gc.collect()
+                new.passes.clear()               # recorded while the old scene was alive
             self._set_status(desc=f"field {name}")
             for v in views:
                 if v.notify is not None:

@@ -60,15 +60,30 @@ class FrozenPasses:
         recordings ``key`` names (the mode)."""
         k = (tuple(size), key)
         if k not in self._frozen:
-            if integrator is None:
-                self._frozen[k] = dr.freeze(lambda scene, seed: mi.render(scene, spp=1, seed=seed))
-            else:
-                self._frozen[k] = dr.freeze(lambda scene, seed: mi.render(scene, integrator=integrator, spp=1,
-                                                                          seed=seed))
-        image = np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
+            self._frozen[k] = self._record(integrator)
+        try:
+            image = np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
+        except RuntimeError as e:
+            # a recording made while other Dr.Jit instances were alive (the
+            # scene a field switch replaced, until it is collected) cannot be
+            # replayed once they are gone: record this pass again, once
+            if "registry" not in str(e):
+                raise
+            self._frozen[k] = self._record(integrator)
+            image = np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
         if image.shape[:2] != (size[1], size[0]):
             raise RuntimeError(f"rendered {image.shape[:2]}, expected {(size[1], size[0])}")
         return image
+
+    @staticmethod
+    def _record(integrator):
+        if integrator is None:
+            return dr.freeze(lambda scene, seed: mi.render(scene, spp=1, seed=seed))
+        return dr.freeze(lambda scene, seed: mi.render(scene, integrator=integrator, spp=1, seed=seed))
+
+    def clear(self):
+        """Drop every recording (the set of live Dr.Jit instances changed)."""
+        self._frozen.clear()
 
     def recorded(self, size, key=None) -> bool:
         """Whether a recording for ``size`` and ``key`` exists."""
