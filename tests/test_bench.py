@@ -84,6 +84,7 @@ def test02_config_names():
     assert len(names) == 8 + 4 * 3
 
 
+@pytest.mark.slow   # default-suite budget: the path is covered by faster tests
 def test03_reference_that_does_not_fit_is_reported(llvm, tmp_path):
     out = tmp_path / "bench"
     assert main(["--out", str(out), "--cells", "800", "--res", "8", "--spp", "1", "--ref-spp", "4",

@@ -335,6 +335,7 @@ def _enzo_example(directory):
     return Path(directory) / "DD0018" / "DD0018"
 
 
+@pytest.mark.slow   # default-suite budget: the path is covered by faster tests
 def test08_two_fields_of_the_enzo_example_in_one_command(tmp_path, capsys):
     """``mi-amr render OUTPUT --field density --emission blackbody
     --emission-field temperature`` on the Enzo-format example: extinction

@@ -224,6 +224,7 @@ def test05_ramses_leaves_exact(llvm, ramses_output):
     assert vol.meta["domain_cells"] == [16, 16, 16] and vol.meta["code"] == "ramses"
 
 
+@pytest.mark.slow   # default-suite budget: the path is covered by faster tests
 def test06_ramses_in_one_command(llvm, ramses_output, tmp_path, capsys):
     """``mi-amr render`` and ``mi-amr info`` on a RAMSES output."""
     from mi_amr.tools.cli import main

@@ -1,4 +1,5 @@
-"""What each lighting mode costs (issue 43 items 2 and 5): ``python -m mi_amr.bench --modes --out DIR``.
+"""What each lighting mode costs, and a collision against the homogeneous
+floor (docs/performance/modes.md): ``python -m mi_amr.bench --modes --out DIR``.
 
 Two tables (docs/performance/modes.md):
 
@@ -54,7 +55,7 @@ from .scale import data_file
 
 #: The empty-medium frame of a case (the limit).
 EMPTY = "empty"
-#: The floor's medium: extinction and albedo (issue 43 item 5), frame size
+#: The floor's medium: extinction and albedo, frame size
 #: and samples per pixel.
 FLOOR_SIGMA_T, FLOOR_ALBEDO, FLOOR_RES, FLOOR_SPP = 8.0, 0.9, 128, 16
 #: Cells per axis of the floor's uniform field (one level, one value).
