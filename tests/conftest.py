@@ -1,6 +1,7 @@
 """Shared fixtures: the Mitsuba variant and small data factories."""
 
 import os
+import shutil
 
 import numpy as np
 import pytest
@@ -146,3 +147,19 @@ def render_cli(argv):
     import sys
     return subprocess.run([sys.executable, "-m", "mi_amr.tools.cli", "render", *[str(a) for a in argv], "-q"],
                           capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """Debian's chromium driven by Playwright (no browser download), one per
+    test module: the viewer's browser tests share it."""
+    from playwright.sync_api import sync_playwright   # a dev dependency, for the browser tests only
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        pytest.fail("Debian's chromium is missing: make setup installs it (apt-get install chromium)")
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=exe, args=[
+            "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+            "--disable-sync", "--no-first-run"])
+        yield b
+        b.close()

@@ -7,7 +7,6 @@ keep their own views."""
 
 import gc
 import json
-import shutil
 import struct
 import time
 import urllib.error
@@ -164,18 +163,6 @@ def test05_hostile_messages_get_errors_and_the_server_goes_on(served):
 
 
 # ---- the page in a real browser ----------------------------------------------------------
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        pytest.fail("Debian's chromium is missing: make setup installs it (apt-get install chromium)")
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=exe, args=[
-            "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-            "--disable-sync", "--no-first-run"])
-        yield b
-        b.close()
 
 
 def _canvas(page) -> np.ndarray:

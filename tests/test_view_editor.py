@@ -7,7 +7,6 @@ density typed in, shows the volume's shares below and above the range as
 numpy counts them, and switches to another field."""
 
 import json
-import shutil
 import time
 
 import numpy as np
@@ -73,18 +72,6 @@ def test02_point_colours_and_files():
 
 
 # ---- in a browser --------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright   # lazy: an optional dependency (mi-amr[view] tests)
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        pytest.fail("Debian's chromium is missing: make setup installs it (apt-get install chromium)")
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=exe, args=[
-            "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-            "--disable-sync", "--no-first-run"])
-        yield b
-        b.close()
 
 
 def _serve(engine, out):

@@ -8,7 +8,6 @@ Playwright."""
 
 import base64
 import json
-import shutil
 import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -50,18 +49,6 @@ def served(tmp_path_factory):
     engine.stop()
 
 
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright   # lazy: an optional dependency (mi-amr[view] tests)
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        pytest.fail("Debian's chromium is missing: make setup installs it (apt-get install chromium)")
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=exe, args=[
-            "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-            "--disable-sync", "--no-first-run"])
-        yield b
-        b.close()
 
 
 def _wait(predicate, timeout=60.0, what="condition"):
