@@ -2,7 +2,8 @@
 
 Dr.Jit needs libLLVM >= 15, but 15 and 16 abort inside ``mi.render``; the
 Debian package ``libllvm19`` works. This must run before the LLVM backend
-starts, i.e. before the first LLVM variant is set.
+starts, i.e. before the first LLVM variant is set: the package's
+``__init__`` calls it first, so every module of mi-amr runs after it.
 """
 
 import glob

@@ -33,7 +33,6 @@ import mitsuba as mi
 import numpy as np
 from tqdm import tqdm
 
-from ._llvm import ensure_llvm_path
 from .scene_xml import dict_with_integrator_parameters, with_integrator_parameters
 
 #: Chunks of one render: their seeds are ``seed * MAX_CHUNKS + index``.
@@ -113,7 +112,6 @@ _SCENES: dict = {}
 
 def _scene(spec: SceneSpec, scene_dict=None):
     """The scene of ``spec``, loaded once per process."""
-    ensure_llvm_path()
     if mi.variant() != spec.variant:
         mi.set_variant(spec.variant)
     if spec.drjit_threads is not None:

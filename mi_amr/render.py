@@ -27,7 +27,6 @@ import drjit as dr
 import mitsuba as mi
 
 from . import distributed, series
-from ._llvm import ensure_llvm_path
 from .autoscene import DEFAULT_TF, GLOW_TF, field_scalars, plan_scene, scene_for, write_scene_xml
 from .data.io import save_cells
 from .images import write_exr, write_png
@@ -42,7 +41,6 @@ DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emi
 def set_variant(variant: str):
     """Select a Mitsuba variant (a one-line exit when it is missing or not a
     JIT RGB one) with the mi-amr plugins registered; returns ``mitsuba``."""
-    ensure_llvm_path()
     if variant not in mi.variants():
         raise SystemExit(f"mi-amr: variant {variant!r} is not available "
                          f"(available: {', '.join(mi.variants())})")

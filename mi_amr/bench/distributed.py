@@ -22,7 +22,6 @@ from pathlib import Path
 import mitsuba as mi
 
 from .. import distributed as D
-from .._llvm import ensure_llvm_path
 
 
 def run_distributed(scene: str, workers: int, res: int, spp: int, chunk_spp: int, repeats: int, out: Path):
@@ -73,7 +72,6 @@ def run_distributed(scene: str, workers: int, res: int, spp: int, chunk_spp: int
 def main_args(args) -> int:
     """Entry from `mi_amr.bench.__main__` (``--distributed``): 256 spp
     unless ``--spp`` is given."""
-    ensure_llvm_path()
     mi.set_variant(args.variant)
     spp = 256 if args.spp == 16 else args.spp
     run_distributed(args.dist_scene, args.workers, args.res, spp, args.chunk_spp, args.repeats, Path(args.out))

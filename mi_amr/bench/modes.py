@@ -43,7 +43,6 @@ import mitsuba as mi
 import numpy as np
 
 import mi_amr
-from .._llvm import ensure_llvm_path
 from ..data.cells import AMRCells
 from ..data.datasets import make_dataset
 from ..data.io import load_volume
@@ -319,7 +318,6 @@ def write_tables(records: list, floor: dict | None, out: Path, command: str):
 
 def main_args(args) -> int:
     """Entry from `mi_amr.bench.__main__` (``--modes``)."""
-    ensure_llvm_path()
     mi.set_variant(args.variant)
     if args.spp == 16:                  # the protocol's default: this study's is 1 spp
         args.spp = 1

@@ -48,7 +48,6 @@ import mitsuba as mi
 import numpy as np
 
 import mi_amr
-from .._llvm import ensure_llvm_path
 from ..autoscene import plan_scene
 from ..data.blocks import BlockVolume
 from ..data.datasets import make_dataset
@@ -326,7 +325,6 @@ def main_args(args) -> int:
     data set x TF case, then the TF-change timing, the tables and curves."""
     if args.quick:
         vars(args).update(QUICK)
-    ensure_llvm_path()
     mi.set_variant(args.variant)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -54,7 +54,6 @@ from types import SimpleNamespace
 import mitsuba as mi
 import numpy as np
 
-from .._llvm import ensure_llvm_path
 from ..autoscene import plan_scene
 from ..data.blocks import BlockVolume
 from ..data.datasets import write_block_dataset
@@ -608,7 +607,6 @@ def plot_resample(records, out: Path):
 
 def main_args(args):
     """Entry from `mi_amr.bench.__main__` (``--resample``)."""
-    ensure_llvm_path()
     mi.set_variant(args.variant)
     study = SimpleNamespace(
         res=args.res, truth_spp=args.truth_spp, floor_spp=args.floor_spp or

@@ -34,7 +34,6 @@ import mitsuba as mi
 import numpy as np
 
 import mi_amr
-from .._llvm import ensure_llvm_path
 from ..data.cells import AMRCells
 from ..data.datasets import ensure_dataset, make_dataset, write_block_dataset
 from ..data.io import load_volume, write_exabricks
@@ -85,7 +84,6 @@ def data_file(kind: str, n: int, data_dir: Path, source: str = "cells", layout: 
 def measure_one(path: str, config: str, res: int, spp: int, variant: str) -> dict:
     """Runs in its own process: load ``path`` into one medium of
     ``config`` (``integrator/traversal/sampling``), build, render."""
-    ensure_llvm_path()
     mi.set_variant(variant)
     def rss():
         with open("/proc/self/statm") as f:

@@ -8,7 +8,6 @@ import json
 import math
 import sys
 
-from .._llvm import ensure_llvm_path
 from ..params import plugin_error
 from ..plugins.integrator import MODES
 from ..render import render
@@ -38,7 +37,6 @@ def cmd_info(args):
     """Levels, cells, domain, fields (ranges, shares of zeros and negatives)
     and the memory of an ``amr`` medium over the data (`mi_amr.tools.info`);
     with ``--json`` one JSON object on one line."""
-    ensure_llvm_path()
     info = describe(args.file, args.field, args.scalars)
     print(json.dumps(info) if args.json else format_info(info))
 

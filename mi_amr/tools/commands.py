@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .._llvm import ensure_llvm_path
 from ..autoscene import _yt_load
 from ..data.convert import dense_to_amr
 from ..data.datasets import BLOCK_DATASETS, make_dataset, write_block_dataset
@@ -168,7 +167,6 @@ def frametime(args):
 
 
 def convert(args):
-    ensure_llvm_path()
     src = Path(args.input)
     if src.suffix in (".cells", ".npz", ".amrb") and Path(args.output).suffix == ".amrb":
         cells = load_volume(src, overlap=args.overlap)      # streamed into blocks, never per-cell records
@@ -230,7 +228,6 @@ def compare(args):
 
 
 def dataset(args):
-    ensure_llvm_path()
     if args.name in BLOCK_DATASETS and Path(args.output).suffix == ".cells":
         # streamed block by block: no per-cell array of the whole data set
         with progress(int(args.cells), f"writing {args.output}") as bar:

@@ -61,7 +61,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .._llvm import ensure_llvm_path
 from ..images import srgb8
 from ..params import plugin_error
 from ..plugins.integrator import MODES
@@ -252,7 +251,6 @@ class ViewEngine:
 
     # ---- Loading ---------------------------------------------------------------
     def _load(self):
-        ensure_llvm_path()
         if mi.variant() != self.variant:
             mi.set_variant(self.variant)
 
