@@ -204,9 +204,14 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, budget: SnapshotB
             head = p.dumps(header).encode()
             await ws.send_bytes(struct.pack(">I", len(head)) + head + jpeg)
 
+    def start(coro):                                 # a send to a tab that is gone ends its task;
+        task = asyncio.create_task(coro)             # the loop below sees it done, and the
+        task.add_done_callback(_retrieve)            # exception is taken here, never logged
+        return task
+
     stop_status = engine.on_status(lambda s: soon(outbox.put, s))
     outbox.put(engine.status)
-    tasks = [asyncio.create_task(writer())]
+    tasks = [start(writer())]
     view = None
     try:
         while not engine.ready.is_set():             # loading: the status listener reports
@@ -219,7 +224,7 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, budget: SnapshotB
         view = engine.open_view(send_frame, lambda msg: soon(outbox.put, msg))
         outbox.put(replace(engine.describe(view), out_dir=str(out_dir)))
         outbox.put(await loop.run_in_executor(None, engine.histogram, view))
-        tasks.append(asyncio.create_task(frames()))
+        tasks.append(start(frames()))
         while True:
             message = await ws.receive()
             if message["type"] == "websocket.disconnect":
@@ -235,6 +240,13 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, budget: SnapshotB
         stop_status()
         if view is not None:
             engine.close_view(view)
+
+
+def _retrieve(task: asyncio.Task) -> None:
+    """Take a finished send task's exception (a disconnect) so that asyncio
+    does not report it as never retrieved."""
+    if not task.cancelled():
+        task.exception()
 
 
 async def _handle(message, engine, view, out_dir, loop, acked, budget=None) -> p.ServerMessage | None:
