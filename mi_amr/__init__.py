@@ -21,6 +21,7 @@ from .data.io import load_cells, read_exabricks, read_npz, save_cells, write_exa
 from .data.yt_import import from_yt as _from_yt, world_transform as _world_transform  # noqa: E402
 from .device.structs import refresh  # noqa: E402
 from .plugins.integrator import integrator_class  # noqa: E402
+from .plugins.prb_integrator import prb_integrator_class  # noqa: E402
 from .plugins.medium import AMRMedium, medium_class, require_jit_rgb_variant, scene_media  # noqa: E402
 from .transfer.function import TransferFunction  # noqa: E402
 
@@ -46,8 +47,13 @@ def register(variant: str | None = None):
         require_jit_rgb_variant("the 'amrvolpath' integrator")
         return integrator_class()(props)
 
+    def make_prb_integrator(props):
+        require_jit_rgb_variant("the 'amrprbvolpath' integrator")
+        return prb_integrator_class()(props)
+
     mi.register_medium("amr", make_medium)
     mi.register_integrator("amrvolpath", make_integrator)
+    mi.register_integrator("amrprbvolpath", make_prb_integrator)
 
 
 def _on_variant_change(old, new):

@@ -192,14 +192,63 @@ class TentativeCollision:
     looked up, the ``value`` and ``sigma_t`` found there, and the segment's
     control extinction ``mu_c`` and residual majorant ``residual = mu - mu_c``;
     ``carried``: a further field's value found by the same look-up (0
-    unless the look-up carries one)."""
+    unless the look-up carries one); ``x``: the local point."""
 
-    __slots__ = ("inside", "by_control", "look", "value", "sigma_t", "mu_c", "residual", "carried")
+    __slots__ = ("inside", "by_control", "look", "value", "sigma_t", "mu_c", "residual", "carried", "x")
 
-    def __init__(self, inside, by_control, look, value, sigma_t, mu_c, residual, carried):
+    def __init__(self, inside, by_control, look, value, sigma_t, mu_c, residual, carried, x):
         self.inside, self.by_control, self.look = inside, by_control, look
         self.value, self.sigma_t, self.mu_c, self.residual = value, sigma_t, mu_c, residual
-        self.carried = carried
+        self.carried, self.x = carried, x
+
+
+class Replay:
+    """The adjoint of a tracking walk in a path-replay pass (docs/design.md
+    section 13b): the walk takes the primal's random numbers again, and at
+    each tentative collision whose factor enters the estimate (a null
+    collision of delta tracking: ``sigma_n = mu - sigma_t``; every
+    collision of ratio tracking: ``1 - (sigma_t - mu_c) / (mu - mu_c)``)
+    it looks ``sigma_t`` up again with gradients (``lookup(u, active) ->
+    (value, sigma_t)``) and differentiates the factor's logarithm, the
+    majorants held fixed.
+
+    Backward mode (``mode`` ``dr.ADMode.Backward``): ``weight`` is, per
+    lane, the adjoint radiance times the radiance that the factor scales,
+    summed over channels, and each collision sends ``weight * d log(factor)``
+    to the parameters. Forward mode: the walk's result carries the sum of
+    the factors' ``d log`` (``dlog``), which the integrator scales."""
+
+    def __init__(self, mode, lookup, weight=None):
+        self.mode, self.lookup, self.weight = mode, lookup, weight
+
+    @property
+    def forward(self) -> bool:
+        return self.mode == dr.ADMode.Forward
+
+    def begin(self):
+        """The initial ``dlog`` of a walk's state: 0 in forward mode, None
+        (no loop variable) in backward mode."""
+        return mi.Float(0.0) if self.forward else None
+
+    def collision(self, state, x, where, factor):
+        """Differentiate ``log factor(sigma_t)`` at local points ``x`` on
+        lanes ``where``; ``factor`` maps the attached sigma_t to the
+        collision's factor. Returns the state (its ``dlog`` grown in forward
+        mode)."""
+        with dr.resume_grad():
+            _, sigma_t = self.lookup(x, where)
+            f = factor(sigma_t)
+            f_primal = dr.detach(f)
+            ok = where & (f_primal > 0.0)
+            # f / f_primal: 1 in value, d log f in its derivative (a safe
+            # denominator where the factor is 0: no inf times 0 in the adjoint)
+            ratio = dr.select(ok, f * dr.rcp(dr.select(ok, f_primal, 1.0)), 0.0)
+            if dr.grad_enabled(ratio):
+                if self.forward:
+                    state.dlog = state.dlog + dr.select(ok, dr.forward_to(ratio), 0.0)
+                else:
+                    dr.backward_from(self.weight * ratio)
+        return state
 
 
 class _Tracking:
@@ -218,12 +267,17 @@ class _Tracking:
 
     label = "amr_track"
 
-    def __init__(self, lookup, sampler, carries: bool = False, count: bool = True):
+    def __init__(self, lookup, sampler, carries: bool = False, count: bool = True, replay: Replay | None = None):
         self.lookup = lookup
         self.sampler = sampler
         #: whether ``lookup`` returns a carried field's value too
         self.carries = carries
         self.count = count
+        #: the adjoint of a path-replay pass (`Replay`), or None: the primal
+        self.replay = replay
+
+    def _dlog(self):
+        return None if self.replay is None else self.replay.begin()
 
     def control(self, state):
         """The current segment's control extinction ``mu_c``: none here, a
@@ -267,29 +321,31 @@ class _Tracking:
         state.lookups = _tally(state.lookups, dr.select(look, 1, 0))
         carried = found[2] if self.carries else 0.0
         state, alive = self.collide(state, TentativeCollision(inside, by_control, look, found[0], found[1], mu_c,
-                                                              residual, carried), alive)
+                                                              residual, carried, x), alive)
         return state, t, alive
 
 
 @jit_struct(rng=Rng, mu="Float", collided="Bool", value="Float", carried="Float", looked="Bool",
-            sigma_t="Float", lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32")
+            sigma_t="Float", lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32", dlog="Float")
 class DeltaState(_Fields):
     """Loop state of `DeltaTracking`: the stream, the segment's majorant,
     the real collision so far (its value and carried field's value, whether
     they were looked up there, and sigma_t) and the counts. ``carried`` is
     None unless the look-up carries a field (no loop variable that never
-    changes)."""
+    changes); ``dlog`` None unless a forward-mode `Replay` sums into it."""
 
 
 @jit_struct(collided="Bool", t="Float", albedo="Color3f", sigma_t="Float", value="Float", carried="Float",
-            looked="Bool", counts=TrackingCounts)
+            looked="Bool", counts=TrackingCounts, dlog="Float")
 class FreeFlight(_Fields):
     """Result of a free flight: ``collided`` where a real collision
     happened, at the world ray's ``t`` (`LocalRay.world_t`; where none
     happened, where the walk ended), with its ``albedo`` and ``sigma_t``,
     the reconstructed ``value`` there (and a ``carried`` field's, None when
     the look-up carried none) where ``looked`` (a control collision of
-    decomposition tracking looks nothing up), and the counts."""
+    decomposition tracking looks nothing up), and the counts; ``dlog``: the
+    derivative of the log of its null collisions' factors (forward-mode
+    `Replay`; None otherwise)."""
 
 
 class DeltaTracking(_Tracking):
@@ -298,8 +354,9 @@ class DeltaTracking(_Tracking):
     ``albedo_of(value, active) -> rgb`` is called once, after the loop, for
     the lanes that collided (a null collision needs no colour)."""
 
-    def __init__(self, lookup, albedo_of, sampler, carries: bool = False, count: bool = True):
-        super().__init__(lookup, sampler, carries, count)
+    def __init__(self, lookup, albedo_of, sampler, carries: bool = False, count: bool = True,
+                 replay: Replay | None = None):
+        super().__init__(lookup, sampler, carries, count, replay)
         self.albedo_of = albedo_of
 
     def begin(self, ray, active):
@@ -307,7 +364,7 @@ class DeltaTracking(_Tracking):
         return DeltaState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), collided=mi.Bool(False),
                           value=mi.Float(0.0), carried=mi.Float(0.0) if self.carries else None,
                           looked=mi.Bool(False), sigma_t=mi.Float(0.0), lookups=_counter(n),
-                          null=_counter(n), real=_counter(n), steps=_counter(n))
+                          null=_counter(n), real=_counter(n), steps=_counter(n), dlog=self._dlog())
 
     def real_sigma_t(self, c: TentativeCollision):
         """sigma_t reported at a real collision: the one looked up."""
@@ -326,6 +383,10 @@ class DeltaTracking(_Tracking):
         state.sigma_t = dr.select(accept, self.real_sigma_t(c), state.sigma_t)
         state.null = _tally(state.null, dr.select(c.inside & ~accept, 1, 0))
         state.real = _tally(state.real, dr.select(accept, 1, 0))
+        if self.replay is not None:
+            # a looked-up null collision scales the path by sigma_n = mu - sigma_t
+            mu = c.mu_c + c.residual
+            state = self.replay.collision(state, c.x, c.look & ~accept, lambda sigma_t: mu - sigma_t)
         return state, alive & ~accept
 
     def result(self, state, ray, end: WalkEnd) -> FreeFlight:
@@ -334,7 +395,7 @@ class DeltaTracking(_Tracking):
         return FreeFlight(collided=state.collided, t=ray.world_t(end.t),
                           albedo=self.albedo_of(state.value, state.collided), sigma_t=state.sigma_t,
                           value=state.value, carried=state.carried, looked=state.collided & state.looked,
-                          counts=counts)
+                          counts=counts, dlog=state.dlog)
 
 
 @jit_struct(**DeltaState.JIT_FIELDS, mu_c="Float")
@@ -385,16 +446,17 @@ class DecompositionTracking(DeltaTracking):
         return dr.select(c.by_control, c.mu_c, c.sigma_t)
 
 
-@jit_struct(rng=Rng, mu="Float", T="Float", lookups="UInt32", null="UInt32", steps="UInt32")
+@jit_struct(rng=Rng, mu="Float", T="Float", lookups="UInt32", null="UInt32", steps="UInt32", dlog="Float")
 class RatioState(_Fields):
     """Loop state of `RatioTracking`: the stream, the segment's majorant,
-    the transmittance so far and the counts."""
+    the transmittance so far and the counts (``dlog`` as in `DeltaState`)."""
 
 
-@jit_struct(T="Float", counts=TrackingCounts)
+@jit_struct(T="Float", counts=TrackingCounts, dlog="Float")
 class Transmittance(_Fields):
     """Result of a transmittance estimate: ``T`` and the counts (``real``
-    is 0: ratio tracking has no real collisions)."""
+    is 0: ratio tracking has no real collisions); ``dlog``: the derivative
+    of ``log T`` (forward-mode `Replay`; None otherwise)."""
 
 
 class RatioTracking(_Tracking):
@@ -403,7 +465,7 @@ class RatioTracking(_Tracking):
     def begin(self, ray, active):
         n = self.count
         return RatioState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), T=mi.Float(1.0),
-                          lookups=_counter(n), null=_counter(n), steps=_counter(n))
+                          lookups=_counter(n), null=_counter(n), steps=_counter(n), dlog=self._dlog())
 
     def collide(self, state, c: TentativeCollision, alive):
         # T *= 1 - (sigma_t - mu_c) / (mu - mu_c) at every tentative collision
@@ -411,6 +473,10 @@ class RatioTracking(_Tracking):
         inv_res = dr.rcp(dr.select(c.residual > 0.0, c.residual, 1.0))
         state.T = dr.select(c.inside, state.T * dr.maximum(1.0 - excess * inv_res, 0.0), state.T)
         state.null = _tally(state.null, dr.select(c.inside, 1, 0))
+        if self.replay is not None:
+            mu_c = c.mu_c
+            state = self.replay.collision(state, c.x, c.look,
+                                          lambda sigma_t: dr.maximum(1.0 - (sigma_t - mu_c) * inv_res, 0.0))
         state = self.roulette(state, c.inside)
         return state, alive & (state.T > 0.0)
 
@@ -426,7 +492,7 @@ class RatioTracking(_Tracking):
     def result(self, state, ray, end: WalkEnd) -> Transmittance:
         counts = TrackingCounts(_counted(state.lookups), _counted(state.null), mi.UInt32(0),
                                 _counted(state.steps), dr.select(end.exhausted, 1, 0))
-        return Transmittance(T=state.T, counts=counts)
+        return Transmittance(T=state.T, counts=counts, dlog=state.dlog)
 
 
 @jit_struct(**RatioState.JIT_FIELDS, mu_c="Float")

@@ -27,6 +27,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..device.rng import Rng
+from ..device.structs import jit_struct
 from ..device.tracking import TrackingCounts
 from ..params import ParameterError, check_known, get_bool, get_int, get_string
 from .medium import AMRMedium, require_jit_rgb_variant, scene_media
@@ -54,6 +55,27 @@ def _mitsuba_helpers():
     from mitsuba.ad.integrators.common import mis_weight
     from mitsuba.ad.integrators.prbvolpath import index_spectrum
     return mis_weight, index_spectrum
+
+
+@jit_struct(o="Point3f", d="Vector3f", max_dist="Float", time="Float", wavelengths="Color0f",
+            medium="MediumPtr", rng=Rng, active="Bool")
+class ShadowStart:
+    """Where a shadow ray starts (world space): origin, unit direction,
+    distance to the emitter sample, time, wavelengths, medium, its random
+    stream (None without media) and live lanes."""
+
+    def __init__(self, o=None, d=None, max_dist=None, time=None, wavelengths=None, medium=None, rng=None,
+                 active=None):
+        self.o, self.d, self.max_dist, self.time, self.wavelengths = o, d, max_dist, time, wavelengths
+        self.medium, self.rng, self.active = medium, rng, active
+
+
+def _accumulate(L, where, contribution, adjoint):
+    """``L`` with ``contribution`` added on lanes ``where`` (the primal), or
+    taken away (a replay: ``L`` is the radiance still to come)."""
+    if adjoint is None:
+        return dr.select(where, L + contribution, L)
+    return dr.select(where, L - contribution, L)
 
 
 class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
@@ -119,19 +141,23 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         require_jit_rgb_variant("the 'amrvolpath' integrator")
         type(self).__base__.__init__(self, props)
         check_known(props, "amrvolpath", KNOWN)
-        md = get_int(props, "amrvolpath", "max_depth", -1)
-        if md < -1:
-            raise ParameterError(f"amrvolpath: max_depth must be -1 (infinite) or >= 0, got {md}")
-        self.max_depth = 0xFFFFFFFF if md == -1 else md
-        self.rr_depth = get_int(props, "amrvolpath", "rr_depth", 5, minimum=1)
-        self.hide_emitters = get_bool(props, "amrvolpath", "hide_emitters", False)
+        self._parse_path_options(props, "amrvolpath")
         self.counters_enabled = get_bool(props, "amrvolpath", "counters", False)
         # None: decided per medium (`AMRMedium.minorants_pay`)
         self.residual = get_bool(props, "amrvolpath", "residual_ratio_tracking", None)
         self.decomposition = get_bool(props, "amrvolpath", "decomposition_tracking", None)
-        # a Python constant: it shapes the kernel (docs/design.md section 6d)
-        self.mode = get_string(props, "amrvolpath", "mode", "multi", choices=MODES)
         self._counter_array = dr.zeros(mi.UInt64, len(COUNTER_NAMES))
+
+    def _parse_path_options(self, props, plugin: str):
+        """``max_depth``, ``rr_depth``, ``hide_emitters`` and ``mode``."""
+        md = get_int(props, plugin, "max_depth", -1)
+        if md < -1:
+            raise ParameterError(f"{plugin}: max_depth must be -1 (infinite) or >= 0, got {md}")
+        self.max_depth = 0xFFFFFFFF if md == -1 else md
+        self.rr_depth = get_int(props, plugin, "rr_depth", 5, minimum=1)
+        self.hide_emitters = get_bool(props, plugin, "hide_emitters", False)
+        # a Python constant: it shapes the kernel (docs/design.md section 6d)
+        self.mode = get_string(props, plugin, "mode", "multi", choices=MODES)
 
     # ---- Counters ------------------------------------------------------------
     def reset_counters(self):
@@ -173,14 +199,28 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 any(not isinstance(m, AMRMedium) for m in media))
 
     # ---- Radiance ------------------------------------------------------------
-    @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
+        L, valid_ray, _ = self._trace(scene, sampler, ray, medium, active)
+        return L, valid_ray, []
+
+    @dr.syntax
+    def _trace(self, scene, sampler, ray, medium=None, active=True, adjoint=None):
+        """The path estimator: ``(L, valid_ray, dL)``. ``adjoint`` (a
+        `PathAdjoint`, or None for the primal) makes it the replay pass of
+        path-replay backpropagation (docs/design.md section 13b): the same
+        random numbers and paths, ``L`` starts at the primal's radiance and
+        loses each contribution as the path passes it (the radiance still to
+        come), and every factor of an amr medium's parameters sends its
+        derivative on (backward mode) or adds its tangent to ``dL``
+        (forward mode; None otherwise)."""
         mis_weight, index_spectrum = _mitsuba_helpers()
         amr_media, has_other = self._media(scene)
         amr_ptrs = [mi.MediumPtr(m) for m in amr_media]
 
         ray = mi.Ray3f(ray)
-        L = mi.Spectrum(0.0)
+        L = mi.Spectrum(0.0) if adjoint is None else mi.Spectrum(adjoint.L)
+        # forward mode: the tangent of the radiance, summed along the path
+        dL = mi.Spectrum(0.0) if (adjoint is not None and adjoint.forward) else None
         throughput = mi.Spectrum(1.0)
         eta = mi.Float(1.0)
         depth = mi.UInt32(0)
@@ -208,7 +248,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         # and its unchanged stream increment makes Dr.Jit record the loop twice
         while dr.hint(active, label="amrvolpath",
                       exclude=[self, scene, sampler, amr_media, amr_ptrs, has_other, channel, mis_weight,
-                               index_spectrum]):
+                               index_spectrum, adjoint]):
             # ---- Russian roulette (as in volpath) ----
             q = dr.minimum(dr.max(throughput) * dr.square(eta), 0.95)
             perform_rr = depth > self.rr_depth
@@ -230,7 +270,13 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             for k in range(len(amr_media)):
                 is_k = active_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.decomposition, amr_media[k])
-                flight = amr_media[k].free_flight(ray, si.t, rng, is_k, control, self.counters_enabled)
+                replay = None
+                if dr.hint(adjoint is not None, mode="scalar"):
+                    # the flight's null collisions scale all radiance still to come
+                    replay = amr_media[k].replay(adjoint.mode, adjoint.weight(L))
+                flight = amr_media[k].free_flight(ray, si.t, rng, is_k, control, self.counters_enabled, replay)
+                if dr.hint(dL is not None, mode="scalar"):
+                    dL[is_k] += L * flight.dlog
                 if dr.hint(self.counters_enabled, mode="scalar"):
                     counts = counts + flight.counts
                 real = is_k & flight.collided
@@ -240,8 +286,12 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                     # t with density T(t) sigma_t(t), so adding sigma_a/sigma_t
                     # L_e = (1 - albedo) L_e there estimates the integral of
                     # T sigma_a L_e along the segment (docs/design.md section 12)
-                    L[real] += throughput * (1.0 - flight.albedo) * amr_media[k].emitted_radiance_at(flight, mei.p,
-                                                                                                   real)
+                    L = _accumulate(L, real, throughput * (1.0 - flight.albedo)
+                                    * amr_media[k].emitted_radiance_at(flight, mei.p, real), adjoint)
+                if dr.hint(adjoint is not None, mode="scalar"):
+                    tangent = adjoint.collision(amr_media[k], mei.p, real, flight, throughput, L)
+                    if dr.hint(dL is not None, mode="scalar"):
+                        dL += tangent
                 throughput[real] *= flight.albedo        # sigma_s / sigma_t
                 act_scatter |= real
 
@@ -278,7 +328,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             if dr.hint(self.mode == "emission_absorption", mode="scalar"):
                 # the collision's albedo (already in the throughput) times the
                 # ambient light, then the path stops there
-                L[act_scatter] += throughput * self._ambient(scene, ray, act_scatter)
+                L = _accumulate(L, act_scatter, throughput * self._ambient(scene, ray, act_scatter), adjoint)
                 act_scatter &= False
 
             # ---- Medium scattering: the phase function (NEE below) ----
@@ -300,7 +350,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             em_pdf = scene.pdf_emitter_direction(last_event, ds_hit, active_e & ~specular_chain)
             count_direct = (depth == 0) | specular_chain
             mis = dr.select(count_direct, 1.0, mis_weight(last_pdf, em_pdf))
-            L[active_e] += throughput * emitter.eval(si, active_e) * mis
+            L = _accumulate(L, active_e, throughput * emitter.eval(si, active_e) * mis, adjoint)
 
             active_surface &= si.is_valid()
             ctx = mi.BSDFContext()
@@ -312,20 +362,30 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             # in the trace, which runs for both kinds of lane together)
             if dr.hint(len(scene.emitters()) > 0, mode="scalar"):
                 ref = dr.select(nee_m, mi.Interaction3f(mei), mi.Interaction3f(si))
-                emitted, ds, c = self._sample_emitter(ref, scene, rng, medium, channel,
-                                                      nee_m | nee_s, amr_media, amr_ptrs, has_other)
+                emitted, ds, c, shadow = self._sample_emitter(ref, scene, rng, medium, channel,
+                                                              nee_m | nee_s, amr_media, amr_ptrs, has_other)
                 if dr.hint(self.counters_enabled, mode="scalar"):
                     shadow_counts = shadow_counts + c
                 phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
                 if dr.hint(self.mode == "single", mode="scalar"):
                     # no phase sampling follows: the light sample is the
                     # estimator's only way to the emitters (no MIS weight)
-                    L[nee_m] += throughput * phase_val * emitted
+                    nee_weight_m = phase_val
                 else:
-                    L[nee_m] += throughput * phase_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf)) \
-                        * emitted
+                    nee_weight_m = phase_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf))
                 bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), nee_s)
-                L[nee_s] += throughput * bsdf_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf)) * emitted
+                nee_weight_s = bsdf_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf))
+                L = _accumulate(L, nee_m, throughput * nee_weight_m * emitted, adjoint)
+                L = _accumulate(L, nee_s, throughput * nee_weight_s * emitted, adjoint)
+                if dr.hint(adjoint is not None, mode="scalar"):
+                    # the shadow ray's factors scale its own contribution: its
+                    # walks again, from the same random numbers
+                    nee = dr.select(nee_m, throughput * nee_weight_m * emitted,
+                                    dr.select(nee_s, throughput * nee_weight_s * emitted, 0.0))
+                    dlog = self._shadow(scene, ds, shadow, channel, amr_media, amr_ptrs, has_other,
+                                        adjoint, adjoint.weight(nee))[2]
+                    if dr.hint(dL is not None, mode="scalar"):
+                        dL += nee * dlog
 
             if dr.hint(self.mode == "single", mode="scalar"):
                 act_scatter &= False                     # single scattering: the path stops
@@ -359,7 +419,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             active &= active_surface | act_scatter | act_null
 
         self._count(counts, shadow_counts)
-        return L, valid_ray, []
+        return L, valid_ray, dL
 
     @staticmethod
     def _ambient(scene, ray, active):
@@ -396,27 +456,45 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
     def _sample_emitter(self, ref, scene, source, medium, channel, active,
                         amr_media, amr_ptrs, has_other):
         """Next-event estimation: an emitter sample and its transmittance
-        through media (ratio tracking) and index-matched surfaces. ``source``:
-        the path's random numbers (an `Rng` or the Mitsuba sampler)."""
-        _, index_spectrum = _mitsuba_helpers()
+        through media (ratio tracking) and index-matched surfaces:
+        ``(emitted, ds, counts, shadow)``, ``shadow`` the shadow ray's start
+        (`ShadowStart`) for a replay of its walk. ``source``: the path's
+        random numbers (an `Rng` or the Mitsuba sampler)."""
         active = mi.Bool(active)
         ds, emitter_val = scene.sample_emitter_direction(ref, source.next_2d(active), False, active)
         active &= ds.pdf != 0.0
         first = ref.spawn_ray_to(ds.p)
-        max_dist = mi.Float(first.maxt)
         # the loop state holds only what the loop changes (docs/design.md
         # section 6): the ray's origin and direction, not its time, and a
         # random stream of our own rather than the sampler
-        ray_o, ray_d, time, wavelengths = mi.Point3f(first.o), mi.Vector3f(first.d), first.time, first.wavelengths
         rng = Rng.derive(source, active) if (amr_media or has_other) else None
+        shadow = ShadowStart(o=mi.Point3f(first.o), d=mi.Vector3f(first.d), max_dist=mi.Float(first.maxt),
+                             time=first.time, wavelengths=first.wavelengths, medium=mi.MediumPtr(medium),
+                             rng=rng, active=active)
+        T, counts, _ = self._shadow(scene, ds, shadow, channel, amr_media, amr_ptrs, has_other)
+        return emitter_val * T, ds, counts, shadow
+
+    @dr.syntax
+    def _shadow(self, scene, ds, start, channel, amr_media, amr_ptrs, has_other, adjoint=None, weight=None):
+        """The shadow ray's walk from ``start`` to ``ds.p``: ``(T, counts,
+        dlog)``. With ``adjoint`` (a replay from the same start and random
+        numbers) each amr medium's ratio tracking differentiates its factors,
+        backward with ``weight`` (the adjoint radiance times the
+        contribution, per lane) or forward into ``dlog`` (None otherwise)."""
+        _, index_spectrum = _mitsuba_helpers()
+        ray_o, ray_d, max_dist = mi.Point3f(start.o), mi.Vector3f(start.d), start.max_dist
+        time, wavelengths = start.time, start.wavelengths
+        rng = None if start.rng is None else Rng(mi.UInt64(start.rng.state))
+        active = mi.Bool(start.active)
         total = mi.Float(0.0)
         T = mi.Spectrum(1.0)
-        medium = mi.MediumPtr(medium)
+        medium = mi.MediumPtr(start.medium)
         counts = TrackingCounts() if self.counters_enabled else None
+        dlog = mi.Float(0.0) if (adjoint is not None and adjoint.forward) else None
         it = mi.UInt32(0)
         while dr.hint(active, label="amrvolpath_shadow",
                       exclude=[self, scene, ds, max_dist, time, wavelengths, amr_media, amr_ptrs, has_other,
-                               channel, index_spectrum]):
+                               channel, index_spectrum, adjoint, weight]):
             remaining = max_dist - total
             ray = mi.Ray3f(ray_o, ray_d, remaining, time, wavelengths)
             active &= remaining > 0.0
@@ -427,11 +505,14 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             for k in range(len(amr_media)):
                 is_k = in_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.residual, amr_media[k])
-                estimate = amr_media[k].transmittance(ray, seg, rng, is_k, control, self.counters_enabled)
+                replay = None if adjoint is None else amr_media[k].replay(adjoint.mode, weight)
+                estimate = amr_media[k].transmittance(ray, seg, rng, is_k, control, self.counters_enabled, replay)
                 if dr.hint(self.counters_enabled, mode="scalar"):
                     c = estimate.counts
                     c.real = mi.UInt32(dr.select(is_k, 1, 0))      # shadow counts: crossings
                     counts = counts + c
+                if dr.hint(dlog is not None, mode="scalar"):
+                    dlog[is_k] += estimate.dlog
                 T[is_k] *= estimate.T
             if dr.hint(has_other, mode="scalar"):
                 is_other = in_medium
@@ -469,7 +550,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             if dr.hint(self.counters_enabled, mode="scalar"):
                 counts.capped += dr.select(cut, 1, 0)
             active &= ~cut
-        return emitter_val * T, ds, counts
+        return T, counts, dlog
 
 
 def integrator_class():

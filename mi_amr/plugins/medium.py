@@ -17,7 +17,7 @@ import numpy as np
 
 from ..device.grid import DeviceTwoLevelGrid
 from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
-from ..device.tracking import (DecompositionTracking, DeltaTracking, FreeFlight, LocalRay, RatioTracking,
+from ..device.tracking import (DecompositionTracking, DeltaTracking, FreeFlight, LocalRay, RatioTracking, Replay,
                                ResidualRatioTracking, SpanMajorant, Transmittance, walk_segments)
 from ..device.values import device_values
 from ..params import ParameterError
@@ -453,6 +453,10 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         value, found = self.structures.sampler().eval(u, active)
         return self.classification.albedo_and_sigma_t(value, found)
 
+    def eval_world(self, p: mi.Point3f, active=True):
+        """``(albedo, sigma_t)`` at world points ``p`` (`eval_local`)."""
+        return self.eval_local(self._to_local @ p, active)
+
     def value_local(self, u: mi.Vector3f, active=True):
         """``(value, sigma_t)`` at local point ``u``: the reconstructed value
         and sigma_t as in `eval_local`, without the colour (tracking takes
@@ -531,29 +535,41 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         return o, flush_tiny(d * dr.rcp(s)), s
 
     def free_flight(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False,
-                    count: bool = True) -> FreeFlight:
+                    count: bool = True, replay: Replay | None = None) -> FreeFlight:
         """Delta tracking through local-majorant segments along ``ray`` up to
         ``t_max`` (decomposition tracking against the minorants with
         ``control``): a `FreeFlight`, its ``t`` in world units along ``ray``.
         ``sampler``: a Mitsuba sampler or an `Rng`, which seeds the
         tracking's own random stream; ``count``: keep the event counts (else
-        they read 0, and cost nothing)."""
+        they read 0, and cost nothing); ``replay``: the adjoint of a
+        path-replay pass (`replay`; plain delta tracking only)."""
         carries = self._carried is not None
         lookup = self.point_query if carries else self.value_local
         if control:
+            if replay is not None:
+                raise ValueError("free_flight: a path-replay pass tracks without a control extinction")
             tracking = DecompositionTracking(lookup, self.albedo_of, sampler, self.tf_device.rgb_constant, carries,
                                              count)
         else:
-            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count)
+            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count, replay)
         return self._track(ray, t_max, active, tracking)
 
     def transmittance(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False,
-                      count: bool = True) -> Transmittance:
+                      count: bool = True, replay: Replay | None = None) -> Transmittance:
         """Ratio-tracking estimate of transmittance along ``ray`` over
         ``[0, t_max]`` (residual ratio tracking against the minorants with
-        ``control``): a `Transmittance` (``count`` as in `free_flight`)."""
-        tracking = (ResidualRatioTracking if control else RatioTracking)(self.value_local, sampler, count=count)
+        ``control``): a `Transmittance` (``count`` and ``replay`` as in
+        `free_flight`)."""
+        tracking = (ResidualRatioTracking if control else RatioTracking)(self.value_local, sampler, count=count,
+                                                                         replay=replay)
         return self._track(ray, t_max, active, tracking)
+
+    def replay(self, mode, weight=None) -> Replay:
+        """The adjoint hook of a path-replay pass for this medium's walks
+        (docs/design.md section 13b): ``mode`` a `dr.ADMode`, ``weight``
+        (backward mode) per lane the adjoint radiance times the radiance
+        the walk's factors scale, summed over channels."""
+        return Replay(mode, self.value_local, weight)
 
     def _track(self, ray, t_max, active, tracking):
         """The result of the estimator ``tracking`` walked along ``ray`` in

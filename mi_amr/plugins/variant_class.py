@@ -17,7 +17,8 @@ _SKIP = ("__dict__", "__weakref__", "_variants", "_mitsuba_base")
 
 
 class VariantPlugin(type):
-    """Metaclass; ``base`` names the Mitsuba base class (``"Medium"``)."""
+    """Metaclass; ``base`` names the Mitsuba base class (``"Medium"``), or
+    is a function returning the active variant's base class."""
 
     def __new__(mcls, name, bases, ns, base: str = "Object"):
         cls = super().__new__(mcls, name, bases, ns)
@@ -32,8 +33,12 @@ class VariantPlugin(type):
         """The plugin class for the active variant."""
         variant = mi.variant()
         if variant not in cls._variants:
-            ns = {k: v for k, v in vars(cls).items() if k not in _SKIP}
-            cls._variants[variant] = type(cls.__name__, (getattr(mi, cls._mitsuba_base),), ns)
+            ns = {}
+            for klass in reversed(cls.__mro__[:-1]):     # a plugin's own methods override its parents'
+                ns.update({k: v for k, v in vars(klass).items() if k not in _SKIP})
+            base = cls._mitsuba_base
+            base = base() if callable(base) else getattr(mi, base)
+            cls._variants[variant] = type(cls.__name__, (base,), ns)
         return cls._variants[variant]
 
     def __call__(cls, *args, **kwargs):
