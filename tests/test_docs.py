@@ -297,6 +297,8 @@ def _known_set(path: str, name: str) -> set:
     ("docs/manual/medium.md", "## Parameters of `amr`", "mi_amr/plugins/options.py", "AMRMedium"),
     ("docs/manual/integrator.md", "# The `amrvolpath` integrator", "mi_amr/plugins/integrator.py",
      "AMRVolpathIntegrator"),
+    ("docs/manual/integrator.md", "## The differentiable `amrprbvolpath`", "mi_amr/plugins/prb_integrator.py",
+     "AMRPRBVolpathIntegrator"),
 ])
 def test06_manual_parameter_tables_match_the_parsers(page, heading, module, cls):
     """The manual's parameter table of each plugin names exactly the
