@@ -4,9 +4,10 @@
 options ask for) and that study's ``main_args``: the protocol
 (`mi_amr.bench.protocol`, the default), ``--scale`` (`mi_amr.bench.scale`),
 ``--resample`` (`mi_amr.bench.resample`), ``--view`` (`mi_amr.bench.view`),
-``--distributed`` (`mi_amr.bench.distributed`) or ``--modes``
+``--distributed`` (`mi_amr.bench.distributed`), ``--modes``
 (`mi_amr.bench.modes`: frames/s per lighting mode, and the uniform field
-against Mitsuba's homogeneous medium).
+against Mitsuba's homogeneous medium) or ``--grad`` (`mi_amr.bench.gradients`:
+what a gradient step costs against the primal frame and a dense grid).
 """
 
 import argparse
@@ -30,6 +31,8 @@ def dispatch(args) -> int:
         from .distributed import main_args
     elif args.modes:
         from .modes import main_args
+    elif args.grad:
+        from .gradients import main_args
     elif args.scale:
         from .scale import main_args
     elif args.resample is not None:
@@ -47,7 +50,7 @@ def parse(argv=None) -> argparse.Namespace:
                                        "  python -m mi_amr.bench --datasets cloud --tfs spiky "
                                        "--configs reference amrvolpath/default --out out/b")
     for options in (protocol_options, scale_options, resample_options, view_options, distributed_options,
-                    modes_options):
+                    modes_options, grad_options):
         options(p)
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)      # the command, for the tables
@@ -169,6 +172,25 @@ def modes_options(p):
     p.add_argument("--modes-figure-spp", type=int, default=64, help="--modes-figure: samples per pixel")
     p.add_argument("--modes-floor-res", type=int, default=128, help="--modes: frame size of the floor (128)")
     p.add_argument("--modes-floor-spp", type=int, default=16, help="--modes: samples per pixel of the floor (16)")
+
+
+def grad_options(p):
+    p.add_argument("--grad", action="store_true",
+                   help="what a gradient step (render + dr.backward of an L2 loss, w.r.t. the cell values and "
+                        "the TF) costs against the primal frame and Mitsuba's heterogeneous medium on a dense "
+                        "grid, time and memory (docs/performance/gradients.md)")
+    p.add_argument("--grad-data", nargs="+", default=["cloud:2e4:4", "cloud:1e6:3"], metavar="NAME:CELLS:LEVELS",
+                   help="--grad: synthetic data sets (default cloud:2e4:4 cloud:1e6:3)")
+    p.add_argument("--grad-integrators", nargs="+", default=["prbvolpath", "amrprbvolpath"],
+                   help="--grad: differentiable integrators of the amr rows; one that does not load is skipped "
+                        "(default prbvolpath amrprbvolpath)")
+    p.add_argument("--grad-tf", default="spiky", help="--grad: TF preset (default spiky)")
+    p.add_argument("--grad-res", type=int, default=128, help="--grad: frame width and height (default 128)")
+    p.add_argument("--grad-spp", type=int, default=4, help="--grad: samples per pixel (default 4)")
+    p.add_argument("--grad-steps", type=int, default=3,
+                   help="--grad: steps timed per pass, their median kept (default 3)")
+    p.add_argument("--grad-memory", action=argparse.BooleanOptionalAction, default=True,
+                   help="--grad: one untimed step per pass for the peak memory (default)")
 
 
 def distributed_options(p):
