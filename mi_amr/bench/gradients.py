@@ -48,8 +48,8 @@ from __future__ import annotations
 
 import gc
 import json
+import os
 import statistics
-import sys
 import threading
 import time
 from pathlib import Path
@@ -117,7 +117,7 @@ def row_label(medium: str, integrator: str, kind: str) -> str:
 
 
 # ---- Memory ----------------------------------------------------------------------
-_PAGE = __import__("os").sysconf("SC_PAGE_SIZE") if sys.platform.startswith("linux") else 4096
+_PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
 def rss_bytes() -> int:
