@@ -28,6 +28,7 @@ from .builds import COMPONENTS
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .data.volume import as_method
+from .device.grid import DeviceTwoLevelGrid
 from .device.structs import jit_struct
 from .device.values import device_field
 from .memory import require
@@ -35,6 +36,12 @@ from .reconstruction import Reconstruction
 from .strategies import SAMPLINGS, TRAVERSALS
 from .structures.cache import HOST_CACHE, StructureCache
 from .transfer.classification import Classification
+
+
+#: `Structures.revalue` keeps at most this many (cell, macrocell) pairs per
+#: cell (a cell's support overlaps 1-8 macrocells where macrocells are at
+#: least as wide as the cells); beyond, new values rebuild the structures.
+REVALUE_PAIRS_PER_CELL = 64
 
 
 @dataclass(frozen=True)
@@ -97,6 +104,7 @@ class Structures:
         self.offset = mi.Vector3f(*[float(c) for c in lo - self.origin])
         self.extent = mi.Vector3f(*[float(c) for c in hi - lo])
         self.global_majorant = mi.Float(0.0)
+        self._incidence = None           # `revalue`'s index pairs, made on first use (False: too many)
         dr.make_opaque(self.offset, self.extent)
 
     @property
@@ -189,6 +197,55 @@ class Structures:
                 self.require(name)
                 self.build_seconds[f"{name}_rebuild"] = time.perf_counter() - t0
         self.update_majorants()
+
+    def revalue(self, volume: BlockVolume, values: mi.Float) -> bool:
+        """New values of the same cells, in place (docs/design.md section
+        13): ``volume`` from `BlockVolume.with_values`, ``values`` its device
+        array (the medium's ``values`` parameter). The macrocell grid's
+        ranges come from two scatter-reductions over its incidence pairs
+        (`MacrocellGrid.incidence`, made on the first call), then every
+        majorant, as after a TF change: milliseconds, no build. Only a grid
+        traversal with hash sampling, no value masks and no carried field
+        holds nothing else that depends on the values; False elsewhere (the
+        caller rebuilds)."""
+        if "grid" not in self.device or set(self.device) - {"grid", "hash"} or self.host or self.carried_fields:
+            return False
+        grid = self.device["grid"]
+        two_level = isinstance(grid, DeviceTwoLevelGrid)
+        fine = grid.fine if two_level else grid
+        host = fine.host
+        if fine.has_masks or self._incidence is False:
+            return False
+        t0 = time.perf_counter()
+        if self._incidence is None:
+            pairs = host.incidence(self.volume, self.options.method, REVALUE_PAIRS_PER_CELL * max(len(self.volume), 1))
+            if pairs is None:
+                self._incidence = False
+                return False
+            order = mi.Int32(grid.blocked(np.arange(host.vmin.size, dtype=np.int32), -1)) if two_level else None
+            self._incidence = (mi.UInt32(pairs[0]), mi.UInt32(pairs[1]), order)
+        slots, macrocells, order = self._incidence
+        v = dr.gather(mi.Float, dr.detach(values), slots)
+        vmin = dr.full(mi.Float, float("inf"), host.vmin.size)
+        vmax = dr.full(mi.Float, -float("inf"), host.vmin.size)
+        dr.scatter_reduce(dr.ReduceOp.Min, vmin, v, macrocells)
+        dr.scatter_reduce(dr.ReduceOp.Max, vmax, v, macrocells)
+        dr.eval(vmin, vmax)
+        host.vmin, host.vmax = vmin.numpy(), vmax.numpy()
+        if two_level:                     # the device keeps the fine level in block order
+            pad = order < 0
+            index = mi.UInt32(dr.maximum(order, 0))
+            vmin = dr.select(pad, float("inf"), dr.gather(mi.Float, vmin, index))
+            vmax = dr.select(pad, -float("inf"), dr.gather(mi.Float, vmax, index))
+        fine.vmin, fine.vmax = vmin, vmax
+        dr.make_opaque(fine.vmin, fine.vmax)
+        self.volume = volume
+        for struct in self.device.values():
+            if "values" in getattr(struct, "JIT_FIELDS", {}):
+                struct.values = values
+        self.update_majorants()
+        self.build_seconds["revalue"] = time.perf_counter() - t0
+        return True
 
     def update_majorants(self):
         """Recompute the majorants and minorants of every built structure

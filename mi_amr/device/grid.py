@@ -151,12 +151,7 @@ class DeviceTwoLevelGrid:
         self.coarse_res = mi.Vector3i(*[int(r) for r in rc])
         self.n_coarse = int(np.prod(rc))
 
-        def blocked(a, fill):
-            a = a.reshape(int(rf[2]), int(rf[1]), int(rf[0]))
-            pad = [(0, int(rc[2] * f - rf[2])), (0, int(rc[1] * f - rf[1])), (0, int(rc[0] * f - rf[0]))]
-            a = np.pad(a, pad, constant_values=fill)
-            a = a.reshape(int(rc[2]), f, int(rc[1]), f, int(rc[0]), f).transpose(0, 2, 4, 1, 3, 5)
-            return np.ascontiguousarray(a).reshape(-1)
+        blocked = self.blocked
         inside = blocked(np.ones(grid.vmin.size, np.float32), 0.0)
         view = SimpleNamespace(res=grid.res, vmin=blocked(grid.vmin, np.inf), vmax=blocked(grid.vmax, -np.inf),
                                level_bits=blocked(grid.level_bits, np.uint32(0)),
@@ -173,6 +168,16 @@ class DeviceTwoLevelGrid:
         self.world_scale = mi.Float(world_scale)
         dr.make_opaque(self.res, self.coarse_res, self.fine_inside, self.n_fine, self.keep_step,
                        self.refine_step, self.world_scale)
+
+    def blocked(self, a, fill):
+        """A per-fine-macrocell host array ([z, y, x] order, flat) in the
+        device's block order, the padding filled with ``fill``."""
+        f, rf, rc = self.refinement, np.asarray(self.host.res, np.int64), self.coarse_shape
+        a = np.asarray(a).reshape(int(rf[2]), int(rf[1]), int(rf[0]))
+        pad = [(0, int(rc[2] * f - rf[2])), (0, int(rc[1] * f - rf[1])), (0, int(rc[0] * f - rf[0]))]
+        a = np.pad(a, pad, constant_values=fill)
+        a = a.reshape(int(rc[2]), f, int(rc[1]), f, int(rc[0]), f).transpose(0, 2, 4, 1, 3, 5)
+        return np.ascontiguousarray(a).reshape(-1)
 
     @property
     def size(self) -> int:

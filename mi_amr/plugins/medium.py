@@ -646,10 +646,11 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         They must keep the layout: finite where a cell is, NaN in the empty
         slots (else a `ParameterError`, and the last valid values are put
         back). The kernels then read that very variable (with its gradient,
-        if enabled). New values rebuild the structures on them (every
-        leaf's value range, then the majorants from the TF: docs/design.md
-        section 13); unchanged values (gradients just enabled) only make
-        the look-ups read the variable."""
+        if enabled). New values re-range the macrocell grid in place
+        (`Structures.revalue`) or, for other structures, rebuild them on
+        the new values (every leaf's value range, then the majorants from
+        the TF: docs/design.md section 13); unchanged values (gradients just
+        enabled) only make the look-ups read the variable."""
         var, old = self._values, self.volume.values
         host = np.asarray(dr.detach(var).numpy(), dtype=np.float32)
         empty = np.isnan(old)
@@ -669,7 +670,8 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         volume = self.volume.with_values(host)
         volume._device_values = var          # `device_values`: the structures read the parameter itself
         with dr.suspend_grad():              # host builds: no gradient graph
-            self._build_structures(volume)
+            if not self.structures.revalue(volume, var):
+                self._build_structures(volume)
 
     def value_index(self, cells=None) -> np.ndarray:
         """For each cell of ``cells`` (an `AMRCells`; default: the cells

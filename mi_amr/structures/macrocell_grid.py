@@ -118,6 +118,40 @@ class MacrocellGrid:
             self.bins = ValueBins.of(cells)
             self.masks = value_masks(cells, self, support, self.bins)
 
+    def incidence(self, cells: BlockVolume, support: Reconstruction, max_pairs: int):
+        """``(slots, macrocells)``: for each present cell of ``cells`` (its
+        slot in ``cells.values``), every macrocell (flat index ``x + rx (y +
+        ry z)``) its support box overlaps, one pair each: the fold the build
+        makes, as index pairs, so that new values of the same cells give new
+        ranges by two scatter-reductions (`Structures.revalue`). None when
+        there would be more than ``max_pairs`` pairs."""
+        lb = cells.log2_block
+        slots = np.flatnonzero(~np.isnan(cells.values))
+        block = slots >> (3 * lb)
+        level = cells.level[block].astype(np.int64)
+        width = (np.int64(1) << level).astype(np.float64)
+        span = []
+        for axis in range(3):
+            q = (cells.coord[block, axis].astype(np.int64) << lb) + ((slots >> (axis * lb)) & ((1 << lb) - 1))
+            qw = (q << level) + (np.int64(cells.origin[axis]) - np.int64(self.lo[axis]))
+            a, b = support.support_box(qw.astype(np.float64), width)
+            top = self.res[axis] - 1
+            scale = self.res[axis] / self.extent[axis]
+            span.append((np.clip(np.floor(a * scale), 0, top).astype(np.int64),
+                         np.clip(np.floor(b * scale), 0, top).astype(np.int64)))
+        n = [i1 - i0 + 1 for i0, i1 in span]
+        count = n[0] * n[1] * n[2]
+        total = int(count.sum())
+        if total > max_pairs:
+            return None
+        owner = np.repeat(np.arange(slots.size), count)
+        k = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(count) - count, count)
+        nx, ny = n[0][owner], n[1][owner]
+        ix = span[0][0][owner] + k % nx
+        iy = span[1][0][owner] + (k // nx) % ny
+        iz = span[2][0][owner] + k // (nx * ny)
+        return slots[owner], ix + self.res[0] * (iy + self.res[1] * iz)
+
     def _from_file(self, cells, support, masks: bool) -> bool:
         """Take the grid a native file stored for this method and resolution
         (`BlockVolume.stored_grids`, made by the same build when the file
