@@ -303,7 +303,8 @@ def render_series(args):
     plan = series.plan_series(stored, **plan_options(args))
     for note in plan.notes:
         say(note)
-    scenes = series.frame_scenes(plan, stored, folder, args.res, args.spp, args.orbit)
+    scenes = series.frame_scenes(plan, stored, folder, args.res, args.spp, args.orbit,
+                                 mode=getattr(args, "mode", None))
     t0 = time.perf_counter()
     images = render_jobs(args, [(str(s), {}) for s in scenes])
     seconds = time.perf_counter() - t0

@@ -104,14 +104,16 @@ def orbit(plan, degrees: float):
     return dataclasses.replace(plan, origin=turned)
 
 
-def frame_scenes(plan, stored, folder, res: int, spp: int, orbit_degrees: float = 0.0):
+def frame_scenes(plan, stored, folder, res: int, spp: int, orbit_degrees: float = 0.0, mode: str | None = None):
     """One XML scene per stored output (``folder/NNN.xml``), the camera
-    turned by ``orbit_degrees * k / n`` for frame ``k`` of ``n``."""
+    turned by ``orbit_degrees * k / n`` for frame ``k`` of ``n``; ``mode``:
+    the lighting mode each scene names (None: the integrator's default)."""
     n = len(stored)
     scenes = []
     for k, (_, path) in enumerate(stored):
         p = orbit(plan, orbit_degrees * k / n) if orbit_degrees else plan
-        scenes.append(write_scene_xml(p, Path(path).resolve(), Path(folder) / f"{k:03d}.xml", res=res, spp=spp))
+        scenes.append(write_scene_xml(p, Path(path).resolve(), Path(folder) / f"{k:03d}.xml", res=res, spp=spp,
+                                      mode=mode))
     return scenes
 
 

@@ -443,19 +443,21 @@ def test09b_denoise_applies_to_a_runs_frames_and_movie(tmp_path):
 def test09c_a_movie_without_output_puts_its_frames_beside_it(tmp_path, capsys):
     """``--movie OUT.mp4`` without ``-o``: the movie, the numbered frames
     (``--frames``: OUT_000.exr, ...) and the scenes (OUT_outputs/) beside
-    it; without --movie, -o is still needed: a one-line error, exit 2."""
+    it, each naming the ``--mode`` it was rendered in; without --movie, -o
+    is still needed: a one-line error, exit 2."""
     pytest.importorskip("imageio_ffmpeg")
     import imageio_ffmpeg
     from mi_amr.tools.cli import main
     run = _series(tmp_path / "run", n=2)
     movie = tmp_path / "films" / "run.mp4"
-    assert main(["render", str(run / "t_*.npz"), "--movie", str(movie), "--frames",
+    assert main(["render", str(run / "t_*.npz"), "--movie", str(movie), "--frames", "--mode", "single",
                  "--res", "8", "--spp", "1", "-q"]) == 0
     reader = imageio_ffmpeg.read_frames(str(movie))
     next(reader)
     assert sum(1 for _ in reader) == 2
     assert sorted(p.name for p in movie.parent.glob("run_0*.exr")) == ["run_000.exr", "run_001.exr"]
-    assert (movie.parent / "run_outputs" / "001.xml").is_file()
+    for k in range(2):
+        assert '<string name="mode" value="single"/>' in (movie.parent / "run_outputs" / f"{k:03d}.xml").read_text()
     capsys.readouterr()
     assert main(["render", str(run / "t_*.npz"), "--res", "8"]) == 2
     err = capsys.readouterr().err
