@@ -140,6 +140,24 @@ def _render_loss(scene, params, seed, spp, key=None):
     return float(np.asarray(dr.detach(loss)).ravel()[0]), g
 
 
+def gradients_and_differences(scene, params, key, e, h, seeds=6):
+    """Per seed, the backward gradient of the image's mean projected on the
+    direction ``e`` of parameter ``key``, and the central difference with
+    step ``h`` along ``e`` of the same image (same seed)."""
+    base = np.array(params[key])
+    grads, fds = [], []
+    for seed in range(seeds):
+        _, g = _render_loss(scene, params, seed, 32, key)
+        grads.append(float(np.nansum(g * e)))
+        f = []
+        for s in (1, -1):
+            _set(params, key, base + s * h * e)
+            f.append(_render_loss(scene, params, seed, 32)[0])
+        _set(params, key, base)
+        fds.append((f[0] - f[1]) / (2 * h))
+    return grads, fds
+
+
 def z_test(grad, fd, what, power=True):
     """|mean(grad - fd)| within 4 standard errors (over the seeds) plus a
     small absolute tolerance, and (``power``) the gradient itself clearly
@@ -167,17 +185,7 @@ def test02_image_gradients_match_finite_differences(llvm, integrator, reconstruc
     med = mi_amr.amr_media(scene)[0]
     for key, e, h in directions(med, cells):
         key = f"{M}.{key}"
-        base = np.array(params[key])
-        grads, fds = [], []
-        for seed in range(6):
-            _, g = _render_loss(scene, params, seed, 32, key)
-            grads.append(float(np.nansum(g * e)))
-            f = []
-            for s in (1, -1):
-                _set(params, key, base + s * h * e)
-                f.append(_render_loss(scene, params, seed, 32)[0])
-            _set(params, key, base)
-            fds.append((f[0] - f[1]) / (2 * h))
+        grads, fds = gradients_and_differences(scene, params, key, e, h)
         # a dozen cells move the image's mean by less than its noise at
         # this size: their gradients are checked here against the finite
         # differences only (test01 and test03 check them with power)
@@ -339,20 +347,10 @@ def test06_amrprbvolpath_forward_mode_matches_backward(llvm):
     med = mi_amr.amr_media(scene)[0]
     for key, e, h in [d for i, d in enumerate(directions(med, cells)) if i in (0, 1, 3)]:
         key = f"{M}.{key}"
-        base = np.array(params[key])
-        fwds, fds = [], []
-        for seed in range(6):
-            fwd = _forward_loss(scene, params, seed, 32, key, e)
-            _, g = _render_loss(scene, params, seed, 32, key)
-            back = float(np.nansum(g * e))
+        fwds = [_forward_loss(scene, params, seed, 32, key, e) for seed in range(6)]
+        backs, fds = gradients_and_differences(scene, params, key, e, h)
+        for seed, (fwd, back) in enumerate(zip(fwds, backs)):
             assert fwd == pytest.approx(back, rel=1e-3, abs=1e-6), (key, seed, fwd, back)
-            fwds.append(fwd)
-            f = []
-            for s in (1, -1):
-                _set(params, key, base + s * h * e)
-                f.append(_render_loss(scene, params, seed, 32)[0])
-            _set(params, key, base)
-            fds.append((f[0] - f[1]) / (2 * h))
         z_test(fwds, fds, key, power=not key.endswith("values"))
 
 
@@ -378,17 +376,7 @@ def test07_amrprbvolpath_modes_and_emission_match_finite_differences(llvm, mode)
     for key, e, h in [("density_scale", np.array([1.0]), 0.3), ("tf_rgba", red, 0.05),
                       ("emission_scale", np.array([1.0]), 0.2), ("emission_rgba", green, 0.05)]:
         key = f"{M}.{key}"
-        base = np.array(params[key])
-        grads, fds = [], []
-        for seed in range(6):
-            _, g = _render_loss(scene, params, seed, 32, key)
-            grads.append(float(np.nansum(g * e)))
-            f = []
-            for s in (1, -1):
-                _set(params, key, base + s * h * e)
-                f.append(_render_loss(scene, params, seed, 32)[0])
-            _set(params, key, base)
-            fds.append((f[0] - f[1]) / (2 * h))
+        grads, fds = gradients_and_differences(scene, params, key, e, h)
         # with the glow, more density both dims and brightens: the scale's
         # net gradient is small here (test02 checks it with power)
         z_test(grads, fds, f"{mode} {key}", power=not key.endswith("density_scale"))
