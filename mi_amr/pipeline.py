@@ -35,6 +35,7 @@ from .memory import require
 from .reconstruction import Reconstruction
 from .strategies import SAMPLINGS, TRAVERSALS
 from .structures.cache import HOST_CACHE, StructureCache
+from .structures.value_masks import N_BINS, ValueBins
 from .transfer.classification import Classification
 
 
@@ -203,18 +204,19 @@ class Structures:
         13): ``volume`` from `BlockVolume.with_values`, ``values`` its device
         array (the medium's ``values`` parameter). The macrocell grid's
         ranges come from two scatter-reductions over its incidence pairs
-        (`MacrocellGrid.incidence`, made on the first call), then every
-        majorant, as after a TF change: milliseconds, no build. Only a grid
-        traversal with hash sampling, no value masks and no carried field
-        holds nothing else that depends on the values; False elsewhere (the
-        caller rebuilds)."""
+        (`MacrocellGrid.incidence`, made on the first call), its value masks
+        (``nearest``: a cell's own bin, the bins over the new values' range
+        as a build makes them) from two more, then every majorant,
+        as after a TF change: milliseconds, no build. Only a grid traversal
+        with hash sampling and no carried field holds nothing else that
+        depends on the values; False elsewhere (the caller rebuilds)."""
         if "grid" not in self.device or set(self.device) - {"grid", "hash"} or self.host or self.carried_fields:
             return False
         grid = self.device["grid"]
         two_level = isinstance(grid, DeviceTwoLevelGrid)
         fine = grid.fine if two_level else grid
         host = fine.host
-        if fine.has_masks or self._incidence is False:
+        if self._incidence is False or (fine.has_masks and self.options.method.name != "nearest"):
             return False
         t0 = time.perf_counter()
         if self._incidence is None:
@@ -226,19 +228,32 @@ class Structures:
             self._incidence = (mi.UInt32(pairs[0]), mi.UInt32(pairs[1]), order)
         slots, macrocells, order = self._incidence
         v = dr.gather(mi.Float, dr.detach(values), slots)
-        vmin = dr.full(mi.Float, float("inf"), host.vmin.size)
-        vmax = dr.full(mi.Float, -float("inf"), host.vmin.size)
-        dr.scatter_reduce(dr.ReduceOp.Min, vmin, v, macrocells)
-        dr.scatter_reduce(dr.ReduceOp.Max, vmax, v, macrocells)
-        dr.eval(vmin, vmax)
-        host.vmin, host.vmax = vmin.numpy(), vmax.numpy()
-        if two_level:                     # the device keeps the fine level in block order
-            pad = order < 0
-            index = mi.UInt32(dr.maximum(order, 0))
-            vmin = dr.select(pad, float("inf"), dr.gather(mi.Float, vmin, index))
-            vmax = dr.select(pad, -float("inf"), dr.gather(mi.Float, vmax, index))
-        fine.vmin, fine.vmax = vmin, vmax
-        dr.make_opaque(fine.vmin, fine.vmax)
+        n = host.vmin.size
+        reduced = {"vmin": (dr.ReduceOp.Min, dr.full(mi.Float, float("inf"), n), v),
+                   "vmax": (dr.ReduceOp.Max, dr.full(mi.Float, -float("inf"), n), v)}
+        if fine.has_masks:                # nearest: each cell sets its value's bin, the bins
+            bins = ValueBins.of(volume)   # over the new values' range (as a build makes them)
+            b = mi.UInt32(dr.clip(dr.floor((mi.Float64(v) - bins.lo) / bins.width), 0, N_BINS - 1))
+            one = mi.UInt32(1)
+            reduced["mask_lo"] = (dr.ReduceOp.Or, dr.zeros(mi.UInt32, n), dr.select(b < 32, one << (b & 31), 0))
+            reduced["mask_hi"] = (dr.ReduceOp.Or, dr.zeros(mi.UInt32, n), dr.select(b >= 32, one << (b & 31), 0))
+        for name, (op, target, value) in reduced.items():
+            dr.scatter_reduce(op, target, value, macrocells)
+        dr.eval(*[t for _, t, _ in reduced.values()])
+        host.vmin, host.vmax = reduced["vmin"][1].numpy(), reduced["vmax"][1].numpy()
+        if fine.has_masks:
+            host.masks = (reduced["mask_hi"][1].numpy().astype(np.uint64) << np.uint64(32)) \
+                | reduced["mask_lo"][1].numpy().astype(np.uint64)
+            host.bins = bins
+            fine.bin_lo, fine.bin_hi = (mi.Float(e) for e in bins.edges())
+            dr.make_opaque(fine.bin_lo, fine.bin_hi)
+        fill = {"vmin": float("inf"), "vmax": -float("inf"), "mask_lo": 0, "mask_hi": 0}
+        for name, (_, target, _) in reduced.items():
+            if two_level:                 # the device keeps the fine level in block order
+                target = dr.select(order < 0, fill[name],
+                                   dr.gather(type(target), target, mi.UInt32(dr.maximum(order, 0))))
+            setattr(fine, name, target)
+            dr.make_opaque(getattr(fine, name))
         self.volume = volume
         for struct in self.device.values():
             if "values" in getattr(struct, "JIT_FIELDS", {}):
