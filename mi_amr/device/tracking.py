@@ -251,6 +251,31 @@ class Replay:
         return state
 
 
+#: A differentiable walk's majorants (`MajorantMargin`): this factor on each
+#: leaf's and this share of the global majorant added (docs/design.md 13b).
+GRADIENT_MARGIN = 1.5
+GRADIENT_FLOOR = 0.05
+
+
+class MajorantMargin:
+    """Majorants raised for differentiable walks (docs/design.md section
+    13b): ``mu' = factor * mu + floor`` (``floor`` in inverse world units,
+    per lane). A leaf's majorant may equal sigma_t (a constant region, a
+    value on a TF entry): then no null collision is ever sampled there,
+    though ``d sigma_n = -d sigma_t`` is not 0, and a replay would miss
+    that derivative; where the majorant is 0 the walk makes no look-up at
+    all. With ``factor > 1`` and ``floor > 0`` every point of a segment
+    with a positive ``sigma_t`` derivative has ``sigma_n >= (factor - 1) mu
+    + floor > 0``. The primal and the replay must use the same margin (the
+    same random numbers)."""
+
+    def __init__(self, factor: float, floor):
+        self.factor, self.floor = factor, floor
+
+    def __call__(self, mu):
+        return mu * self.factor + self.floor
+
+
 class _Tracking:
     """What the tracking estimators share: a random stream of their own
     (seeded from ``sampler``: a Mitsuba sampler or a parent `Rng`), the
@@ -267,7 +292,8 @@ class _Tracking:
 
     label = "amr_track"
 
-    def __init__(self, lookup, sampler, carries: bool = False, count: bool = True, replay: Replay | None = None):
+    def __init__(self, lookup, sampler, carries: bool = False, count: bool = True, replay: Replay | None = None,
+                 margin: MajorantMargin | None = None):
         self.lookup = lookup
         self.sampler = sampler
         #: whether ``lookup`` returns a carried field's value too
@@ -275,6 +301,8 @@ class _Tracking:
         self.count = count
         #: the adjoint of a path-replay pass (`Replay`), or None: the primal
         self.replay = replay
+        #: raised majorants of a differentiable walk (`MajorantMargin`), or None
+        self.margin = margin
 
     def _dlog(self):
         return None if self.replay is None else self.replay.begin()
@@ -286,7 +314,8 @@ class _Tracking:
 
     def enter(self, state, ray, seg, entered, t, seg_end):
         """The walk's hook: the new segment's majorant, one more step."""
-        state.mu = dr.select(entered, seg.mu, state.mu)
+        mu = seg.mu if self.margin is None else self.margin(seg.mu)
+        state.mu = dr.select(entered, mu, state.mu)
         state.steps = _tally(state.steps, dr.select(entered, 1, 0))
         return state
 
@@ -355,8 +384,8 @@ class DeltaTracking(_Tracking):
     the lanes that collided (a null collision needs no colour)."""
 
     def __init__(self, lookup, albedo_of, sampler, carries: bool = False, count: bool = True,
-                 replay: Replay | None = None):
-        super().__init__(lookup, sampler, carries, count, replay)
+                 replay: Replay | None = None, margin: MajorantMargin | None = None):
+        super().__init__(lookup, sampler, carries, count, replay, margin)
         self.albedo_of = albedo_of
 
     def begin(self, ray, active):

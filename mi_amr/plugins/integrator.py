@@ -185,6 +185,11 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         for i, v in enumerate(values):
             dr.scatter_reduce(dr.ReduceOp.Add, self._counter_array, mi.UInt64(v), mi.UInt32(i))
 
+    def _margin(self, medium):
+        """Raised majorants for the walks through ``medium``: none here
+        (the differentiable form's, `AMRPRBVolpathIntegrator`)."""
+        return None
+
     @staticmethod
     def _uses_minorants(option, medium) -> bool:
         """An estimator option as given, or the medium's own choice."""
@@ -274,7 +279,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 if dr.hint(adjoint is not None, mode="scalar"):
                     # the flight's null collisions scale all radiance still to come
                     replay = amr_media[k].replay(adjoint.mode, adjoint.weight(L))
-                flight = amr_media[k].free_flight(ray, si.t, rng, is_k, control, self.counters_enabled, replay)
+                flight = amr_media[k].free_flight(ray, si.t, rng, is_k, control, self.counters_enabled, replay,
+                                                  self._margin(amr_media[k]))
                 if dr.hint(dL is not None, mode="scalar"):
                     dL[is_k] += L * flight.dlog
                 if dr.hint(self.counters_enabled, mode="scalar"):
@@ -506,7 +512,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 is_k = in_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.residual, amr_media[k])
                 replay = None if adjoint is None else amr_media[k].replay(adjoint.mode, weight)
-                estimate = amr_media[k].transmittance(ray, seg, rng, is_k, control, self.counters_enabled, replay)
+                estimate = amr_media[k].transmittance(ray, seg, rng, is_k, control, self.counters_enabled, replay,
+                                                      self._margin(amr_media[k]))
                 if dr.hint(self.counters_enabled, mode="scalar"):
                     c = estimate.counts
                     c.real = mi.UInt32(dr.select(is_k, 1, 0))      # shadow counts: crossings

@@ -17,8 +17,9 @@ import numpy as np
 
 from ..device.grid import DeviceTwoLevelGrid
 from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
-from ..device.tracking import (DecompositionTracking, DeltaTracking, FreeFlight, LocalRay, RatioTracking, Replay,
-                               ResidualRatioTracking, SpanMajorant, Transmittance, walk_segments)
+from ..device.tracking import (GRADIENT_MARGIN, DecompositionTracking, DeltaTracking, FreeFlight, LocalRay,
+                               MajorantMargin, RatioTracking, Replay, ResidualRatioTracking, SpanMajorant,
+                               Transmittance, walk_segments)
 from ..device.values import device_values
 from ..params import ParameterError
 from ..pipeline import Structures
@@ -535,34 +536,44 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         return o, flush_tiny(d * dr.rcp(s)), s
 
     def free_flight(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False,
-                    count: bool = True, replay: Replay | None = None) -> FreeFlight:
+                    count: bool = True, replay: Replay | None = None,
+                    margin: MajorantMargin | None = None) -> FreeFlight:
         """Delta tracking through local-majorant segments along ``ray`` up to
         ``t_max`` (decomposition tracking against the minorants with
         ``control``): a `FreeFlight`, its ``t`` in world units along ``ray``.
         ``sampler``: a Mitsuba sampler or an `Rng`, which seeds the
         tracking's own random stream; ``count``: keep the event counts (else
         they read 0, and cost nothing); ``replay``: the adjoint of a
-        path-replay pass (`replay`; plain delta tracking only)."""
+        path-replay pass (`replay`; plain delta tracking only); ``margin``:
+        raised majorants (`majorant_margin`) for a differentiable walk."""
         carries = self._carried is not None
         lookup = self.point_query if carries else self.value_local
         if control:
-            if replay is not None:
-                raise ValueError("free_flight: a path-replay pass tracks without a control extinction")
+            if replay is not None or margin is not None:
+                raise ValueError("free_flight: a differentiable walk tracks without a control extinction")
             tracking = DecompositionTracking(lookup, self.albedo_of, sampler, self.tf_device.rgb_constant, carries,
                                              count)
         else:
-            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count, replay)
+            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count, replay, margin)
         return self._track(ray, t_max, active, tracking)
 
     def transmittance(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False,
-                      count: bool = True, replay: Replay | None = None) -> Transmittance:
+                      count: bool = True, replay: Replay | None = None,
+                      margin: MajorantMargin | None = None) -> Transmittance:
         """Ratio-tracking estimate of transmittance along ``ray`` over
         ``[0, t_max]`` (residual ratio tracking against the minorants with
-        ``control``): a `Transmittance` (``count`` and ``replay`` as in
-        `free_flight`)."""
+        ``control``): a `Transmittance` (``count``, ``replay`` and
+        ``margin`` as in `free_flight`)."""
+        if control and margin is not None:
+            raise ValueError("transmittance: a differentiable walk tracks without a control extinction")
         tracking = (ResidualRatioTracking if control else RatioTracking)(self.value_local, sampler, count=count,
-                                                                         replay=replay)
+                                                                         replay=replay, margin=margin)
         return self._track(ray, t_max, active, tracking)
+
+    def majorant_margin(self, factor: float, floor_share: float) -> MajorantMargin:
+        """Raised majorants for differentiable walks (`MajorantMargin`):
+        ``factor * mu + floor_share * global majorant``."""
+        return MajorantMargin(factor, floor_share * self.structures.global_majorant)
 
     def replay(self, mode, weight=None) -> Replay:
         """The adjoint hook of a path-replay pass for this medium's walks
@@ -593,7 +604,8 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         hit &= s > 0.0
         global_mu = self.structures.global_majorant
         local = LocalRay(o=o, d=d, t_lo=dr.maximum(t0, 0.0), t_hi=dr.minimum(t1, ray.maxt * s), scale=s)
-        if self.majorant_mode == "global":
+        if self.majorant_mode == "global" or self._differentiated():
+            # (differentiated: the raised global majorant over the whole cube, `_majorant_for`)
             return hit & (global_mu > 0.0), local.world_t(t0), local.world_t(t1)
         segments = self.structures.segments()
         span = walk_segments(segments, local, hit, SpanMajorant(global_mu, self._span_stop),
@@ -604,9 +616,24 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
     def _majorant_for(self, mei):
         """The ray-wise majorant where ``mei`` belongs to the ray last passed
         to ``intersect_aabb`` (Mitsuba's sample_interaction), else the global
-        one: never below sigma_t on the caller's ray."""
+        one, raised while differentiated (`_differentiated`): never below
+        sigma_t on the caller's ray."""
+        if self._differentiated():
+            return self.structures.global_majorant * GRADIENT_MARGIN
         mu = self._ray_majorant.lookup(mei)
         return self.structures.global_majorant if mu is None else mu
+
+    def _differentiated(self) -> bool:
+        """Whether a parameter of the extinction (density scale, TF table,
+        cell values) has gradients enabled. Mitsuba's integrators then get
+        the global majorant raised by `GRADIENT_MARGIN` over the whole cube,
+        not the ray's: where a majorant equals sigma_t (a constant region)
+        no null collision is sampled, and the derivative of sigma_t that
+        they carry would be lost (docs/design.md section 13b). Checked with
+        gradients resumed (Mitsuba renders under ``dr.suspend_grad``)."""
+        c = self.classification
+        with dr.resume_grad():
+            return any(dr.grad_enabled(v) for v in (c.scale, c.tf_rgba, self._values))
 
     def get_majorant(self, mei: mi.MediumInteraction3f, active=True):
         mu = self._majorant_for(mei)

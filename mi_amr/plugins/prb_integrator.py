@@ -3,8 +3,10 @@ path replay backpropagation (Vicini et al. 2021), as Mitsuba's
 ``prbvolpath`` is for ``volpath`` (docs/design.md section 13b).
 
 The primal pass is ``amrvolpath``'s estimator with plain delta and ratio
-tracking through the local majorants (no minorant estimators, whose control
-collisions would need gradients of their own). The replay pass walks the
+tracking through the local majorants, raised by a margin (`MajorantMargin`:
+a majorant equal to sigma_t, or 0, would hide the derivative of sigma_t),
+without the minorant estimators (whose control collisions would need
+gradients of their own). The replay pass walks the
 same paths with the same random numbers; ``L`` is then the radiance still
 to come, and each factor that depends on an ``amr`` medium's parameters
 (density scale, TF, emission, cell values) is differentiated with the
@@ -32,13 +34,14 @@ from types import SimpleNamespace
 import drjit as dr
 import mitsuba as mi
 
-from ..params import check_known
+from ..device.tracking import GRADIENT_FLOOR, GRADIENT_MARGIN
+from ..params import ParameterError, check_known, get_float
 from .integrator import AMRVolpathIntegrator, MODES
 from .medium import require_jit_rgb_variant
 from .variant_class import VariantPlugin
 
 #: The parameters ``amrprbvolpath`` accepts.
-KNOWN = {"max_depth", "rr_depth", "hide_emitters", "mode"}
+KNOWN = {"max_depth", "rr_depth", "hide_emitters", "mode", "majorant_margin", "majorant_floor"}
 
 
 def _rb_base():
@@ -116,6 +119,16 @@ class AMRPRBVolpathIntegrator(AMRVolpathIntegrator, metaclass=VariantPlugin, bas
        - |string|
        - ``emission_absorption``, ``single`` or ``multi``, as in
          ``amrvolpath``. Default: ``multi``.
+     * - majorant_margin
+       - |float|
+       - Factor (> 1) on every leaf's majorant in the walks, so that a
+         leaf whose majorant equals sigma_t still samples null collisions,
+         which carry the derivative of sigma_t. Default: 1.5.
+     * - majorant_floor
+       - |float|
+       - Added to every leaf's majorant, as a share (in (0, 1]) of the
+         medium's global majorant, so that leaves of zero extinction are
+         looked up too (an opacity of 0 has a derivative). Default: 0.05.
     """
 
     # the estimator is amrvolpath's (`_trace`, one code path; docs/design.md
@@ -127,9 +140,16 @@ class AMRPRBVolpathIntegrator(AMRVolpathIntegrator, metaclass=VariantPlugin, bas
         # validated before Mitsuba's base reads max_depth and rr_depth its way
         options = SimpleNamespace()
         AMRVolpathIntegrator._parse_path_options(options, props, "amrprbvolpath")
+        margin = get_float(props, "amrprbvolpath", "majorant_margin", GRADIENT_MARGIN)
+        floor = get_float(props, "amrprbvolpath", "majorant_floor", GRADIENT_FLOOR)
+        if not margin > 1.0 or not 0.0 < floor <= 1.0:
+            raise ParameterError(f"amrprbvolpath: majorant_margin must be > 1 and majorant_floor in (0, 1], got "
+                                 f"{margin} and {floor} (at 1 and 0 a leaf whose majorant equals sigma_t, or is 0, "
+                                 f"hides the derivative of sigma_t there: docs/design.md section 13b)")
         type(self).__base__.__init__(self, props)
         for name, value in vars(options).items():
             setattr(self, name, value)
+        self.majorant_factor, self.majorant_floor = margin, floor
         # plain delta and ratio tracking (module docstring); no counters
         self.residual = self.decomposition = False
         self.counters_enabled = False
@@ -141,6 +161,9 @@ class AMRPRBVolpathIntegrator(AMRVolpathIntegrator, metaclass=VariantPlugin, bas
         adjoint = PathAdjoint(mode, mi.Spectrum(0.0 if δL is None else δL), state_in)
         L, valid, dL = self._trace(scene, sampler, ray, None, active, adjoint)
         return (dL if adjoint.forward else mi.Spectrum(0.0)), valid, [], L
+
+    def _margin(self, medium):
+        return medium.majorant_margin(self.majorant_factor, self.majorant_floor)
 
     def aov_names(self):
         return []
