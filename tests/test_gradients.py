@@ -354,13 +354,15 @@ def test06_amrprbvolpath_forward_mode_matches_backward(llvm):
         z_test(fwds, fds, key, power=not key.endswith("values"))
 
 
-@pytest.mark.parametrize("mode", ["emission_absorption", "single", "multi"])
+@pytest.mark.parametrize("mode", [pytest.param("emission_absorption", marks=pytest.mark.slow), "single",
+                                  pytest.param("multi", marks=pytest.mark.slow)])
 def test07_amrprbvolpath_modes_and_emission_match_finite_differences(llvm, mode):
     """amrprbvolpath in each lighting mode, the medium glowing: gradients of
     the image's mean with respect to the density scale, a TF entry's red
     (the albedo), the emission scale and an emission entry's green against
     central differences, a z-test over 6 seeds (each, but the scale's,
-    clearly not 0)."""
+    clearly not 0). The default suite runs ``single`` (its kernels are new);
+    ``multi`` is test02's estimator, ``emission_absorption`` runs with -m slow."""
     desc, cells = small_medium("tent")
     lo, hi = cells.value_range
     desc["emission"] = mi_amr.TransferFunction([[1.0, 0.3, 0.1, 0.4], [0.2, 0.9, 0.4, 1.0]],
