@@ -33,6 +33,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -116,15 +117,17 @@ def _first_frame(page, url) -> tuple[float, float]:
     return first, time.monotonic()
 
 
-def cli_first_picture(browser, data, field=None, res: int = 256) -> dict:
+def cli_first_picture(browser, data, field=None, res: int = 256, env=None) -> dict:
     """As a new user meets it: ``mi-amr view DATA`` started as a process
     (imports included), the page opened as soon as the URL is printed;
     seconds from the start to the URL, the first frame on screen and the
-    first full-size one."""
+    first full-size one, and the first frame after opening the page
+    (``page_first_picture_s``). ``env``: the process's environment (None:
+    this one's; e.g. another ``HOME`` for a cold Dr.Jit kernel cache)."""
     cmd = [sys.executable, "-m", "mi_amr.tools.cli", "view", str(data), "--no-browser", "--res", str(res),
            "--out", "/tmp"] + (["--field", field] if field else [])
     t0 = time.monotonic()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
     try:
         url = None
         for line in proc.stdout:
@@ -137,7 +140,8 @@ def cli_first_picture(browser, data, field=None, res: int = 256) -> dict:
         page = browser.new_page(viewport={"width": 1200, "height": 800})
         first, refined = _first_frame(page, url)
         page.close()
-        return {"url_s": listening, "first_picture_s": first - t0, "first_refined_s": refined - t0}
+        return {"url_s": listening, "first_picture_s": first - t0, "first_refined_s": refined - t0,
+                "page_first_picture_s": first - t0 - listening}
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -311,6 +315,45 @@ def report(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def first_pictures(data, field=None, res: int = 256, repeats: int = 3, cold_kernels: bool = False) -> dict:
+    """The first picture alone, as a new user meets it (`cli_first_picture`),
+    ``repeats`` times, each ``mi-amr view`` a fresh process; with
+    ``cold_kernels`` each gets an empty Dr.Jit kernel cache (a fresh
+    ``HOME``), else the cache as earlier runs left it. The load average
+    before each run beside its figures."""
+    from playwright.sync_api import sync_playwright   # lazy: a benchmark dependency
+    exe = shutil.which("chromium")
+    if exe is None:
+        raise SystemExit("the viewer benchmark needs Debian's chromium (make setup installs it)")
+    runs = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=exe, args=CHROMIUM_ARGS)
+        for _ in range(repeats):
+            load = os.getloadavg()[0]
+            if cold_kernels:
+                with tempfile.TemporaryDirectory(prefix="mi-amr-cold-") as home:
+                    r = cli_first_picture(browser, data, field, res, env=dict(os.environ, HOME=home))
+            else:
+                r = cli_first_picture(browser, data, field, res)
+            runs.append(dict(r, load_average=load))
+        browser.close()
+    return {"data": str(data), "res": res, "cold_kernels": cold_kernels, "runs": runs}
+
+
+def first_report(result: dict) -> str:
+    """One line per run of `first_pictures`, then median (min-max)."""
+    lines = [f"{result['data']}, {result['res']}x{result['res']}, kernel cache "
+             f"{'cold' if result['cold_kernels'] else 'warm'}: seconds from the process start"]
+    keys = ("url_s", "page_first_picture_s", "first_picture_s", "first_refined_s")
+    for r in result["runs"]:
+        lines.append("  URL %.2f, page open -> first picture %.2f, first picture %.2f, first full-size %.2f "
+                     "(load average %.2f)" % (*(r[k] for k in keys), r["load_average"]))
+    for k in keys:
+        xs = [r[k] for r in result["runs"]]
+        lines.append(f"  {k}: {statistics.median(xs):.2f} ({min(xs):.2f}-{max(xs):.2f})")
+    return "\n".join(lines)
+
+
 def run(data, field, res, out_dir, repeats=3, seconds=4.0, preview_scale=0.5, modes=None, move_ms=16,
         driver="page"):
     result = measure(data, field, res, seconds, repeats, preview_scale, modes, move_ms, driver)
@@ -328,3 +371,10 @@ def main_args(args) -> int:
         modes=getattr(args, "view_modes", None), move_ms=getattr(args, "view_move_ms", 16.0))
     print(f"wrote {args.out}/view.json and view.md")
     return 0
+
+
+if __name__ == "__main__":
+    # ``python -m mi_amr.bench.view DATA [REPEATS] [--cold]``: the first picture alone (`first_pictures`)
+    argv = [a for a in sys.argv[1:] if a != "--cold"]
+    out = first_pictures(argv[0], repeats=int(argv[1]) if len(argv) > 1 else 3, cold_kernels="--cold" in sys.argv)
+    print(first_report(out))
