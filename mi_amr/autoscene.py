@@ -23,10 +23,12 @@ from xml.sax.saxutils import quoteattr
 import mitsuba as mi
 import numpy as np
 
+from .data.amrb import use_stats_builder
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .data.io import load_volume
 from .data.metadata import physical_box
+from .data.transform import apply_value_transform
 from .data.yt_import import field_key, from_yt_blocks, load_dataset
 from .transfer.function import PRESETS, TransferFunction
 
@@ -61,6 +63,9 @@ GLOW_TF = "dust"
 #: Towards the sun: 50 degrees above the horizon, behind the camera's right.
 SUN_DIRECTION = [0.5, 0.6, 0.9]
 HISTOGRAM_BINS = 4096
+#: Bins of the viewer's fine histogram of the stored values (the medium's:
+#: log10 or linear), which its TF editor re-bins (`mi_amr.view.tf_spec.Histogram`).
+VIEW_HISTOGRAM_BINS = 1 << 14
 
 
 @dataclass
@@ -213,9 +218,27 @@ class ValueStats:
         return f"{what}: {' and '.join(parts)}"
 
 
+def stored_stats(data, field=None) -> dict | None:
+    """What an ``.amrb`` file stored of ``data``'s main values when it was
+    written (`file_stats`; `mi_amr.data.amrb` reads it into
+    ``BlockVolume.stored_stats``), or None: other data, a further field, an
+    older file, or values changed since (their range or count differs)."""
+    st = getattr(data, "stored_stats", None)
+    if field is not None or not st or st.get("version") != STATS_VERSION:
+        return None
+    if st.get("n_cells") != int(data.n_cells) or st.get("value_range") != [float(x) for x in data.value_range]:
+        return None
+    return st
+
+
 def value_stats(data, field=None) -> ValueStats:
     """`ValueStats` of ``field`` (None: the main values) of one data set or
-    several (see `cells_and_weights`), in one pass."""
+    several (see `cells_and_weights`), in one pass (none for an ``.amrb``
+    file's stored ones: `stored_stats`)."""
+    st = stored_stats(data, field)
+    if st is not None:
+        return ValueStats(**{k: (np.inf if v == "inf" else -np.inf if v == "-inf" else v)
+                             for k, v in st["value_stats"].items()})
     s = ValueStats()
     for v, w in cells_and_weights(data, field):
         if not v.size:
@@ -245,6 +268,27 @@ def weighted_percentiles(data, qs, log: bool = False, field=None) -> list[float]
     log10 with ``log``, values <= 0 left out), from a histogram of
     `HISTOGRAM_BINS` bins: within one bin width. ``data``: one data set or
     several (a time series: one histogram over all of them)."""
+    st = stored_stats(data, field)
+    if st is None:
+        lo, hi, hist = _weighted_histogram(data, log, field)
+    else:                                          # as `file_stats` stored them
+        name = f"hist_{'log' if log else 'linear'}"
+        lo, hi = st.get(name + "_span") or (np.inf, -np.inf)
+        hist = st.get(name)
+    if not np.isfinite(lo):
+        raise ValueError("no values to place a transfer function over")
+    if hi <= lo:
+        return [lo for _ in qs]
+    edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
+    cdf = np.cumsum(hist) / hist.sum()
+    return [float(edges[min(int(np.searchsorted(cdf, q / 100.0)) + (q > 0), HISTOGRAM_BINS)]) for q in qs]
+
+
+def _weighted_histogram(data, log: bool, field=None) -> tuple:
+    """``(lo, hi, counts)``: the volume-weighted histogram of
+    `HISTOGRAM_BINS` bins over [lo, hi], the extremes of the values (of
+    their log10, values <= 0 left out); ``(inf, -inf, None)`` without
+    values, ``(lo, hi, None)`` when all are one value."""
     lo, hi = (np.inf, -np.inf)
     for v, _ in cells_and_weights(data, field):
         if log:
@@ -254,10 +298,8 @@ def weighted_percentiles(data, qs, log: bool = False, field=None) -> list[float]
             v = np.log10(v)
         if v.size:
             lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
-    if not np.isfinite(lo):
-        raise ValueError("no values to place a transfer function over")
-    if hi <= lo:
-        return [lo for _ in qs]
+    if not np.isfinite(lo) or hi <= lo:
+        return lo, hi, None
     edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
     hist = np.zeros(HISTOGRAM_BINS)
     for v, w in cells_and_weights(data, field):
@@ -265,8 +307,86 @@ def weighted_percentiles(data, qs, log: bool = False, field=None) -> list[float]
             keep = v > 0
             v, w = np.log10(v[keep]), w[keep]
         hist += np.histogram(v, bins=edges, weights=w)[0]
-    cdf = np.cumsum(hist) / hist.sum()
-    return [float(edges[min(int(np.searchsorted(cdf, q / 100.0)) + (q > 0), HISTOGRAM_BINS)]) for q in qs]
+    return lo, hi, hist
+
+
+def fine_histogram(volume, bins: int = VIEW_HISTOGRAM_BINS) -> tuple:
+    """``(edges, cdf)``: the volume-weighted cumulative distribution of
+    ``volume``'s values at the edges of ``bins`` bins over its value range
+    (widened by 0.5 either side when it is one value): what the viewer's TF
+    editor re-bins (`mi_amr.view.tf_spec.Histogram`)."""
+    lo, hi = volume.value_range
+    if not hi > lo:
+        lo, hi = lo - 0.5, hi + 0.5
+    counts, total = np.zeros(bins), 0.0
+    for v, w in cells_and_weights(volume):
+        counts += np.histogram(v, bins=bins, range=(lo, hi), weights=w)[0]
+        total += float(w.sum())
+    return np.linspace(lo, hi, bins + 1), np.concatenate([[0.0], np.cumsum(counts)]) / (total or 1.0)
+
+
+def stored_fine_histogram(data, medium_volume, bins: int = VIEW_HISTOGRAM_BINS) -> tuple | None:
+    """``(edges, cdf)`` of `fine_histogram` of ``medium_volume`` (the medium's
+    values: ``data``'s, or their log10) as ``data``'s ``.amrb`` file stored it
+    (`file_stats`), or None (not stored, another transform, range or bin count)."""
+    st = stored_stats(data)
+    transform = medium_volume.meta.get("value_transform", "none") if medium_volume is not data else "none"
+    entry = None if st is None else st.get(f"view_{transform}")
+    if entry is None or st.get(f"view_{transform}_span") != [float(x) for x in medium_volume.value_range] \
+            or len(entry) != bins + 1 or int(medium_volume.n_cells) != st["n_cells"]:
+        return None
+    lo, hi = medium_volume.value_range
+    if not hi > lo:
+        lo, hi = lo - 0.5, hi + 0.5
+    return np.linspace(lo, hi, bins + 1), np.asarray(entry, np.float64)
+
+
+#: Bumped whenever `file_stats` computes anything differently: files with
+#: another version are planned from their values again.
+STATS_VERSION = 1
+
+
+def file_stats(volume: BlockVolume) -> dict:
+    """What `plan_scene` and the viewer read from the values, computed when
+    an ``.amrb`` file is written (`mi_amr.data.amrb.save_amrb` stores it,
+    read back as ``BlockVolume.stored_stats``; docs/performance/view.md
+    "The first picture"): `value_stats`, the histograms of
+    `weighted_percentiles` (linear and log10), the mean opacity of the
+    default plan's TF (`_mean_alpha`, for `DEFAULT_TF` over the range
+    `plan_scene` chooses) and the viewer's fine histograms of the values
+    as its medium holds them (linear, and log10 when the viewer would store
+    them so). Numbers are JSON values, arrays float64 arrays; each is what
+    the same function computes from the values, so a plan from the file is
+    the plan from the values."""
+    vs = value_stats(volume)
+    out = {"version": STATS_VERSION, "n_cells": int(volume.n_cells),
+           "value_range": [float(x) for x in volume.value_range],
+           "value_stats": {k: (("inf" if v > 0 else "-inf") if isinstance(v, float) and np.isinf(v) else v)
+                           for k, v in vs.__dict__.items()}}
+    if not vs.cells:
+        return out
+    for log in (False, True):
+        name = f"hist_{'log' if log else 'linear'}"
+        lo, hi, hist = _weighted_histogram(volume, log)
+        out[name + "_span"] = [float(lo), float(hi)] if np.isfinite(lo) else None
+        if hist is not None:
+            out[name] = hist
+    try:
+        log, value_range, _, _ = _value_scale(volume, None, None, None)
+        out["mean_alpha"] = [{"tf": DEFAULT_TF, "range": list(value_range), "log": log,
+                              "value": _mean_alpha(volume, DEFAULT_TF, value_range, log)}]
+    except ValueError:
+        pass
+    out["view_none"], out["view_none_span"] = fine_histogram(volume)[1], [float(x) for x in volume.value_range]
+    planned_log = out.get("mean_alpha", [{}])[0].get("log")
+    if vs.has_positive and volume.meta.get("value_transform") != "log10" and \
+            (planned_log or vs.positive_volume_share >= MIN_POSITIVE_SHARE):     # as `mi_amr.view.scene` decides
+        logged, _ = apply_value_transform(volume, "log10")
+        out["view_log10"], out["view_log10_span"] = fine_histogram(logged)[1], [float(x) for x in logged.value_range]
+    return out
+
+
+use_stats_builder(file_stats)
 
 
 def _value_scale(stats, field, log, value_range, what="values", source="the data"):
@@ -461,7 +581,12 @@ def _mean_glow(stats, key, emission, e_range, e_log, tf, value_range, log) -> fl
 
 
 def _mean_alpha(volume, tf, value_range, log) -> float:
-    """Volume-weighted mean TF opacity of the cells."""
+    """Volume-weighted mean TF opacity of the cells (an ``.amrb`` file's
+    stored one for the TF, range and scale it was stored for: `file_stats`)."""
+    st = stored_stats(volume)
+    for m in () if st is None else st.get("mean_alpha", ()):
+        if (m["tf"], m["range"], m["log"]) == (tf, [float(x) for x in value_range], bool(log)):
+            return float(m["value"])
     fn = TransferFunction.load(tf, value_range)
     total = weight = 0.0
     for v, w in cells_and_weights(volume):

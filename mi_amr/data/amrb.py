@@ -24,6 +24,12 @@ layout, for other tools). Little-endian throughout:
   (uint64 value masks, where the method uses them), one entry per
   macrocell, x fastest; the file ends where the last section does.
 
+The header's optional ``stats`` object holds what a scene planned from the
+values reads of them (`use_stats_builder`): ``values``, JSON numbers, and
+``arrays``, each ``{"dtype": "<f8", "size": N, "base64": ...}`` (a few
+hundred kB at most: histograms), covered by the header's checksum. Readers
+that do not know it skip it.
+
 Writing goes to a temporary name beside the target, renamed over it only
 once complete and flushed: an interrupted write leaves nothing under the
 target name. Reading checks everything it reads and names the file and the
@@ -32,6 +38,7 @@ problem in one line (`AmrbError`).
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import struct
@@ -93,23 +100,40 @@ def use_grid_builder(builder) -> None:
     _GRID_BUILDER = builder
 
 
+#: Computes what a scene planned from the values reads of them, for
+#: `save_amrb`: ``volume -> {name: JSON value or float64 array}``. It lives
+#: floors above the data (`mi_amr.autoscene.file_stats`), which installs it
+#: when imported (`use_stats_builder`).
+_STATS_BUILDER = None
+
+
+def use_stats_builder(builder) -> None:
+    """Make ``builder`` (``volume -> stats``) the one `save_amrb` stores."""
+    global _STATS_BUILDER
+    _STATS_BUILDER = builder
+
+
 def save_amrb(data, path) -> Path:
     """The one writer of ``.amrb`` files (`mi_amr.data.io.save_cells`,
     ``mi-amr convert``, `mi_amr.native_file.save_native`): ``data`` (an
     `AMRCells` or a `BlockVolume`) as blocks, with the macrocell grids of
     every reconstruction method, so that a medium opened from the file
-    builds none; returns the path."""
+    builds none, and the statistics of the values a planned scene reads;
+    returns the path."""
     volume = as_volume(data)
-    return write_amrb(volume, path, grids=None if _GRID_BUILDER is None else _GRID_BUILDER(volume))
+    return write_amrb(volume, path, grids=None if _GRID_BUILDER is None else _GRID_BUILDER(volume),
+                      stats=None if _STATS_BUILDER is None else _STATS_BUILDER(volume))
 
 
-def write_amrb(volume: BlockVolume, path, grids: dict | None = None) -> Path:
+def write_amrb(volume: BlockVolume, path, grids: dict | None = None, stats: dict | None = None) -> Path:
     """Write ``volume`` to ``path`` (``.amrb``) atomically: streamed chunk by
     chunk into ``path.tmp-PID``, flushed, then renamed over ``path``.
     ``grids``: macrocell grids to store, by reconstruction method name:
     ``{"res": (3,), "vmin", "vmax", "bits", "masks" (or None), "bins":
     (lo, hi) of the masks' value bins (or None)}`` (made by
-    `mi_amr.structures.cost_model.file_grids`)."""
+    `mi_amr.structures.cost_model.file_grids`); ``stats``: ``{name: JSON
+    value or array}``, arrays stored as float64 in the header (made by
+    `mi_amr.autoscene.file_stats`)."""
     path = Path(path)
     arrays = {"level": np.ascontiguousarray(volume.level, dtype="<u1"),
               "coord": np.ascontiguousarray(volume.coord, dtype="<i4"),
@@ -133,6 +157,16 @@ def write_amrb(volume: BlockVolume, path, grids: dict | None = None) -> Path:
             names.append(field)
         stored.append({"method": str(method), "res": res, "arrays": names,
                        "bins": None if g.get("bins") is None else [float(b) for b in g["bins"]]})
+    stats_header = None
+    if stats is not None:
+        stats_header = {"values": {}, "arrays": {}}
+        for name, v in stats.items():
+            if isinstance(v, np.ndarray):
+                a = np.ascontiguousarray(v, dtype="<f8").reshape(-1)
+                stats_header["arrays"][str(name)] = {"dtype": "<f8", "size": int(a.size),
+                                                     "base64": base64.b64encode(a.tobytes()).decode()}
+            else:
+                stats_header["values"][str(name)] = v
     covers, partial = volume._cell_counts()
     sections, offset = [], 0
     for name, dtype in order:
@@ -143,7 +177,7 @@ def write_amrb(volume: BlockVolume, path, grids: dict | None = None) -> Path:
               "hi": [int(x) for x in volume.hi], "value_range": list(map(float, volume.value_range)),
               "covers_bounds": bool(covers), "partial_block_cells": int(partial),
               "source": str(volume.source), "meta": volume.meta, "chunk_bytes": CHUNK_BYTES,
-              "fields": list(volume.fields), "grids": stored}
+              "fields": list(volume.fields), "grids": stored, "stats": stats_header}
     # the checksums go into the header, so they are computed first (one pass
     # over memory, in parallel: zlib releases the GIL), then the bytes written
     for s in sections:
@@ -231,6 +265,15 @@ def read_header(path) -> dict:
                 expected.append((name, grid_dtypes[field]))
                 if sections[name]["shape"] != [n_cells]:
                     _fail(path, f"section {name!r} does not hold one entry per macrocell of {g['res']}")
+        stats = header.setdefault("stats", None)
+        if stats is not None:
+            if not isinstance(stats.get("values"), dict) or not isinstance(stats.get("arrays"), dict):
+                _fail(path, "the statistics are malformed")
+            for name, a in stats["arrays"].items():
+                raw = base64.b64decode(a["base64"], validate=True)
+                if a["dtype"] != "<f8" or len(raw) != 8 * int(a["size"]):
+                    _fail(path, f"statistic {name!r} is inconsistent")
+                a["array"] = np.frombuffer(raw, "<f8").copy()
         if len(expected) != len(sections):
             _fail(path, f"sections {sorted(sections)} are not those the header describes")
         for name, dtype in expected:
@@ -307,4 +350,7 @@ def read_amrb(path) -> BlockVolume:
         grid = {field: arrays.get(f"grid.{g['method']}.{field}") for field, _ in GRID_ARRAYS}
         volume.stored_grids[g["method"]] = dict(grid, res=np.array(g["res"], np.int64),
                                                 bins=None if g["bins"] is None else tuple(g["bins"]))
+    st = header["stats"]
+    # what a planned scene reads of the values (`mi_amr.autoscene.stored_stats`)
+    volume.stored_stats = {} if st is None else dict(st["values"], **{n: a["array"] for n, a in st["arrays"].items()})
     return volume

@@ -201,13 +201,13 @@ class LoadedScene:
     def shares(self, spec: TFSpec) -> list[float]:
         """The editor's histogram for ``spec`` (`Histogram`, built on first use)."""
         if self.histogram is None:
-            self.histogram = Histogram(self.medium.volume)
+            self.histogram = Histogram(self.medium.volume, None if self.plan is None else self.plan.data)
         return self.histogram.shares(spec, self.stored_log)
 
     def outside(self, spec: TFSpec) -> tuple[float, float]:
         """The shares of the volume below and above ``spec.range`` (`Histogram.outside`)."""
         if self.histogram is None:
-            self.histogram = Histogram(self.medium.volume)
+            self.histogram = Histogram(self.medium.volume, None if self.plan is None else self.plan.data)
         return self.histogram.outside(spec, self.stored_log)
 
 

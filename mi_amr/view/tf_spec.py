@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..autoscene import cells_and_weights
+from ..autoscene import VIEW_HISTOGRAM_BINS, fine_histogram, stored_fine_histogram
 from ..transfer.function import TransferFunction
 from .protocol import TFChange, parse_message
 
@@ -214,7 +214,7 @@ class TFSpec:
 
 
 #: Bins of the fine histogram that every editor histogram is re-binned from.
-FINE_BINS = 1 << 14
+FINE_BINS = VIEW_HISTOGRAM_BINS
 
 
 def colormap_stops(names, scene_rgb=None, n: int = 9) -> dict:
@@ -241,16 +241,12 @@ class Histogram:
     and mode in microseconds: the cumulative distribution interpolated at
     the display bins' edges (mapped to stored units)."""
 
-    def __init__(self, volume):
-        lo, hi = volume.value_range
-        if not hi > lo:
-            lo, hi = lo - 0.5, hi + 0.5
-        counts, total = np.zeros(FINE_BINS), 0.0
-        for v, w in cells_and_weights(volume):
-            counts += np.histogram(v, bins=FINE_BINS, range=(lo, hi), weights=w)[0]
-            total += float(w.sum())
-        self.edges = np.linspace(lo, hi, FINE_BINS + 1)
-        self.cdf = np.concatenate([[0.0], np.cumsum(counts)]) / (total or 1.0)
+    def __init__(self, volume, data=None):
+        """``volume``: the medium's; ``data``: the data it was made from,
+        whose ``.amrb`` file may hold this histogram already
+        (`mi_amr.autoscene.stored_fine_histogram`): then nothing is counted."""
+        stored = None if data is None else stored_fine_histogram(data, volume, FINE_BINS)
+        self.edges, self.cdf = stored if stored is not None else fine_histogram(volume, FINE_BINS)
 
     def _cdf(self, edges, spec: TFSpec, stored_log: bool) -> np.ndarray:
         """The share of the volume below each display value of ``edges``."""
