@@ -214,8 +214,8 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, budget: SnapshotB
     tasks = [start(writer())]
     view = None
     try:
-        while not engine.ready.is_set():             # loading: the status listener reports
-            await asyncio.sleep(0.1)
+        while not engine.ready.is_set():             # loading: the status listener reports; the view
+            await loop.run_in_executor(None, engine.ready.wait, 0.5)     # opens as soon as it is ready
         if engine.error:                             # the status said it; the page keeps showing it
             outbox.put(replace(engine.status, state="error", desc=engine.error))
             while (await ws.receive())["type"] != "websocket.disconnect":
@@ -223,8 +223,8 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, budget: SnapshotB
             return
         view = engine.open_view(send_frame, lambda msg: soon(outbox.put, msg))
         outbox.put(replace(engine.describe(view), out_dir=str(out_dir)))
+        tasks.append(start(frames()))                # the first picture does not wait for the editor's histogram
         outbox.put(await loop.run_in_executor(None, engine.histogram, view))
-        tasks.append(start(frames()))
         while True:
             message = await ws.receive()
             if message["type"] == "websocket.disconnect":
