@@ -151,13 +151,21 @@ def auto_grid(cells: BlockVolume, tf, density_scale: float, world_scale: float =
         bin_alpha = range_majorants_host(tf, *g.bins.edges(), 1.0)
         mask = g.masks.reshape(shape)
     mus = {}
-    for c in cands:
+    # each candidate pooled from the next finer one where its factor divides
+    # (min, max and or are associative and the padding is their identity:
+    # the same arrays as pooled from the finest, in a fraction of the time)
+    pooled = {1: (vmin, vmax, mask if masks else None)}
+    for c in sorted(cands, reverse=True):
         f = max(1, finest // c)
-        pmin, pmax = _pool(vmin, f, np.minimum, np.inf), _pool(vmax, f, np.maximum, -np.inf)
+        base = min((k for k in pooled if f % k == 0), key=lambda k: f // k)
+        pmin, pmax, pm = pooled[base]
+        pmin, pmax = _pool(pmin, f // base, np.minimum, np.inf), _pool(pmax, f // base, np.maximum, -np.inf)
+        if masks:
+            pm = _pool(pm, f // base, np.bitwise_or, np.uint64(0))
+        pooled[f] = (pmin, pmax, pm)
         mu = range_majorants_host(tf, pmin.ravel(), pmax.ravel(), density_scale)
         if masks:
-            pmask = _pool(mask, f, np.bitwise_or, np.uint64(0)).ravel()
-            mu = np.minimum(mu, density_scale * mask_max_alpha_host(bin_alpha, pmask))
+            mu = np.minimum(mu, density_scale * mask_max_alpha_host(bin_alpha, pm.ravel()))
         mus[c] = (mu.astype(np.float64) * world_scale).reshape(pmin.shape)
     costs = {GridPlan(c): _uniform_cost(mus[c], c) for c in cands}
     uniform = min(costs, key=lambda p: (costs[p], p.resolution))
