@@ -22,6 +22,13 @@ the start (load included) and, with the viewer loaded and warm, from
 opening a page.
 
 Writes ``DIR/view.json`` and ``DIR/view.md``.
+
+``python -m mi_amr.bench.view DATA [N] [--cold]``: the first picture alone
+(`first_pictures`), N fresh ``mi-amr view`` processes in a row, each page
+opened when its URL is printed: seconds from the start to the URL, from
+opening the page to its first frame, from the start to the first frame and
+to the first full-size one; ``--cold``: each process with an empty Dr.Jit
+kernel cache (docs/performance/view.md "The first picture").
 """
 
 from __future__ import annotations
@@ -280,8 +287,9 @@ def report(result: dict) -> str:
              f"a page opened on the loaded viewer (its passes recorded ahead after {result['warm_s']:.1f} s): "
              f"{result['page_first_picture_s']:.2f} s, refined {result['page_first_refined_s']:.2f} s. "
              f"`mi-amr view` as a process (imports included), the page opened when it printed the URL "
-             f"({result['cli']['url_s']:.1f} s): first picture {result['cli']['first_picture_s']:.1f} s, first "
-             f"full-size one {result['cli']['first_refined_s']:.1f} s after the start.", "",
+             f"({result['cli']['url_s']:.1f} s): first picture {result['cli']['first_picture_s']:.1f} s after the "
+             f"start ({result['cli']['first_picture_s'] - result['cli']['url_s']:.2f} s after opening the page), "
+             f"first full-size one {result['cli']['first_refined_s']:.1f} s after the start.", "",
              "| mode | drag | round | frames/s on screen (changes/s sent) | change -> next frame, median / p90 ms | "
              "change -> frame of it, median / p90 ms | fast pass ms (widths) | last change -> mode's first / "
              "full size / denoised full ms |",
