@@ -17,9 +17,9 @@ import numpy as np
 
 from ..device.grid import DeviceTwoLevelGrid
 from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
-from ..device.tracking import (GRADIENT_MARGIN, DecompositionTracking, DeltaTracking, FreeFlight, LocalRay,
-                               MajorantMargin, RatioTracking, Replay, ResidualRatioTracking, SpanMajorant,
-                               Transmittance, walk_segments)
+from ..device.tracking import (GRADIENT_FLOOR, GRADIENT_MARGIN, DecompositionTracking, DeltaTracking,
+                               FreeFlight, LocalRay, MajorantMargin, RatioTracking, Replay, ResidualRatioTracking,
+                               SpanMajorant, Transmittance, walk_segments)
 from ..device.values import device_values
 from ..params import ParameterError
 from ..pipeline import Structures
@@ -604,12 +604,16 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         hit &= s > 0.0
         global_mu = self.structures.global_majorant
         local = LocalRay(o=o, d=d, t_lo=dr.maximum(t0, 0.0), t_hi=dr.minimum(t1, ray.maxt * s), scale=s)
-        if self.majorant_mode == "global" or self._differentiated():
-            # (differentiated: the raised global majorant over the whole cube, `_majorant_for`)
+        if self.majorant_mode == "global":
             return hit & (global_mu > 0.0), local.world_t(t0), local.world_t(t1)
         segments = self.structures.segments()
         span = walk_segments(segments, local, hit, SpanMajorant(global_mu, self._span_stop),
                              segments.max_steps())
+        if self._differentiated():
+            # the ray's majorant raised (`MajorantMargin`'s defaults), over the
+            # whole cube: a null collision wherever sigma_t may change
+            self._ray_majorant.store(key, span.mu * GRADIENT_MARGIN + GRADIENT_FLOOR * global_mu)
+            return hit & (global_mu > 0.0), local.world_t(t0), local.world_t(t1)
         self._ray_majorant.store(key, span.mu)
         return span.found, span.t_first, span.t_last
 
@@ -618,16 +622,19 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         to ``intersect_aabb`` (Mitsuba's sample_interaction), else the global
         one, raised while differentiated (`_differentiated`): never below
         sigma_t on the caller's ray."""
-        if self._differentiated():
-            return self.structures.global_majorant * GRADIENT_MARGIN
         mu = self._ray_majorant.lookup(mei)
-        return self.structures.global_majorant if mu is None else mu
+        if mu is None:
+            mu = self.structures.global_majorant
+            return mu * GRADIENT_MARGIN if self._differentiated() else mu
+        return mu
 
     def _differentiated(self) -> bool:
         """Whether a parameter of the extinction (density scale, TF table,
         cell values) has gradients enabled. Mitsuba's integrators then get
-        the global majorant raised by `GRADIENT_MARGIN` over the whole cube,
-        not the ray's: where a majorant equals sigma_t (a constant region)
+        the ray's majorant raised as `MajorantMargin` raises a leaf's
+        (`GRADIENT_MARGIN` times it plus `GRADIENT_FLOOR` of the global one)
+        over the whole cube, not over the ray's span: where a majorant
+        equals sigma_t (a constant region)
         no null collision is sampled, and the derivative of sigma_t that
         they carry would be lost (docs/design.md section 13b). Checked with
         gradients resumed (Mitsuba renders under ``dr.suspend_grad``)."""
