@@ -197,6 +197,7 @@ class ViewEngine:
         self._denoise_lock = threading.Lock()    # one denoise at a time (render thread, snapshots)
         self._thread = threading.Thread(target=self._run, name="mi-amr view", daemon=True)
         self._warm = []                          # (size, mode) recorded ahead (`_warm_up`)
+        self._expected = 0                       # pages waiting for the load to open a view (`expect_view`)
         self._fast_level = 0                     # the fast passes' size: FAST_LADDER[level]
         self._fast_ms = {}                       # film size -> running mean of its fast passes (s)
 
@@ -286,6 +287,23 @@ class ViewEngine:
             self._views[v.id] = v
             self._wake.notify_all()
             return v
+
+    def expect_view(self):
+        """A page waits for the load to open a view: until the returned
+        function is called (once it opened it, or left), nothing is
+        recorded ahead, so that its first pass does not wait behind a
+        recording (it records what it needs itself)."""
+        with self._wake:
+            self._expected += 1
+        done = []
+
+        def release():
+            with self._wake:
+                if not done:
+                    done.append(True)
+                    self._expected -= 1
+                    self._wake.notify_all()
+        return release
 
     def close_view(self, view: View):
         with self._wake:
@@ -467,7 +485,7 @@ class ViewEngine:
                 plans = [(v, *self._next_pass(v, now)) for v in self._views.values()]
                 work = [(v, kind) for v, kind, _ in plans if kind is not None]
                 # no view waits for a picture (only refinements of one shown): record ahead
-                if self._warm and all(kind is None and at == math.inf or kind == "full" and v.accum_epoch == v.epoch
+                if self._warm and not self._expected and all(kind is None and at == math.inf or kind == "full" and v.accum_epoch == v.epoch
                                       for v, kind, at in plans):
                     warm = self._warm.pop(0)
                 elif not work:

@@ -213,6 +213,7 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, budget: SnapshotB
     outbox.put(engine.status)
     tasks = [start(writer())]
     view = None
+    expected = engine.expect_view()                  # nothing recorded ahead before its view opens
     try:
         while not engine.ready.is_set():             # loading: the status listener reports; the view
             await loop.run_in_executor(None, engine.ready.wait, 0.5)     # opens as soon as it is ready
@@ -222,6 +223,7 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, budget: SnapshotB
                 pass
             return
         view = engine.open_view(send_frame, lambda msg: soon(outbox.put, msg))
+        expected()
         outbox.put(replace(engine.describe(view), out_dir=str(out_dir)))
         tasks.append(start(frames()))                # the first picture does not wait for the editor's histogram
         outbox.put(await loop.run_in_executor(None, engine.histogram, view))
@@ -235,6 +237,7 @@ async def _serve_socket(ws, engine: ViewEngine, out_dir: Path, budget: SnapshotB
             if any(t.done() for t in tasks):         # a send failed: the tab is gone
                 break
     finally:
+        expected()
         for t in tasks:
             t.cancel()
         stop_status()
