@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
+from types import SimpleNamespace
 from xml.sax.saxutils import quoteattr
 
 import mitsuba as mi
@@ -371,8 +372,9 @@ def file_stats(volume: BlockVolume) -> dict:
         out[name + "_span"] = [float(lo), float(hi)] if np.isfinite(lo) else None
         if hist is not None:
             out[name] = hist
-    try:
-        log, value_range, _, _ = _value_scale(volume, None, None, None)
+    try:     # the choice of scale and range from the histograms just made (not counted again)
+        log, value_range, _, _ = _value_scale(SimpleNamespace(stored_stats=out, n_cells=volume.n_cells,
+                                                              value_range=volume.value_range), None, None, None)
         out["mean_alpha"] = [{"tf": DEFAULT_TF, "range": list(value_range), "log": log,
                               "value": _mean_alpha(volume, DEFAULT_TF, value_range, log)}]
     except ValueError:
