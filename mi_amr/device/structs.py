@@ -34,7 +34,9 @@ def _resolve(cls):
     if mi.variant() is None:
         cls.DRJIT_STRUCT = {k: object for k in cls.JIT_FIELDS}
         return
-    cls.DRJIT_STRUCT = {k: (getattr(mi, v) if isinstance(v, str) else v)
+    # (a type this variant lacks, such as MediumPtr in scalar variants: the
+    # plugins refuse those variants before any struct is made)
+    cls.DRJIT_STRUCT = {k: (getattr(mi, v, object) if isinstance(v, str) else v)
                         for k, v in cls.JIT_FIELDS.items()}
 
 

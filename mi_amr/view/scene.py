@@ -71,6 +71,14 @@ class FrozenPasses:
                 raise
             self._frozen[k] = self._record(integrator)
             image = np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
+        if not np.isfinite(image).all():
+            # a replay of a recording made before the scene changed gave
+            # non-finite samples (seen with stock volpath on an XML scene
+            # after a camera and TF change, one pass in 16; the same state
+            # and seed rendered plainly or by a new recording give none):
+            # record this pass again, once
+            self._frozen[k] = self._record(integrator)
+            image = np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
         if image.shape[:2] != (size[1], size[0]):
             raise RuntimeError(f"rendered {image.shape[:2]}, expected {(size[1], size[0])}")
         return image
