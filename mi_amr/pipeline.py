@@ -31,7 +31,7 @@ from .data.volume import as_method
 from .device.grid import DeviceTwoLevelGrid
 from .device.structs import jit_struct
 from .device.values import device_field
-from .memory import require
+from .memory import MemoryLimitError, require
 from .reconstruction import Reconstruction
 from .strategies import SAMPLINGS, TRAVERSALS
 from .structures.cache import HOST_CACHE, StructureCache
@@ -220,7 +220,11 @@ class Structures:
             return False
         t0 = time.perf_counter()
         if self._incidence is None:
-            pairs = host.incidence(self.volume, self.options.method, REVALUE_PAIRS_PER_CELL * max(len(self.volume), 1))
+            try:
+                pairs = host.incidence(self.volume, self.options.method,
+                                       REVALUE_PAIRS_PER_CELL * max(len(self.volume), 1), self.options.memory_limit)
+            except MemoryLimitError:          # the rebuild checks its own peak
+                pairs = None
             if pairs is None:
                 self._incidence = False
                 return False

@@ -509,3 +509,21 @@ def test11_an_opacity_of_zero_has_its_derivative(llvm):
     se = np.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
     assert abs(a.mean() - b.mean()) < 4 * se + 0.02 * abs(a.mean()), (a.mean(), b.mean(), se)
     assert a.mean() < -4 * a.std(ddof=1) / np.sqrt(len(a)) and b.mean() < -4 * b.std(ddof=1) / np.sqrt(len(b))
+
+
+def test08b_new_values_rebuild_when_the_pairs_do_not_fit(llvm, monkeypatch):
+    """When the incidence pairs would pass the memory limit (here: their
+    bytes per pair made huge), new values rebuild the structures instead,
+    with the same majorants as a fresh load."""
+    from mi_amr.structures import macrocell_grid
+    monkeypatch.setattr(macrocell_grid, "INCIDENCE_PAIR_BYTES", 1e30)
+    desc, cells = small_medium("tent")
+    med = mi.load_dict(desc)
+    params = mi.traverse(med)
+    idx = med.value_index(cells)
+    v = np.array(params["values"])
+    v[idx] = np.random.default_rng(9).uniform(*cells.value_range, len(idx)).astype(np.float32)
+    _set(params, "values", v)
+    assert "revalue" not in med.build_seconds
+    fresh = mi.load_dict(desc | {"data": mi_amr.AMRCells(cells.pos, cells.level, v[idx])})
+    np.testing.assert_array_equal(med.majorant_grid, fresh.majorant_grid)

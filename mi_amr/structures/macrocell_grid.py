@@ -51,6 +51,13 @@ def default_resolution(cells: BlockVolume) -> np.ndarray:
     return np.minimum(res, np.maximum(1, ext.astype(np.int64)))
 
 
+#: Host bytes of `MacrocellGrid.incidence`'s temporaries: per present cell
+#: (its slot, block, level, six macrocell bounds and counts, int64) and per
+#: (cell, macrocell) pair (owner, offset, three coordinates and the results).
+INCIDENCE_CELL_BYTES = 96
+INCIDENCE_PAIR_BYTES = 64
+
+
 class MacrocellGrid:
     """Value ranges and level masks on a uniform grid over the data bounds.
 
@@ -118,13 +125,18 @@ class MacrocellGrid:
             self.bins = ValueBins.of(cells)
             self.masks = value_masks(cells, self, support, self.bins)
 
-    def incidence(self, cells: BlockVolume, support: Reconstruction, max_pairs: int):
+    def incidence(self, cells: BlockVolume, support: Reconstruction, max_pairs: int,
+                  memory_limit: float | None = None):
         """``(slots, macrocells)``: for each present cell of ``cells`` (its
         slot in ``cells.values``), every macrocell (flat index ``x + rx (y +
         ry z)``) its support box overlaps, one pair each: the fold the build
         makes, as index pairs, so that new values of the same cells give new
         ranges by two scatter-reductions (`Structures.revalue`). None when
-        there would be more than ``max_pairs`` pairs."""
+        there would be more than ``max_pairs`` pairs. The temporaries
+        (about `INCIDENCE_CELL_BYTES` a cell and `INCIDENCE_PAIR_BYTES` a
+        pair) are checked against the memory limit first (`MemoryLimitError`)."""
+        what = f"the macrocell incidence of {len(cells)} cells"
+        require(INCIDENCE_CELL_BYTES * len(cells), what, memory_limit)
         lb = cells.log2_block
         slots = np.flatnonzero(~np.isnan(cells.values))
         block = slots >> (3 * lb)
@@ -144,6 +156,7 @@ class MacrocellGrid:
         total = int(count.sum())
         if total > max_pairs:
             return None
+        require(INCIDENCE_CELL_BYTES * len(cells) + INCIDENCE_PAIR_BYTES * total, what, memory_limit)
         owner = np.repeat(np.arange(slots.size), count)
         k = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(count) - count, count)
         nx, ny = n[0][owner], n[1][owner]
