@@ -257,20 +257,25 @@ def test09_scale_bench_reports_the_first_picture(tmp_path):
     assert "**first picture s**" in (out / "scale.md").read_text()
 
 
-def test10_modes_bench_reports_each_mode_beside_the_empty_frame_and_the_floor(llvm, tmp_path):
-    """``--modes``: per case the empty frame and every mode, with its share
-    of the empty frame and its real collisions; the floor's rows per mode.
-    Properties, not timings: emission_absorption and single stop at the same
-    first real collision (the same random numbers up to it), so they count
-    the same collisions, and multi at least as many; the uniform field and
-    Mitsuba's homogeneous medium render the same picture (unbiased, within
-    the frames' own noise)."""
+def _modes_bench(tmp_path, floor: bool) -> dict:
     out = tmp_path / "modes"
     code = main(["--modes", "--out", str(out), "--cells", "800", "--res", "16", "--repeats", "2",
                  "--datasets", "cloud", "--tfs", "spiky", "--modes-cells",
-                 "--modes-floor-res", "16", "--modes-floor-spp", "4"])
+                 "--modes-floor-res", "16", "--modes-floor-spp", "4"] + ([] if floor else ["--no-modes-floor"]))
     assert code == 0
-    result = json.loads((out / "modes.json").read_text())
+    text = (out / "modes.md").read_text()
+    assert "## Frames/s per mode (16x16, 1 spp)" in text and ("## The floor" in text) == floor
+    assert "python -m mi_amr.bench --modes" in text
+    return json.loads((out / "modes.json").read_text())
+
+
+def test10_modes_bench_reports_each_mode_beside_the_empty_frame(llvm, tmp_path):
+    """``--modes``: per case the empty frame and every mode, with its share
+    of the empty frame and its real collisions. Properties, not timings:
+    emission_absorption and single stop at the same first real collision
+    (the same random numbers up to it), so they count the same collisions,
+    and multi at least as many."""
+    result = _modes_bench(tmp_path, floor=False)
     (case,) = result["cases"]
     assert (case["dataset"], case["tf"], case["spp"]) == ("cloud", "spiky", 1)
     assert case["empty_s"] > 0 and len(case["empty_frames"]["wall"]) == 2
@@ -284,16 +289,21 @@ def test10_modes_bench_reports_each_mode_beside_the_empty_frame_and_the_floor(ll
         assert len(r["frames"]["wall"]) == len(r["frames"]["cpu"]) == 2
     assert modes["emission_absorption"]["real_per_frame"] == modes["single"]["real_per_frame"] > 0
     assert modes["multi"]["real_per_frame"] >= modes["single"]["real_per_frame"]
-    rows = result["floor"]["rows"]
+
+
+@pytest.mark.slow
+def test10b_modes_bench_reports_the_floor(llvm, tmp_path):
+    """The floor's rows per mode: the uniform field and Mitsuba's
+    homogeneous medium render the same picture (unbiased, within the
+    frames' own noise). Slow: its kernels (two media in three modes) are
+    new to the suite; test11 checks the uniform field's structure."""
+    rows = _modes_bench(tmp_path, floor=True)["floor"]["rows"]
     n = 16 * 16 * 3 * 2                                   # pixel channels x frames per mean
     for m in MODES:
         h, a = rows[f"homogeneous/{m}"], rows[f"uniform amr/{m}"]
         assert h["variance"] > 0 and a["variance"] > 0
         assert abs(h["mean"] - a["mean"]) < 5 * math.sqrt((h["variance"] + a["variance"]) / n), m
         assert a["efficiency_vs_homogeneous"] > 0 and a["vs_homogeneous"]["median"] > 0
-    text = (out / "modes.md").read_text()
-    assert "## Frames/s per mode (16x16, 1 spp)" in text and "## The floor" in text
-    assert "python -m mi_amr.bench --modes" in text
 
 
 def test11_a_uniform_field_takes_one_macrocell_and_no_look_up(llvm):
