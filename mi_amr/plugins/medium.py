@@ -612,7 +612,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         if self._differentiated():
             # the ray's majorant raised (`MajorantMargin`'s defaults), over the
             # whole cube: a null collision wherever sigma_t may change
-            self._ray_majorant.store(key, span.mu * GRADIENT_MARGIN + GRADIENT_FLOOR * global_mu)
+            self._ray_majorant.store(key, self.majorant_margin(GRADIENT_MARGIN, GRADIENT_FLOOR)(span.mu))
             return hit & (global_mu > 0.0), local.world_t(t0), local.world_t(t1)
         self._ray_majorant.store(key, span.mu)
         return span.found, span.t_first, span.t_last

@@ -59,26 +59,27 @@ class FrozenPasses:
         height] pixels, by ``integrator`` (None: the scene's), whose
         recordings ``key`` names (the mode)."""
         k = (tuple(size), key)
-        if k not in self._frozen:
-            self._frozen[k] = self._record(integrator)
+
+        def replay(record: bool) -> np.ndarray:
+            if record:
+                self._frozen[k] = self._record(integrator)
+            return np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
         try:
-            image = np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
+            image = replay(k not in self._frozen)
         except RuntimeError as e:
             # a recording made while other Dr.Jit instances were alive (the
             # scene a field switch replaced, until it is collected) cannot be
             # replayed once they are gone: record this pass again, once
             if "registry" not in str(e):
                 raise
-            self._frozen[k] = self._record(integrator)
-            image = np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
+            image = replay(True)
         if not np.isfinite(image).all():
             # a replay of a recording made before the scene changed gave
             # non-finite samples (seen with stock volpath on an XML scene
             # after a camera and TF change, one pass in 16; the same state
             # and seed rendered plainly or by a new recording give none):
             # record this pass again, once
-            self._frozen[k] = self._record(integrator)
-            image = np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
+            image = replay(True)
         if image.shape[:2] != (size[1], size[0]):
             raise RuntimeError(f"rendered {image.shape[:2]}, expected {(size[1], size[0])}")
         return image
