@@ -22,16 +22,36 @@ UPPER_OFFSETS = [np.array([d & 1, (d >> 1) & 1, (d >> 2) & 1], dtype=np.int64) f
 
 def ghost_blocks(coord: np.ndarray, level: np.ndarray):
     """The missing blocks at ``coord - d`` (d in `UPPER_OFFSETS`, same level)
-    of the given blocks: ``(coord int64 (G, 3), level (G,))``, distinct."""
+    of the given blocks: ``(coord int64 (G, 3), level (G,))``, distinct, in
+    key order."""
     coord = np.asarray(coord, dtype=np.int64)
-    packed = fits_packed(coord)
-    keys = np.unique(block_keys(coord, level, packed))
-    cand_c = np.concatenate([coord - off for off in UPPER_OFFSETS])
-    cand_l = np.tile(level, len(UPPER_OFFSETS))
-    ok = np.all(cand_c >= 0, axis=1)
-    cand_k, first = np.unique(block_keys(cand_c[ok], cand_l[ok], packed), return_index=True)
-    ghost = ~np.isin(cand_k, keys)
-    return cand_c[ok][first[ghost]], cand_l[ok][first[ghost]]
+    level = np.asarray(level)
+    if not fits_packed(coord):
+        keys = np.unique(block_keys(coord, level, False))
+        cand_c = np.concatenate([coord - off for off in UPPER_OFFSETS])
+        cand_l = np.tile(level, len(UPPER_OFFSETS))
+        ok = np.all(cand_c >= 0, axis=1)
+        cand_k, first = np.unique(block_keys(cand_c[ok], cand_l[ok], False), return_index=True)
+        ghost = ~np.isin(cand_k, keys)
+        return cand_c[ok][first[ghost]], cand_l[ok][first[ghost]]
+    # packed keys: a same-level offset is a constant in key space, and
+    # sorted keys minus a constant stay sorted, so the candidates are seven
+    # sorted runs (a stable sort merges them) searched in the sorted keys
+    keys = np.sort(block_keys(coord, level, True))
+    c, _ = unpack_keys(keys, True)
+    runs = [keys[np.all(c >= off, axis=1)] - key_offset(off) for off in UPPER_OFFSETS]
+    cand = np.sort(np.concatenate(runs), kind="stable")
+    if len(cand):
+        cand = cand[np.r_[True, cand[1:] != cand[:-1]]]
+    i = np.minimum(np.searchsorted(keys, cand), max(len(keys) - 1, 0))
+    ghosts = cand[keys[i] != cand] if len(keys) else cand
+    g_coord, g_level = unpack_keys(ghosts, True)
+    return g_coord, g_level.astype(level.dtype, copy=False)
+
+
+def key_offset(off) -> np.int64:
+    """What a same-level block offset ``off`` (x, y, z) adds to a packed key."""
+    return np.int64(int(off[0]) | (int(off[1]) << KEY_AXIS_BITS) | (int(off[2]) << (2 * KEY_AXIS_BITS)))
 
 
 def block_offsets(b: int) -> np.ndarray:

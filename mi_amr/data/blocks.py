@@ -24,7 +24,7 @@ from ..parallel import ordered_map
 from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
 from .block_keys import (KEY_AXIS_BITS, UPPER_OFFSETS, block_keys, block_offsets, distinct_keys, fits_packed,
-                         ghost_blocks, level_coords, packed_keys, slot_index, unpack_keys)
+                         ghost_blocks, key_offset, level_coords, packed_keys, slot_index, unpack_keys)
 from .cells import MAX_LEVEL, AMRCells, check_cells
 
 #: Block sizes tried by `choose_block_size` (cells per side).
@@ -409,15 +409,19 @@ class BlockVolume(mi.Object):
         packed = fits_packed(coord, 1)
         keys = block_keys(coord, self.level, packed)
         order = np.argsort(keys)
+        sorted_keys = keys[order]
         all_coord = np.concatenate([coord, ghost_coord])
         all_level = np.concatenate([self.level, ghost_level])
         neighbours = np.full((len(all_level), 7), 0xFFFFFFFF, dtype=np.uint32)
+        # packed keys (with a margin of one block): an offset adds a constant
+        all_keys = np.concatenate([keys, block_keys(ghost_coord, ghost_level, True)]) if packed else None
 
         def find(d):                               # one column per thread
-            k = block_keys(all_coord + UPPER_OFFSETS[d], all_level, packed)
-            i = np.minimum(np.searchsorted(keys, k, sorter=order), len(keys) - 1)
-            hit = keys[order[i]] == k
-            neighbours[hit, d] = order[i][hit]
+            k = all_keys + key_offset(UPPER_OFFSETS[d]) if packed else \
+                block_keys(all_coord + UPPER_OFFSETS[d], all_level, packed)
+            i = np.minimum(np.searchsorted(sorted_keys, k), len(keys) - 1)
+            hit = sorted_keys[i] == k
+            neighbours[hit, d] = order[i[hit]]
         for _ in ordered_map(find, range(len(UPPER_OFFSETS))):
             pass
         return ghost_coord.astype(np.int32), ghost_level, neighbours
