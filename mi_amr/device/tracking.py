@@ -1,9 +1,11 @@
 """Estimators along local-majorant segments (docs/design.md sections 5 and
 5b), as consumers of one segment walk.
 
-`walk_segments` is the one loop (the shape of pbrt-v4's ``SampleT_maj``):
+`walk_segments` is the one walk (the shape of pbrt-v4's ``SampleT_maj``):
 it takes the traversal's segments ``[t0, t1]`` front to back, moves ``t``
-through each, counts its iterations and stops at a bound. What happens in a
+through each, counts its moves and stops at a bound; its inner loop moves
+each lane through segments until a tentative collision falls inside one,
+its outer loop takes the collisions (docs/design.md section 5c). What happens in a
 segment is the consumer's: an estimator object built per call, whose
 attributes are per-ray constants and whose changing values live in its own
 typed loop state. It provides
@@ -13,9 +15,15 @@ typed loop state. It provides
 * ``enter(state, ray, seg, entered, t, seg_end) -> state``: lanes
   ``entered`` have just taken the segment ``seg`` and stand at ``t`` in
   ``[seg.t0, seg_end]``;
-* ``step(state, ray, t, seg_end, alive) -> (state, t, alive)``: one move
-  in the current segment, to a collision or to ``seg_end``; ``alive``
-  false ends the lane;
+* ``MOVING``: the names of the state's fields that ``enter``, ``clock``
+  and ``passes`` change (the inner loop's state);
+* ``clock(state, ray, t, seg_end, moving) -> (state, t_c, inside)``: lanes
+  ``moving`` draw their next tentative collision ``t_c`` in the current
+  segment, ``inside`` where it falls before ``seg_end``;
+* ``passes(state, alive) -> alive``: what a lane that reached ``seg_end``
+  without a collision keeps of ``alive`` (false ends the lane);
+* ``collide_at(state, ray, t_c, inside, alive) -> (state, alive)``: the
+  lanes ``inside`` collide at ``t_c``;
 * ``result(state, ray, end) -> result``: a typed result from the last state
   and the walk's `WalkEnd`.
 
@@ -67,6 +75,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .rng import Rng
+from .segments import Segment
 from .structs import jit_struct
 
 #: Ratio tracking plays Russian roulette once its transmittance falls below
@@ -153,7 +162,17 @@ def walk_segments(segments, ray: LocalRay, active, consumer, max_iterations):
     an estimator (`DeltaTracking`, `DecompositionTracking`, `RatioTracking`,
     `ResidualRatioTracking`, `SpanMajorant`, or anything with their hooks,
     see the module docstring). A lane stops when the consumer ends it, when
-    the segments run out, or after ``max_iterations`` iterations.
+    the segments run out, or after ``max_iterations`` moves (a move: to a
+    tentative collision, or to the end of a segment).
+
+    Two loops (docs/design.md section 5c): the inner one
+    (`_segments_to_collision`) moves each lane through segments, drawing
+    its clock in each, until a tentative collision falls inside one (or the
+    lane ends); the outer one then takes those collisions, with their
+    density look-ups. A SIMD packet thus looks up once per collision of its
+    busiest lane, not once per move of its busiest lane. Each lane makes the
+    same moves and draws the same random numbers in the same order as in one
+    loop.
     """
     seg_state, fixed = segments.begin(ray.o, ray.d, ray.t_lo, ray.t_hi, active)
     state = consumer.begin(ray, active)
@@ -162,25 +181,70 @@ def walk_segments(segments, ray: LocalRay, active, consumer, max_iterations):
     it = mi.UInt32(0)
     alive = mi.Bool(active) & (ray.t_lo < ray.t_hi)
     # the loop state: the walker's and the consumer's state, t, the current
-    # segment's end, the iteration count and the live lanes
+    # segment's end, the move count and the live lanes
     while dr.hint(alive & (it < max_iterations), label=consumer.label,
                   exclude=[segments, ray, consumer, fixed, max_iterations]):
+        state, seg_state, seg_end, t, alive, it = _segments_to_collision(
+            segments, ray, consumer, fixed, max_iterations, state, seg_state, seg_end, t, alive, it)
+        # ---- The tentative collisions found: every lane still alive and
+        # within the bound stopped at one (`t`) ----
+        inside = alive & (it < max_iterations)
+        state, alive = consumer.collide_at(state, ray, t, inside, alive)
+        it += dr.select(inside, 1, 0)
+    # a lane still alive here was stopped by the bound
+    return consumer.result(state, ray, WalkEnd(t=t, exhausted=it >= max_iterations, cut=alive))
+
+
+@dr.syntax
+def _segments_to_collision(segments, ray, consumer, fixed, max_iterations, state, seg_state, seg_end, t, alive,
+                           it):
+    """The inner loop of `walk_segments`: each live lane moves on through
+    its segments until its clock puts a tentative collision inside one
+    (then ``t`` is that collision; a control clock's is marked in the
+    consumer's state) or the lane ends. Its state holds only the fields of
+    the consumer's state that moving changes (``consumer.MOVING``), so that
+    it too is recorded once (docs/design.md section 6). Returns ``(state,
+    seg_state, seg_end, t, alive, it)``."""
+    names = tuple(k for k in consumer.MOVING if getattr(state, k) is not None)
+    part = tuple(getattr(state, k) for k in names)
+    moving = alive & (it < max_iterations)
+    while dr.hint(moving, label=consumer.label + "_segments",
+                  exclude=[segments, ray, consumer, fixed, max_iterations, state, names]):
+        moved = _with_fields(state, names, part)
         # ---- Next segment once the current one is used up ----
-        need = alive & (t >= seg_end)
-        seg_state, seg = segments.advance(ray.o, ray.d, seg_state, fixed, ray.t_hi, need)
+        need = moving & (t >= seg_end)
+        seg = Segment(t0=mi.Float(0.0), t1=mi.Float(0.0), mu=mi.Float(0.0), mu_min=mi.Float(0.0),
+                      valid=mi.Bool(False))
+        if dr.hint(need, exclude=[segments, ray, fixed]):
+            # a symbolic conditional: a packet whose lanes all go on in
+            # their segments (after a null collision) skips the advance
+            seg_state, seg = segments.advance(ray.o, ray.d, seg_state, fixed, ray.t_hi, need)
         seg_end = dr.select(need, seg.t1, seg_end)
         t = dr.select(need, dr.maximum(t, seg.t0), t)
         alive &= ~need | seg.valid
-        state = consumer.enter(state, ray, seg, need & seg.valid, t, seg_end)
-        # ---- The consumer's move in the segment ----
-        state, t, alive = consumer.step(state, ray, t, seg_end, alive)
-        # every walker's segments end at t_hi: a lane that got there has no
-        # segment left, and stops now rather than at the next iteration's
-        # failed advance (which draws nothing: the same random numbers)
-        alive &= t < ray.t_hi
-        it += 1
-    # a lane still alive here was stopped by the bound
-    return consumer.result(state, ray, WalkEnd(t=t, exhausted=it >= max_iterations, cut=alive))
+        moving &= alive
+        moved = consumer.enter(moved, ray, seg, need & seg.valid, t, seg_end)
+        # ---- The lane's clock in the segment: a collision inside, or on to its end ----
+        moved, t_c, inside = consumer.clock(moved, ray, t, seg_end, moving)
+        passing = moving & ~inside
+        t = dr.select(inside, t_c, dr.select(passing, seg_end, t))
+        # every walker's segments end at t_hi: a lane that got there has
+        # no segment left, and stops now rather than at a failed advance
+        alive = dr.select(passing, consumer.passes(moved, alive) & (t < ray.t_hi), alive)
+        it += dr.select(passing, 1, 0)
+        moving = passing & alive & (it < max_iterations)
+        part = tuple(getattr(moved, k) for k in names)
+    return _with_fields(state, names, part), seg_state, seg_end, t, alive, it
+
+
+def _with_fields(state, names, values):
+    """A copy of the struct ``state`` with the fields ``names`` set to ``values``."""
+    new = type(state).__new__(type(state))
+    for k in state.JIT_FIELDS:
+        setattr(new, k, getattr(state, k))
+    for k, v in zip(names, values):
+        setattr(new, k, v)
+    return new
 
 
 # ---- Tracking estimators ----------------------------------------------------------
@@ -291,6 +355,9 @@ class _Tracking:
     but ``capped``."""
 
     label = "amr_track"
+    #: the state fields that `enter`, `clock` and `passes` change (the inner
+    #: loop's state, `walk_segments`); the others change only in `collide_at`
+    MOVING = ("rng", "mu", "steps")
 
     def __init__(self, lookup, sampler, carries: bool = False, count: bool = True, replay: Replay | None = None,
                  margin: MajorantMargin | None = None):
@@ -329,29 +396,49 @@ class _Tracking:
         t_c = t - dr.log(1.0 - xi) * dr.rcp(dr.select(go, residual, 1.0)) * ray.scale
         return dr.select(go, t_c, float("inf")), mi.Bool(False)
 
+    def clock(self, state, ray, t, seg_end, moving):
+        """The walk's hook: the lanes ``moving`` draw their next tentative
+        collision in the segment; ``(state, t_c, inside)``, ``inside``
+        where it falls before ``seg_end`` (whether the control clock set it
+        is kept in the state: `rang`)."""
+        mu_c = self.control(state)
+        t_c, by_control = self.clocks(state, ray, t, mu_c, state.mu - mu_c, moving)
+        inside = moving & (t_c < seg_end)
+        return self.mark(state, by_control & inside, moving), t_c, inside
+
+    def mark(self, state, by_control, moving):
+        """Keep in the state where the control clock set the collision
+        (nothing to keep without a control clock)."""
+        return state
+
+    def rang(self, state, inside):
+        """Where the control clock set the collision of lanes ``inside``."""
+        return mi.Bool(False)
+
+    def passes(self, state, alive):
+        """The walk's hook: what a lane that reached its segment's end
+        without a collision keeps of ``alive`` (all of it here)."""
+        return alive
+
     @dr.syntax
-    def step(self, state, ray, t, seg_end, alive):
-        """The walk's hook: the next tentative collision in the segment (or
-        its end), the density there, then the estimator's `collide`."""
+    def collide_at(self, state, ray, t_c, inside, alive):
+        """The walk's hook: the tentative collisions of lanes ``inside`` at
+        ``t_c``, the density there, then the estimator's `collide`."""
+        by_control = self.rang(state, inside)
         mu_c = self.control(state)
         residual = state.mu - mu_c
-        t_c, by_control = self.clocks(state, ray, t, mu_c, residual, alive)
-        inside = alive & (t_c < seg_end)
-        by_control &= inside
-        t = dr.select(inside, t_c, dr.select(alive, seg_end, t))
         look = inside & ~by_control
         found = (mi.Float(0.0), mi.Float(0.0)) + ((mi.Float(0.0),) if self.carries else ())
         lookup = self.lookup
-        x = ray.o + ray.d * t
+        x = ray.o + ray.d * t_c
         if dr.hint(look, exclude=[lookup, x]):
             # a symbolic conditional: a SIMD packet in which no lane looks
-            # up the density (all stepping through segments) skips it
+            # up the density skips it
             found = lookup(x, look)
         state.lookups = _tally(state.lookups, dr.select(look, 1, 0))
         carried = found[2] if self.carries else 0.0
-        state, alive = self.collide(state, TentativeCollision(inside, by_control, look, found[0], found[1], mu_c,
-                                                              residual, carried, x), alive)
-        return state, t, alive
+        return self.collide(state, TentativeCollision(inside, by_control, look, found[0], found[1], mu_c,
+                                                      residual, carried, x), alive)
 
 
 @jit_struct(rng=Rng, mu="Float", collided="Bool", value="Float", carried="Float", looked="Bool",
@@ -427,10 +514,11 @@ class DeltaTracking(_Tracking):
                           counts=counts, dlog=state.dlog)
 
 
-@jit_struct(**DeltaState.JIT_FIELDS, mu_c="Float")
+@jit_struct(**DeltaState.JIT_FIELDS, mu_c="Float", by_control="Bool")
 class DecompositionState(DeltaState):
-    """Loop state of `DecompositionTracking`: `DeltaState` and the
-    segment's control extinction."""
+    """Loop state of `DecompositionTracking`: `DeltaState`, the segment's
+    control extinction and whether the control clock set the pending
+    collision."""
 
 
 class DecompositionTracking(DeltaTracking):
@@ -440,15 +528,25 @@ class DecompositionTracking(DeltaTracking):
     reports ``mu_c`` as its sigma_t; the value left in the state colours it
     (any value has that one colour)."""
 
+    MOVING = DeltaTracking.MOVING + ("mu_c", "by_control")
+
     def __init__(self, lookup, albedo_of, sampler, known_albedo, carries: bool = False, count: bool = True):
         super().__init__(lookup, albedo_of, sampler, carries, count)
         self.known_albedo = known_albedo
 
     def begin(self, ray, active):
-        return DecompositionState(**vars(super().begin(ray, active)), mu_c=mi.Float(0.0))
+        return DecompositionState(**vars(super().begin(ray, active)), mu_c=mi.Float(0.0),
+                                  by_control=mi.Bool(False))
 
     def control(self, state):
         return state.mu_c
+
+    def mark(self, state, by_control, moving):
+        state.by_control = dr.select(moving, by_control, state.by_control)
+        return state
+
+    def rang(self, state, inside):
+        return state.by_control & inside
 
     def enter(self, state, ray, seg, entered, t, seg_end):
         state = super().enter(state, ray, seg, entered, t, seg_end)
@@ -509,6 +607,10 @@ class RatioTracking(_Tracking):
         state = self.roulette(state, c.inside)
         return state, alive & (state.T > 0.0)
 
+    def passes(self, state, alive):
+        # a segment's analytic factor and its roulette (`ResidualRatioTracking.enter`) may end a lane
+        return alive & (state.T > 0.0)
+
     @staticmethod
     def roulette(state, where):
         """Russian roulette below RATIO_RR_THRESHOLD: go on with probability
@@ -532,6 +634,8 @@ class ResidualRatioState(RatioState):
 
 class ResidualRatioTracking(RatioTracking):
     """Residual ratio tracking against the segments' minorants."""
+
+    MOVING = RatioTracking.MOVING + ("mu_c", "T")
 
     def begin(self, ray, active):
         return ResidualRatioState(**vars(super().begin(ray, active)), mu_c=mi.Float(0.0))
@@ -578,6 +682,7 @@ class SpanMajorant:
     majorant ``global_mu``."""
 
     label = "amr_span_majorant"
+    MOVING = ("found", "t_first", "t_last", "t_seen", "mu_max")
 
     def __init__(self, global_mu, stop_share=None):
         self.global_mu = global_mu
@@ -599,12 +704,17 @@ class SpanMajorant:
         state.found |= nonzero
         return state
 
-    def step(self, state, ray, t, seg_end, alive):
-        # no collisions: on to the segment's end, the last one at t_hi
-        go_on = alive & (seg_end < ray.t_hi)
+    def clock(self, state, ray, t, seg_end, moving):
+        # no collisions: on to the segment's end (the last one ends at t_hi)
+        return state, t, mi.Bool(False)
+
+    def passes(self, state, alive):
         if self.stop_share is not None:
-            go_on &= state.mu_max < self.stop_share * self.global_mu
-        return state, dr.select(alive, seg_end, t), go_on
+            return alive & (state.mu_max < self.stop_share * self.global_mu)
+        return alive
+
+    def collide_at(self, state, ray, t_c, inside, alive):
+        return state, alive
 
     def result(self, state, ray, end: WalkEnd) -> MajorantSpan:
         cut = end.cut
