@@ -410,11 +410,12 @@ class BlockVolume(mi.Object):
         keys = block_keys(coord, self.level, packed)
         order = np.argsort(keys)
         sorted_keys = keys[order]
-        all_coord = np.concatenate([coord, ghost_coord])
-        all_level = np.concatenate([self.level, ghost_level])
-        neighbours = np.full((len(all_level), 7), 0xFFFFFFFF, dtype=np.uint32)
-        # packed keys (with a margin of one block): an offset adds a constant
-        all_keys = np.concatenate([keys, block_keys(ghost_coord, ghost_level, True)]) if packed else None
+        neighbours = np.full((len(self.level) + len(ghost_level), 7), 0xFFFFFFFF, dtype=np.uint32)
+        if packed:                                 # (with a margin of one block): an offset adds a constant
+            all_keys = np.concatenate([keys, block_keys(ghost_coord, ghost_level, True)])
+        else:
+            all_coord = np.concatenate([coord, ghost_coord])
+            all_level = np.concatenate([self.level, ghost_level])
 
         def find(d):                               # one column per thread
             k = all_keys + key_offset(UPPER_OFFSETS[d]) if packed else \

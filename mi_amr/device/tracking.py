@@ -238,13 +238,9 @@ def _segments_to_collision(segments, ray, consumer, fixed, max_iterations, state
 
 
 def _with_fields(state, names, values):
-    """A copy of the struct ``state`` with the fields ``names`` set to ``values``."""
-    new = type(state).__new__(type(state))
-    for k in state.JIT_FIELDS:
-        setattr(new, k, getattr(state, k))
-    for k, v in zip(names, values):
-        setattr(new, k, v)
-    return new
+    """A copy of the loop state ``state`` (a `_Fields` struct) with the fields
+    ``names`` set to ``values``."""
+    return type(state)(**{**vars(state), **dict(zip(names, values))})
 
 
 # ---- Tracking estimators ----------------------------------------------------------
