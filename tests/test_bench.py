@@ -321,3 +321,30 @@ def test11_a_uniform_field_takes_one_macrocell_and_no_look_up(llvm):
     assert c["real"] > 0 and c["shadow_crossings"] > 0
     assert c["lookups"] <= 1e-4 * c["real"] and c["shadow_lookups"] <= 1e-4 * c["shadow_crossings"]
     del scene, med
+
+
+@pytest.mark.slow   # new kernels (a forced uniform grid, the packet of look-ups): a study, not a path users take
+def test12_modes_bound_splits_the_frame_and_bounds_it(llvm, tmp_path):
+    """``--modes-bound``: per case the empty frame, the walk and the frame
+    in kernel time, the counts per ray and two lower bounds; the finer
+    grid's majorants never lose look-ups (its macrocells nest in the walked
+    grid's, so each majorant is at most the walked one: within the Monte
+    Carlo noise of one frame), and a bound is the walk plus look-ups at the
+    full-packet price."""
+    out = tmp_path / "bound"
+    code = main(["--modes-bound", "--out", str(out), "--cells", "800", "--res", "16", "--repeats", "2",
+                 "--datasets", "cloud", "--tfs", "spiky", "--modes-cells", "--modes-bound-res", "32",
+                 "--modes-bound-points", "4096"])
+    assert code == 0
+    assert "python -m mi_amr.bench --modes-bound" in (out / "modes_bound.md").read_text()
+    (rec,) = json.loads((out / "modes_bound.json").read_text())
+    counts, rays = rec["counts_per_ray"], 16 * 16
+    frame = counts["frame"]
+    assert frame["real"] > 0 and frame["lookups"] >= frame["real"] and counts["empty"]["lookups"] == 0
+    # the walk alone: segments (fewer refined at a tiny scale), next to no look-up
+    assert counts["walk"]["steps"] > 0 and frame["steps"] > 0 and counts["walk"]["lookups"] < frame["lookups"]
+    assert counts["fine"]["lookups"] <= frame["lookups"] + 5 * math.sqrt(frame["lookups"] / rays)
+    assert rec["lookup_ns_packet"] > 0 and all(len(v) == 2 for v in rec["kernel_ms"].values())
+    per_lookup = rec["lookup_ns_packet"] * rays * 1e-6
+    assert rec["bounds_ms"]["perfect"] == pytest.approx(rec["walk_ms"] + frame["real"] * per_lookup)
+    assert rec["bounds_ms"]["fine"] == pytest.approx(rec["walk_ms"] + counts["fine"]["lookups"] * per_lookup)

@@ -6,8 +6,10 @@ options ask for) and that study's ``main_args``: the protocol
 ``--resample`` (`mi_amr.bench.resample`), ``--view`` (`mi_amr.bench.view`),
 ``--distributed`` (`mi_amr.bench.distributed`), ``--modes``
 (`mi_amr.bench.modes`: frames/s per lighting mode, and the uniform field
-against Mitsuba's homogeneous medium) or ``--grad`` (`mi_amr.bench.gradients`:
-what a gradient step costs against the primal frame and a dense grid).
+against Mitsuba's homogeneous medium), ``--modes-bound``
+(`mi_amr.bench.modes_bound`: what bounds the emission-absorption frame) or
+``--grad`` (`mi_amr.bench.gradients`: what a gradient step costs against the
+primal frame and a dense grid).
 """
 
 import argparse
@@ -29,6 +31,8 @@ def dispatch(args) -> int:
         from .view import main_args
     elif args.distributed:
         from .distributed import main_args
+    elif args.modes_bound:
+        from .modes_bound import main_args
     elif args.modes:
         from .modes import main_args
     elif args.grad:
@@ -170,6 +174,14 @@ def modes_options(p):
                         "each mode's 1-spp frame timed (the README's figure)")
     p.add_argument("--modes-figure-res", type=int, default=256, help="--modes-figure: each picture's size")
     p.add_argument("--modes-figure-spp", type=int, default=64, help="--modes-figure: samples per pixel")
+    p.add_argument("--modes-bound", action="store_true",
+                   help="what bounds the emission_absorption frame: its kernel split into the empty frame, the "
+                        "walk and the look-ups, and two lower bounds (the cases of --modes; "
+                        "docs/performance/modes.md section 1b)")
+    p.add_argument("--modes-bound-res", type=int, default=256,
+                   help="--modes-bound: the fine uniform grid whose look-ups bound the frame (256)")
+    p.add_argument("--modes-bound-points", type=int, default=1 << 18,
+                   help="--modes-bound: look-ups in the full-packet kernel that prices a look-up")
     p.add_argument("--modes-floor-res", type=int, default=128, help="--modes: frame size of the floor (128)")
     p.add_argument("--modes-floor-spp", type=int, default=16, help="--modes: samples per pixel of the floor (16)")
 
