@@ -22,13 +22,14 @@ from typing import Callable
 import numpy as np
 
 from .device.bricks import DeviceBrickLists, DeviceBricks
-from .device.grid import DeviceMacrocellGrid, DeviceTwoLevelGrid
+from .device.grid import DeviceMacrocellGrid, DeviceThinningGrid, DeviceTwoLevelGrid
 from .device.hash_sampler import DeviceReconstruction
 from .device.tree import DeviceTree
 from .memory import bricks_bytes, hash_bytes
+from .structures.footprint import GRID_BYTES_PER_MACROCELL, THINNING_BYTES_PER_MACROCELL
 from .structures.brick_lists import BrickLists
 from .structures.bricks import Bricks
-from .structures.cost_model import REFINEMENTS, GridPlan, auto_grid
+from .structures.cost_model import REFINEMENTS, GridPlan, auto_grid, thinning_candidate
 from .structures.kdtree_sah import build_sah_kdtree
 from .structures.macrocell_grid import MacrocellGrid, axis_resolution, default_resolution
 from .structures.region_tree import brick_region_tree, exact_value_ranges
@@ -42,13 +43,15 @@ class Component:
     built first through ``s.require``); ``need(s)``: estimated peak bytes;
     ``device``: a device struct (kept where ``dr.freeze`` sees it) rather
     than a host-only one; ``majorants``: it has ``update_majorants(tf,
-    density_scale, minorants)``; ``classified``: built for the current TF
+    density_scale, minorants)``; ``minorants``: its minorants are used (else
+    they stay 0 and cost nothing on a TF change); ``classified``: built for the current TF
     and scale, so rebuilt when they change; ``shares``: its memory is
     another component's (not counted again)."""
     build: Callable
     need: Callable = lambda s: 0.0
     device: bool = True
     majorants: bool = False
+    minorants: bool = True
     classified: bool = False
     shares: str | None = None
 
@@ -66,6 +69,7 @@ def build_grid(s):
         plan, _ = auto_grid(s.volume, c.tf, c.density_scale, s.world_scale, o.method, grids=grids,
                             masks=o.grid_masks, refinements=(f,) if f else (1,) + REFINEMENTS)
         res, f = plan.resolution, plan.refinement
+        s.finest_grid = next(iter(grids.values()), None)       # the thinning's, pooled (`build_thinning`)
         # the chosen grid from the finest one, if they tile
         host = next((p for p in (g.pooled(res) for g in grids.values()) if p is not None), None)
     f = f or 1
@@ -75,6 +79,41 @@ def build_grid(s):
     if f == 1:
         return DeviceMacrocellGrid(host)
     return DeviceTwoLevelGrid(host, f, s.world_scale, GridPlan(int(res), f).step_costs())
+
+
+def thinning_resolution(s) -> int:
+    """The resolution (longest axis) of the finer majorants that thin the
+    walks' tentative collisions (docs/design.md section 5d): as given
+    (``thinning_resolution``; 0: none), else, for a grid traversal,
+    `thinning_candidate` where it is finer than the walked grid's finest
+    level, and none otherwise."""
+    o = s.options
+    if o.thinning_resolution is not None:
+        return o.thinning_resolution
+    if o.traversal != "grid":
+        return 0
+    res = thinning_candidate(s.volume)
+    return res if res > int(np.max(s.require("grid").host.res)) else 0
+
+
+def build_thinning(s):
+    """The finer majorants (`thinning_resolution`): a uniform macrocell
+    grid, pooled from the finest grid the cost model built where it tiles
+    it, else built."""
+    o = s.options
+    res = thinning_resolution(s)
+    finest = getattr(s, "finest_grid", None)
+    host = finest.pooled(res) if finest is not None else None
+    if host is None:
+        host = MacrocellGrid(s.volume, res, support=o.method, memory_limit=o.memory_limit, masks=o.grid_masks)
+    return DeviceThinningGrid(host)
+
+
+def _need_thinning(s) -> float:
+    # the host grid while it is built or pooled, and the device copy
+    lo, hi = s.volume.bounds
+    n = float(np.prod(axis_resolution(max(thinning_resolution(s), 1), hi - lo), dtype=np.float64))
+    return n * (GRID_BYTES_PER_MACROCELL + 8 + THINNING_BYTES_PER_MACROCELL)
 
 
 def build_bricks(s) -> Bricks:
@@ -156,6 +195,7 @@ def _list_grid_resolution(volume):
 #: Every component by name; the order is the order majorants are updated in.
 COMPONENTS = {
     "grid": Component(build_grid, majorants=True),
+    "thinning": Component(build_thinning, need=_need_thinning, majorants=True, minorants=False),
     "abr_tree": Component(_region_tree(True, "abr_tree"), majorants=True),
     "brick_tree": Component(_region_tree(False, "brick_tree"), majorants=True),
     "kdtree": Component(build_kdtree, majorants=True, classified=True),

@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .builds import COMPONENTS
+from .builds import COMPONENTS, thinning_resolution
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .data.volume import as_method
@@ -54,6 +54,7 @@ class StructureOptions:
     sampling: str = "hash"
     grid_resolution: int | None = None
     grid_refinement: int | None = None
+    thinning_resolution: int | None = None
     brick_size: int = 8
     kdtree_leaves: int = 4096
     memory_limit: float | None = None
@@ -106,6 +107,7 @@ class Structures:
         self.extent = mi.Vector3f(*[float(c) for c in hi - lo])
         self.global_majorant = mi.Float(0.0)
         self._incidence = None           # `revalue`'s index pairs, made on first use (False: too many)
+        self.finest_grid = None          # the cost model's finest grid, kept while building (`build_thinning`)
         dr.make_opaque(self.offset, self.extent)
 
     @property
@@ -120,6 +122,9 @@ class Structures:
         """Build every component the traversal and the sampling need (each once)."""
         for name in self.traversal.needs(self) + self.sampling.needs(self):
             self.require(name)
+        if thinning_resolution(self):
+            self.require("thinning")
+        self.finest_grid = None
         return self
 
     def require(self, name: str):
@@ -164,6 +169,13 @@ class Structures:
     def segments(self):
         """The segment walker of the chosen traversal."""
         return self.traversal.walker(self._built(self.traversal.structure(self)))
+
+    def thinning(self):
+        """``thin(u, active) -> mu_f``: the finer majorant at local points
+        ``u`` (inverse world units) that thins the walks' tentative
+        collisions (docs/design.md section 5d), or None where none was built."""
+        grid = self.device.get("thinning")
+        return None if grid is None else grid.majorant_at
 
     def sampler(self, carried: mi.Float | None = None):
         """The point sampler of the chosen sampling: ``eval(u, active) ->
@@ -210,7 +222,8 @@ class Structures:
         as after a TF change: milliseconds, no build. Only a grid traversal
         with hash sampling and no carried field holds nothing else that
         depends on the values; False elsewhere (the caller rebuilds)."""
-        if "grid" not in self.device or set(self.device) - {"grid", "hash"} or self.host or self.carried_fields:
+        if "grid" not in self.device or set(self.device) - {"grid", "hash", "thinning"} or self.host \
+                or self.carried_fields:
             return False
         grid = self.device["grid"]
         two_level = isinstance(grid, DeviceTwoLevelGrid)
@@ -262,6 +275,10 @@ class Structures:
         for struct in self.device.values():
             if "values" in getattr(struct, "JIT_FIELDS", {}):
                 struct.values = values
+        # the finer majorants hold the old values' ranges: the walks go on
+        # without thinning (differentiable walks never thin: docs/design.md
+        # section 5d)
+        self.device.pop("thinning", None)
         self.update_majorants()
         self.build_seconds["revalue"] = time.perf_counter() - t0
         return True
@@ -277,7 +294,7 @@ class Structures:
         minorants = self.volume.covers_bounds          # else a point may have no value (sigma_t = 0)
         for name, component in COMPONENTS.items():
             if component.majorants and name in self.device:
-                self.device[name].update_majorants(c.device, c.majorant_scale, minorants)
+                self.device[name].update_majorants(c.device, c.majorant_scale, minorants and component.minorants)
                 mus.append(dr.max(self.device[name].majorant))
         g = mus[0] if mus else mi.Float(0.0)
         for m in mus[1:]:

@@ -13,6 +13,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..structures.cost_model import refine_gain
+from ..structures.footprint import THINNING_BYTES_PER_MACROCELL
 from .structs import jit_struct
 
 
@@ -60,12 +61,16 @@ class DeviceMacrocellGrid:
         or 0 where ``minorants`` is false (data with holes, where a point
         may have no value)."""
         alpha = tf.range_max_alpha(self.vmin, self.vmax)
-        low = tf.range_min_alpha(self.vmin, self.vmax)
         if self.has_masks:
             alpha = dr.minimum(alpha, self._mask_alpha(tf, dr.maximum))
-            low = dr.maximum(low, self._mask_alpha(tf, dr.minimum))
         self.majorant = density_scale * alpha
-        self.minorant = (density_scale * MINORANT_SHRINK) * low if minorants else dr.zeros(mi.Float, self.size)
+        if minorants:
+            low = tf.range_min_alpha(self.vmin, self.vmax)
+            if self.has_masks:
+                low = dr.maximum(low, self._mask_alpha(tf, dr.minimum))
+            self.minorant = (density_scale * MINORANT_SHRINK) * low
+        else:
+            self.minorant = dr.zeros(mi.Float, self.size)
         dr.make_opaque(self.majorant, self.minorant)
 
     def _mask_alpha(self, tf, op):
@@ -105,6 +110,44 @@ class DeviceMacrocellGrid:
         """The majorant of each macrocell, [z, y, x]."""
         r = self.host.res
         return self.majorant.numpy().reshape(r[2], r[1], r[0])
+
+
+class DeviceThinningGrid(DeviceMacrocellGrid):
+    """The finer majorants that thin the walks' tentative collisions
+    (docs/design.md section 5d): a uniform `MacrocellGrid`'s value ranges
+    and masks on the device, and the majorants made from them on every TF
+    change; no level masks, no minorants and no host copy (the walk and
+    the look-ups read the walked grid's)."""
+
+    def __init__(self, grid):
+        super().__init__(grid)
+        self.n = int(grid.vmin.size)
+        self.host_res = tuple(int(r) for r in grid.res)
+        self.level_bits = dr.zeros(mi.UInt32, 1)
+        self.host = None
+        dr.make_opaque(self.level_bits)
+
+    @property
+    def size(self) -> int:
+        return self.n
+
+    @property
+    def nbytes(self) -> int:
+        return (THINNING_BYTES_PER_MACROCELL - (0 if self.has_masks else 8)) * self.n
+
+    def update_majorants(self, tf, density_scale, minorants: bool = False):
+        """The majorants (as `DeviceMacrocellGrid`); no minorants."""
+        super().update_majorants(tf, density_scale, False)
+        self.minorant = dr.zeros(mi.Float, 1)
+        dr.make_opaque(self.minorant)
+
+    def majorant_at(self, u: mi.Vector3f, active=True) -> mi.Float:
+        """The majorant (inverse world units) of the macrocell holding each
+        local point ``u``."""
+        return dr.gather(mi.Float, self.majorant, self.flat(self.cell_of(u)), active)
+
+    def describe(self) -> str:
+        return "thinning grid " + "x".join(str(r) for r in self.host_res)
 
 
 #: The largest edge (coarse macrocells) of an empty cube in ``coarse_skip``:

@@ -84,6 +84,10 @@ from .structs import jit_struct
 #: it adds is lost in the rest of the path's, and the work it saves is not;
 #: measured in docs/performance/frame-cost.md section 5.
 RATIO_RR_THRESHOLD = 0.5
+#: A thinning lane (`_Tracking._thinned`) stops thinning after this many
+#: collisions thinned away in a row in one segment, so that its loop ends
+#: however far the finer majorant falls below the segment's.
+THIN_MAX_DRAWS = 64
 
 
 def _tally(counter, increment):
@@ -244,6 +248,12 @@ def _with_fields(state, names, values):
 
 
 # ---- Tracking estimators ----------------------------------------------------------
+@jit_struct(rng=Rng, null="UInt32")
+class _Clock(_Fields):
+    """What a clock draws from and counts into (`_Tracking.clocks` reads
+    ``rng`` only): the loop state of thinning (`_Tracking._thinned`)."""
+
+
 class TentativeCollision:
     """One move of a tracking estimator in its segment, as its collision
     hook sees it: ``inside`` where a tentative collision fell in the segment
@@ -353,10 +363,15 @@ class _Tracking:
     label = "amr_track"
     #: the state fields that `enter`, `clock` and `passes` change (the inner
     #: loop's state, `walk_segments`); the others change only in `collide_at`
-    MOVING = ("rng", "mu", "steps")
+    MOVING = ("rng", "mu", "steps", "mu_pt", "null")
 
     def __init__(self, lookup, sampler, carries: bool = False, count: bool = True, replay: Replay | None = None,
-                 margin: MajorantMargin | None = None):
+                 margin: MajorantMargin | None = None, thin=None):
+        if thin is not None and (replay is not None or margin is not None):
+            raise ValueError("tracking: a differentiable walk does not thin its collisions")
+        #: ``thin(u, active) -> mu_f``: a finer majorant at local points
+        #: (inverse world units), or None (docs/design.md section 5d)
+        self.thin = thin
         self.lookup = lookup
         self.sampler = sampler
         #: whether ``lookup`` returns a carried field's value too
@@ -369,6 +384,11 @@ class _Tracking:
 
     def _dlog(self):
         return None if self.replay is None else self.replay.begin()
+
+    def _mu_pt(self):
+        """The initial finer majorant at the pending collision: None (no
+        loop variable) unless the walk thins."""
+        return None if self.thin is None else mi.Float(0.0)
 
     def control(self, state):
         """The current segment's control extinction ``mu_c``: none here, a
@@ -400,7 +420,47 @@ class _Tracking:
         mu_c = self.control(state)
         t_c, by_control = self.clocks(state, ray, t, mu_c, state.mu - mu_c, moving)
         inside = moving & (t_c < seg_end)
+        if self.thin is not None:
+            state, t_c, by_control, inside = self._thinned(state, ray, t_c, by_control, inside, seg_end, mu_c)
         return self.mark(state, by_control & inside, moving), t_c, inside
+
+    @dr.syntax
+    def _thinned(self, state, ray, t_c, by_control, inside, seg_end, mu_c):
+        """Thin the segment's tentative collisions by the finer majorant
+        (docs/design.md section 5d): a collision of the residual clock at
+        ``x`` stays with probability ``(mu_f(x) - mu_c) / (mu - mu_c)``,
+        and the lane looks the density up there against ``mu_f(x)``
+        (``state.mu_pt``); a collision thinned away is a null one without a
+        look-up, and the lane draws its next one from there. The kept
+        collisions are those of a clock of rate ``mu_f - mu_c``: the same
+        law as tracking against the finer majorant, with the segment's
+        steps. After `THIN_MAX_DRAWS` thinned collisions in a row a lane
+        takes the next one against ``mu`` itself (no more thinning)."""
+        mu = state.mu
+        residual = mu - mu_c
+        pending = inside & ~by_control
+        mu_pt = mi.Float(mu)
+        draws = mi.UInt32(0)
+        # the loop state: what thinning changes (the stream, the count of
+        # null collisions, the pending collision), not the whole state
+        clock = _Clock(rng=state.rng, null=state.null)
+        thin = self.thin
+        while dr.hint(pending, label=self.label + "_thin", exclude=[thin, ray, seg_end, residual, mu, mu_c]):
+            capped = draws >= THIN_MAX_DRAWS
+            mu_f = dr.minimum(thin(ray.o + ray.d * t_c, pending & ~capped), mu)
+            keep = pending & (capped | (clock.rng.next_1d(pending & ~capped) * residual < mu_f - mu_c))
+            mu_pt = dr.select(keep, dr.select(capped, mu, mu_f), mu_pt)
+            redraw = pending & ~keep
+            clock.null = _tally(clock.null, dr.select(redraw, 1, 0))
+            t_next, ctl = self.clocks(clock, ray, t_c, mu_c, residual, redraw)
+            t_c = dr.select(redraw, t_next, t_c)
+            by_control = dr.select(redraw, ctl, by_control)
+            inside = dr.select(redraw, t_c < seg_end, inside)
+            draws += 1
+            pending = redraw & inside & ~by_control
+        state.rng, state.null = clock.rng, clock.null
+        state.mu_pt = mu_pt
+        return state, t_c, by_control, inside
 
     def mark(self, state, by_control, moving):
         """Keep in the state where the control clock set the collision
@@ -422,7 +482,8 @@ class _Tracking:
         ``t_c``, the density there, then the estimator's `collide`."""
         by_control = self.rang(state, inside)
         mu_c = self.control(state)
-        residual = state.mu - mu_c
+        # against the finer majorant at the point where the collision was thinned
+        residual = (state.mu if self.thin is None else state.mu_pt) - mu_c
         look = inside & ~by_control
         found = (mi.Float(0.0), mi.Float(0.0)) + ((mi.Float(0.0),) if self.carries else ())
         lookup = self.lookup
@@ -437,7 +498,7 @@ class _Tracking:
                                                       residual, carried, x), alive)
 
 
-@jit_struct(rng=Rng, mu="Float", collided="Bool", value="Float", carried="Float", looked="Bool",
+@jit_struct(rng=Rng, mu="Float", mu_pt="Float", collided="Bool", value="Float", carried="Float", looked="Bool",
             sigma_t="Float", lookups="UInt32", null="UInt32", real="UInt32", steps="UInt32", dlog="Float")
 class DeltaState(_Fields):
     """Loop state of `DeltaTracking`: the stream, the segment's majorant,
@@ -467,13 +528,14 @@ class DeltaTracking(_Tracking):
     the lanes that collided (a null collision needs no colour)."""
 
     def __init__(self, lookup, albedo_of, sampler, carries: bool = False, count: bool = True,
-                 replay: Replay | None = None, margin: MajorantMargin | None = None):
-        super().__init__(lookup, sampler, carries, count, replay, margin)
+                 replay: Replay | None = None, margin: MajorantMargin | None = None, thin=None):
+        super().__init__(lookup, sampler, carries, count, replay, margin, thin)
         self.albedo_of = albedo_of
 
     def begin(self, ray, active):
         n = self.count
-        return DeltaState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), collided=mi.Bool(False),
+        return DeltaState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), mu_pt=self._mu_pt(),
+                          collided=mi.Bool(False),
                           value=mi.Float(0.0), carried=mi.Float(0.0) if self.carries else None,
                           looked=mi.Bool(False), sigma_t=mi.Float(0.0), lookups=_counter(n),
                           null=_counter(n), real=_counter(n), steps=_counter(n), dlog=self._dlog())
@@ -526,8 +588,9 @@ class DecompositionTracking(DeltaTracking):
 
     MOVING = DeltaTracking.MOVING + ("mu_c", "by_control")
 
-    def __init__(self, lookup, albedo_of, sampler, known_albedo, carries: bool = False, count: bool = True):
-        super().__init__(lookup, albedo_of, sampler, carries, count)
+    def __init__(self, lookup, albedo_of, sampler, known_albedo, carries: bool = False, count: bool = True,
+                 thin=None):
+        super().__init__(lookup, albedo_of, sampler, carries, count, thin=thin)
         self.known_albedo = known_albedo
 
     def begin(self, ray, active):
@@ -569,7 +632,8 @@ class DecompositionTracking(DeltaTracking):
         return dr.select(c.by_control, c.mu_c, c.sigma_t)
 
 
-@jit_struct(rng=Rng, mu="Float", T="Float", lookups="UInt32", null="UInt32", steps="UInt32", dlog="Float")
+@jit_struct(rng=Rng, mu="Float", mu_pt="Float", T="Float", lookups="UInt32", null="UInt32", steps="UInt32",
+            dlog="Float")
 class RatioState(_Fields):
     """Loop state of `RatioTracking`: the stream, the segment's majorant,
     the transmittance so far and the counts (``dlog`` as in `DeltaState`)."""
@@ -587,7 +651,7 @@ class RatioTracking(_Tracking):
 
     def begin(self, ray, active):
         n = self.count
-        return RatioState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), T=mi.Float(1.0),
+        return RatioState(rng=Rng.derive(self.sampler, active), mu=mi.Float(0.0), mu_pt=self._mu_pt(), T=mi.Float(1.0),
                           lookups=_counter(n), null=_counter(n), steps=_counter(n), dlog=self._dlog())
 
     def collide(self, state, c: TentativeCollision, alive):

@@ -233,6 +233,15 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
          macrocell walked through its fine ones where that saves work for
          the current TF (decided again on every TF change). Default: chosen
          by the cost model; ``grid_resolution`` alone means 1.
+     * - thinning_resolution
+       - |int|
+       - Macrocells along the longest axis of the finer majorants that
+         thin ``amrvolpath``'s tentative collisions (docs/design.md section
+         5d): a collision drawn against a segment's majorant stays with
+         probability ``mu_f / mu`` and only then looks the density up. 0:
+         none. Default: for the ``grid`` traversal, the finest grid the
+         cost model weighs with at most one macrocell per 4 cells, where it
+         is finer than the walked grid (so only on large data).
      * - traversal
        - |string|
        - Segments and majorants for ``amrvolpath`` (and the ray-wise
@@ -552,9 +561,10 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
             if replay is not None or margin is not None:
                 raise ValueError("free_flight: a differentiable walk tracks without a control extinction")
             tracking = DecompositionTracking(lookup, self.albedo_of, sampler, self.tf_device.rgb_constant, carries,
-                                             count)
+                                             count, thin=self.structures.thinning())
         else:
-            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count, replay, margin)
+            thin = self.structures.thinning() if replay is None and margin is None else None
+            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count, replay, margin, thin)
         return self._track(ray, t_max, active, tracking)
 
     def transmittance(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False,
@@ -566,8 +576,9 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         ``margin`` as in `free_flight`)."""
         if control and margin is not None:
             raise ValueError("transmittance: a differentiable walk tracks without a control extinction")
+        thin = self.structures.thinning() if replay is None and margin is None else None
         tracking = (ResidualRatioTracking if control else RatioTracking)(self.value_local, sampler, count=count,
-                                                                         replay=replay, margin=margin)
+                                                                         replay=replay, margin=margin, thin=thin)
         return self._track(ray, t_max, active, tracking)
 
     def majorant_margin(self, factor: float, floor_share: float) -> MajorantMargin:

@@ -37,7 +37,7 @@ MAX_CONDITION = 1e7
 #: docs/manual/medium.md's table and the plugin docstring's are tested against this set:
 #: tests/test_docs.py).
 KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
-         "density_scale", "reconstruction", "majorant", "grid_resolution", "grid_refinement",
+         "density_scale", "reconstruction", "majorant", "grid_resolution", "grid_refinement", "thinning_resolution",
          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
          "kdtree_leaves", "max_iterations", "memory_limit", "value_masks", "value_transform",
          "emission", "emission_field", "emission_scale", "emission_min", "emission_max", "emission_transform"}
@@ -95,6 +95,7 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
         sampling=get_string(props, "amr", "sampling", "hash", SAMPLINGS),
         grid_resolution=get_int(props, "amr", "grid_resolution", None, minimum=1),
         grid_refinement=_refinement(props),
+        thinning_resolution=get_int(props, "amr", "thinning_resolution", None, minimum=0, maximum=1024),
         brick_size=get_int(props, "amr", "brick_size", 8, minimum=1, maximum=1024),
         kdtree_leaves=get_int(props, "amr", "kdtree_leaves", 4096, minimum=1),
         value_masks=get_bool(props, "amr", "value_masks", True),

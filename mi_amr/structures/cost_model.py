@@ -15,7 +15,7 @@ import numpy as np
 from ..data.blocks import BlockVolume
 from ..reconstruction import DEFAULT_METHOD, METHODS, Reconstruction
 from ..transfer.function import range_majorants_host
-from .macrocell_grid import MacrocellGrid
+from .macrocell_grid import MacrocellGrid, axis_resolution
 from .value_masks import mask_max_alpha_host
 
 
@@ -29,6 +29,9 @@ STEP_COST = 0.2
 #: 1.2 DDA steps.
 TWO_LEVEL_STEP_COST = 0.24
 CANDIDATES = (8, 16, 32, 64, 128)
+#: The finer majorants that thin tentative collisions have at most one
+#: macrocell per this many cells (`thinning_candidate`).
+THINNING_CELLS_PER_MACROCELL = 4
 #: Refinement factors tried for two-level grids (fine macrocells per coarse
 #: one along each axis).
 REFINEMENTS = (2, 4, 8, 16)
@@ -194,6 +197,20 @@ def constant_field(cells: BlockVolume, grid: MacrocellGrid) -> bool:
     (a uniform field, the cheapest AMR there is: docs/performance/modes.md)."""
     lo, hi = float(np.min(grid.vmin)), float(np.max(grid.vmax))
     return bool(cells.covers_bounds) and np.isfinite(lo) and lo == hi
+
+
+def thinning_candidate(cells: BlockVolume) -> int:
+    """The resolution (longest axis) of the finer majorants that thin the
+    walks' tentative collisions (docs/design.md section 5d), for a medium
+    whose walked grid is coarser: the finest that `auto_grid` weighs with
+    at most one macrocell per `THINNING_CELLS_PER_MACROCELL` cells (finer
+    majorants than the data's own structure thin little more, and cost
+    memory); 0 where none is."""
+    lo, hi = cells.bounds
+    ext = (hi - lo).astype(np.float64)
+    fit = [c for c in _candidates(cells)
+           if THINNING_CELLS_PER_MACROCELL * np.prod(axis_resolution(c, ext), dtype=np.float64) <= len(cells)]
+    return max(fit, default=0)
 
 
 def _candidates(cells, candidates=CANDIDATES) -> list:

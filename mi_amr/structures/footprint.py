@@ -13,7 +13,7 @@ import numpy as np
 from ..data.block_keys import ghost_blocks
 from ..memory import hash_bytes
 from ..reconstruction import DEFAULT_METHOD, Reconstruction
-from .cost_model import _candidates
+from .cost_model import _candidates, thinning_candidate
 from .level_hash import KEY_BITS
 from .macrocell_grid import axis_resolution
 
@@ -21,6 +21,10 @@ from .macrocell_grid import axis_resolution
 #: Host bytes per macrocell of the grid an ``amr`` medium keeps: value range
 #: (2 x 4 B), level bits (4 B) and majorant (4 B); value masks add 8 B.
 GRID_BYTES_PER_MACROCELL = 16
+#: Device bytes per macrocell of the finer majorants that thin tentative
+#: collisions (`mi_amr.device.grid.DeviceThinningGrid`): value range (2 x 4
+#: B), value mask (8 B) and majorant (4 B).
+THINNING_BYTES_PER_MACROCELL = 20
 
 
 def medium_bytes(volume, method: Reconstruction = DEFAULT_METHOD) -> dict:
@@ -32,7 +36,9 @@ def medium_bytes(volume, method: Reconstruction = DEFAULT_METHOD) -> dict:
     high]``, the macrocell grid at the coarsest and the finest resolution
     the medium's cost model weighs (``grid_resolution``, macrocells per axis;
     which it keeps depends on the TF and the density scale: an estimate),
-    their ``total`` (``[low, high]``) and ``build_peak``: the peak the medium
+    ``thinning``: the finer majorants built where the kept grid is coarser
+    (``thinning_resolution``; 0 bytes where none can be), their ``total``
+    (``[low, high]``: the coarsest grid without thinning, the finest with it) and ``build_peak``: the peak the medium
     checks against the memory limit before building the hash (`hash_bytes`
     plus the values). On the CUDA backend the values and structures are
     copied to the GPU as well."""
@@ -51,8 +57,12 @@ def medium_bytes(volume, method: Reconstruction = DEFAULT_METHOD) -> dict:
     per = GRID_BYTES_PER_MACROCELL + 8 * method.value_masks_tighten
     cands = _candidates(volume)
     grid = [per * int(np.prod(axis_resolution(c, (hi - lo).astype(np.float64)))) for c in (cands[0], cands[-1])]
+    thin_res = thinning_candidate(volume)
+    thinning = (THINNING_BYTES_PER_MACROCELL - 8 * (not method.value_masks_tighten)) \
+        * int(np.prod(axis_resolution(thin_res, (hi - lo).astype(np.float64)))) if thin_res else 0
     data = int(volume.nbytes)
     return {"data": data, "hash": int(hash_), "grid": grid, "grid_resolution": [int(cands[0]), int(cands[-1])],
-            "total": [int(data + hash_ + g) for g in grid],
+            "thinning": int(thinning), "thinning_resolution": int(thin_res),
+            "total": [int(data + hash_ + grid[0]), int(data + hash_ + grid[1] + thinning)],
             "build_peak": int(hash_bytes(len(volume.level), method) + volume.values.nbytes),
             "reconstruction": method.name}
