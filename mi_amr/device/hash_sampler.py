@@ -21,7 +21,7 @@ import numpy as np
 
 from ..data.blocks import BlockVolume
 from ..reconstruction import Reconstruction
-from ..structures.level_hash import LevelHash, hash_u32, pack_key
+from ..structures.level_hash import SLOT_BYTES, LevelHash, hash_u32, pack_key
 from .ray import in_unit_cube
 from .structs import jit_struct
 from .values import CellValues, device_values, shares_host_values
@@ -44,7 +44,11 @@ class BlockHash(LevelHash):
 @jit_struct(keys="UInt64", keys_z="UInt32", offset="UInt32", mask="UInt32", max_probe="UInt32",
             payload="UInt32", values="Float", neighbours="UInt32", n_blocks="UInt32")
 class DeviceReconstruction:
-    """Reconstruction at points, in Dr.Jit, from the blocks of a `BlockVolume`."""
+    """Reconstruction at points, in Dr.Jit, from the blocks of a `BlockVolume`.
+
+    ``keys``: with narrow keys, each slot's key and payload interleaved
+    (``keys[2 s]``, ``keys[2 s + 1]``; ``payload`` unused); with wide keys
+    the keys alone, ``keys_z`` and ``payload`` beside them."""
 
     def __init__(self, volume: BlockVolume, method: Reconstruction):
         self.method = method
@@ -58,13 +62,22 @@ class DeviceReconstruction:
         self.origin = volume.origin
         self.block = volume.block
         self.log2_block = volume.log2_block
-        self.keys = mi.UInt64(self.hash.keys)
-        self.keys_z = mi.UInt32(self.hash.keys_z)
         self.wide = self.hash.wide
+        self.n_slots = len(self.hash.keys)
+        if self.wide:
+            self.keys = mi.UInt64(self.hash.keys)
+            self.payload = mi.UInt32(self.hash.payload)
+        else:
+            # a slot's key and payload side by side in one cache line: a
+            # probe that hits reads its payload without a second miss
+            slots = np.empty(2 * self.n_slots, np.uint64)
+            slots[0::2], slots[1::2] = self.hash.keys, self.hash.payload
+            self.keys = mi.UInt64(slots)
+            self.payload = dr.zeros(mi.UInt32, 1)
+        self.keys_z = mi.UInt32(self.hash.keys_z)
         self.offset = mi.UInt32(self.hash.offset)
         self.mask = mi.UInt32(self.hash.mask)
         self.max_probe = mi.UInt32(self.hash.max_probe)
-        self.payload = mi.UInt32(self.hash.payload)
         self.values = device_values(volume)    # shared with every structure on the data
         self.neighbours = mi.UInt32(neighbours.ravel())
         dr.make_opaque(self.keys, self.keys_z, self.payload, self.offset, self.mask, self.max_probe,
@@ -73,9 +86,10 @@ class DeviceReconstruction:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the hash, plus the device values unless they are the
-        volume's own (CPU backend: counted once, in `BlockVolume.nbytes`)."""
-        return (self.hash.nbytes + 4 * dr.width(self.neighbours)
+        """Bytes of the hash as the look-ups read it (`SLOT_BYTES` a slot),
+        plus the device values unless they are the volume's own (CPU
+        backend: counted once, in `BlockVolume.nbytes`)."""
+        return (SLOT_BYTES * self.n_slots + 4 * dr.width(self.neighbours)
                 + (0 if self.shares_values else 4 * dr.width(self.values)))
 
     def probe_block(self, qb: mi.Vector3u, L, probe, active):
@@ -85,12 +99,16 @@ class DeviceReconstruction:
         h = hash_u32(qb.x, qb.y, qb.z)
         slot = dr.gather(mi.UInt32, self.offset, L, active) + \
             ((h + probe) & dr.gather(mi.UInt32, self.mask, L, active))
-        k = dr.gather(mi.UInt64, self.keys, slot, active)
-        hit = active & (k == key)
         if dr.hint(self.wide, mode="scalar"):
-            hit &= dr.gather(mi.UInt32, self.keys_z, slot, hit) == qb.z
+            k = dr.gather(mi.UInt64, self.keys, slot, active)
+            hit = active & (k == key) & (dr.gather(mi.UInt32, self.keys_z, slot, active & (k == key)) == qb.z)
+            block = dr.gather(mi.UInt32, self.payload, slot, hit)
+        else:
+            k = dr.gather(mi.UInt64, self.keys, 2 * slot, active)
+            hit = active & (k == key)
+            block = mi.UInt32(dr.gather(mi.UInt64, self.keys, 2 * slot + 1, hit))
         finished = hit | ~active | (k == 0xFFFFFFFFFFFFFFFF) | (probe + 1 >= self.max_probe)
-        return hit, finished, dr.gather(mi.UInt32, self.payload, slot, hit)
+        return hit, finished, block
 
     def cell_slot(self, q: mi.Vector3u):
         """Index of cell ``q`` (level coordinates) inside its block."""

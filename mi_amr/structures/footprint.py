@@ -14,7 +14,7 @@ from ..data.block_keys import ghost_blocks
 from ..memory import hash_bytes
 from ..reconstruction import DEFAULT_METHOD, Reconstruction
 from .cost_model import _candidates, thinning_candidate
-from .level_hash import KEY_BITS
+from .level_hash import SLOT_BYTES
 from .macrocell_grid import axis_resolution
 
 
@@ -49,10 +49,9 @@ def medium_bytes(volume, method: Reconstruction = DEFAULT_METHOD) -> dict:
         coord = np.concatenate([coord, np.asarray(ghost_coord, np.int64).reshape(-1, 3)])
         level = np.concatenate([level, np.asarray(ghost_level)])
         neighbour_bytes = 4 * 7 * len(level)
-    wide = bool(coord.size) and int(coord.max()) >= (1 << KEY_BITS)
     # per level a table of a power of two >= 16 slots at load factor <= 0.35 (LevelHash)
     slots = sum(1 << max(4, int(np.ceil(np.log2(n / 0.35)))) for n in np.unique(level, return_counts=True)[1])
-    hash_ = slots * (12 + 4 * wide) + neighbour_bytes
+    hash_ = slots * SLOT_BYTES + neighbour_bytes
     lo, hi = volume.bounds
     per = GRID_BYTES_PER_MACROCELL + 8 * method.value_masks_tighten
     cands = _candidates(volume)

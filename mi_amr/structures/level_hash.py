@@ -18,6 +18,10 @@ KEY_BITS = 21
 WIDE_KEY_BITS = 31
 EMPTY_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
 MAX_LEVELS = 32
+#: Device bytes of one slot (`mi_amr.device.hash_sampler.DeviceReconstruction`):
+#: the 64-bit key and the payload widened to 64 bits beside it, or (wide
+#: keys) the key, its ``z`` and the payload.
+SLOT_BYTES = 16
 
 
 def hash_u32(qx, qy, qz):
