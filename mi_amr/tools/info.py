@@ -178,5 +178,8 @@ def format_info(info: dict) -> str:
     lines.append(f"amr medium   : {_mib(m['total'][0])} to {_mib(m['total'][1])} with the default structures "
                  f"({m['reconstruction']}): data {_mib(m['data'])} + point-location hash {_mib(m['hash'])} "
                  f"+ macrocell grid {_mib(m['grid'][0])} ({r[0]} per axis) to {_mib(m['grid'][1])} ({r[1]} per "
-                 f"axis), as the cost model chooses (an estimate); building the hash peaks at {_mib(m['build_peak'])}")
+                 f"axis), as the cost model chooses (an estimate)"
+                 + (f", + the thinning grid's finer majorants {_mib(m['thinning'])} ({m['thinning_resolution']} per "
+                    "axis) where the grid is coarser" if m["thinning"] else "")
+                 + f"; building the hash peaks at {_mib(m['build_peak'])}")
     return "\n".join(lines)
