@@ -240,7 +240,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
          5d): a collision drawn against a segment's majorant stays with
          probability ``mu_f / mu`` and only then looks the density up. 0:
          none. Default: for the ``grid`` traversal, the finest grid the
-         cost model weighs with at most one macrocell per 4 cells, where it
+         cost model weighs with at most one macrocell per 20 cells, where it
          is finer than the walked grid (so only on large data).
      * - traversal
        - |string|

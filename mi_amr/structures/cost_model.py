@@ -30,8 +30,9 @@ STEP_COST = 0.2
 TWO_LEVEL_STEP_COST = 0.24
 CANDIDATES = (8, 16, 32, 64, 128)
 #: The finer majorants that thin tentative collisions have at most one
-#: macrocell per this many cells (`thinning_candidate`).
-THINNING_CELLS_PER_MACROCELL = 4
+#: macrocell per this many cells (`thinning_candidate`): at 20 bytes a
+#: macrocell, at most one byte per cell.
+THINNING_CELLS_PER_MACROCELL = 20
 #: Refinement factors tried for two-level grids (fine macrocells per coarse
 #: one along each axis).
 REFINEMENTS = (2, 4, 8, 16)
