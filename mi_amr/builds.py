@@ -43,10 +43,10 @@ class Component:
     built first through ``s.require``); ``need(s)``: estimated peak bytes;
     ``device``: a device struct (kept where ``dr.freeze`` sees it) rather
     than a host-only one; ``majorants``: it has ``update_majorants(tf,
-    density_scale, minorants)``; ``minorants``: its minorants are used (else
-    they stay 0 and cost nothing on a TF change); ``classified``: built for the current TF
-    and scale, so rebuilt when they change; ``shares``: its memory is
-    another component's (not counted again)."""
+    density_scale, minorants)``; ``minorants``: its minorants are used
+    (else they stay 0 and cost nothing on a TF change); ``classified``:
+    built for the current TF and scale, so rebuilt when they change;
+    ``shares``: its memory is another component's (not counted again)."""
     build: Callable
     need: Callable = lambda s: 0.0
     device: bool = True
@@ -102,8 +102,7 @@ def build_thinning(s):
     it, else built."""
     o = s.options
     res = thinning_resolution(s)
-    finest = getattr(s, "finest_grid", None)
-    host = finest.pooled(res) if finest is not None else None
+    host = s.finest_grid.pooled(res) if s.finest_grid is not None else None
     if host is None:
         host = MacrocellGrid(s.volume, res, support=o.method, memory_limit=o.memory_limit, masks=o.grid_masks)
     return DeviceThinningGrid(host)

@@ -62,6 +62,14 @@ With ``mu_c = 0`` the minorant estimators take exactly the random numbers
 and steps of plain delta and ratio tracking: the same image for the same
 seed.
 
+Every tracking estimator can *thin* (docs/design.md section 5d): given
+``thin(u, active) -> mu_f``, a finer majorant at local points, its clock
+keeps a tentative collision with probability ``(mu_f - mu_c) / (mu -
+mu_c)`` and draws the next one where it drops it (`_Tracking._thinned`),
+and the kept collision is weighed against ``mu_f`` (``mu_pt`` in the
+state): the look-ups of the finer majorants on the walked segments. A
+collision thinned away counts as a null one without a look-up.
+
 Every loop state holds only what the loop changes (docs/design.md section
 6): read-only names are excluded, per-ray constants are attributes of the
 consumer or of the `LocalRay`, what a consumer never changes (``mu_c``
