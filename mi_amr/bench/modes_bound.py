@@ -53,16 +53,23 @@ FRAMES = 7
 MODE = "emission_absorption"
 
 
-def frame_kernel_ms(scene, seed: int) -> float:
-    """Execution time (ms) of the longest kernel of one 1-spp frame: the
-    frame's own (the film's development and copies are small ones)."""
+def longest_kernel_ms(work) -> float:
+    """Execution time (ms) of the longest kernel that evaluating ``work()``
+    launches (Dr.Jit's kernel history): the computation's own kernel, not
+    the small ones around it."""
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history()
-    dr.eval(mi.render(scene, spp=1, seed=seed))
+    dr.eval(work())
     dr.sync_thread()
     history = dr.kernel_history()
     dr.set_flag(dr.JitFlag.KernelHistory, False)
     return max(k["execution_time"] for k in history if k.get("type") == dr.KernelType.JIT)
+
+
+def frame_kernel_ms(scene, seed: int) -> float:
+    """The kernel of one 1-spp frame (ms; the film's development and copies
+    are small ones)."""
+    return longest_kernel_ms(lambda: mi.render(scene, spp=1, seed=seed))
 
 
 def counts_per_ray(scene_dict: dict, rays: int, scales: dict) -> dict:
@@ -99,13 +106,7 @@ def packet_lookup_ns(medium, points: int, seed: int = 0) -> float:
     for _ in range(5):
         p = mi.Vector3f(*[mi.Float(u[:, a].astype(np.float32)) for a in range(3)])
         dr.eval(p)
-        dr.set_flag(dr.JitFlag.KernelHistory, True)
-        dr.kernel_history()
-        dr.eval(*medium.value_local(p, True))
-        dr.sync_thread()
-        history = dr.kernel_history()
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-        ts.append(max(k["execution_time"] for k in history if k.get("type") == dr.KernelType.JIT))
+        ts.append(longest_kernel_ms(lambda: medium.value_local(p, True)))
     return 1e6 * statistics.median(ts) / points
 
 

@@ -13,7 +13,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..structures.cost_model import refine_gain
-from ..structures.footprint import THINNING_BYTES_PER_MACROCELL
+from ..structures.footprint import thinning_bytes_per_macrocell
 from .structs import jit_struct
 
 
@@ -133,7 +133,7 @@ class DeviceThinningGrid(DeviceMacrocellGrid):
 
     @property
     def nbytes(self) -> int:
-        return (THINNING_BYTES_PER_MACROCELL - (0 if self.has_masks else 8)) * self.n
+        return thinning_bytes_per_macrocell(self.has_masks) * self.n
 
     def update_majorants(self, tf, density_scale, minorants: bool = False):
         """The majorants (as `DeviceMacrocellGrid`); no minorants."""

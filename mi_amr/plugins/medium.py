@@ -561,10 +561,10 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
             if replay is not None or margin is not None:
                 raise ValueError("free_flight: a differentiable walk tracks without a control extinction")
             tracking = DecompositionTracking(lookup, self.albedo_of, sampler, self.tf_device.rgb_constant, carries,
-                                             count, thin=self.structures.thinning())
+                                             count, thin=self._thinning(replay, margin))
         else:
-            thin = self.structures.thinning() if replay is None and margin is None else None
-            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count, replay, margin, thin)
+            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count, replay, margin,
+                                     self._thinning(replay, margin))
         return self._track(ray, t_max, active, tracking)
 
     def transmittance(self, ray: mi.Ray3f, t_max, sampler, active, control: bool = False,
@@ -576,10 +576,15 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         ``margin`` as in `free_flight`)."""
         if control and margin is not None:
             raise ValueError("transmittance: a differentiable walk tracks without a control extinction")
-        thin = self.structures.thinning() if replay is None and margin is None else None
-        tracking = (ResidualRatioTracking if control else RatioTracking)(self.value_local, sampler, count=count,
-                                                                         replay=replay, margin=margin, thin=thin)
+        tracking = (ResidualRatioTracking if control else RatioTracking)(
+            self.value_local, sampler, count=count, replay=replay, margin=margin, thin=self._thinning(replay, margin))
         return self._track(ray, t_max, active, tracking)
+
+    def _thinning(self, replay, margin):
+        """The finer majorant a walk thins by (`Structures.thinning`), or
+        None: differentiable walks (a ``replay`` or a ``margin``) do not thin
+        (docs/design.md section 5d)."""
+        return self.structures.thinning() if replay is None and margin is None else None
 
     def majorant_margin(self, factor: float, floor_share: float) -> MajorantMargin:
         """Raised majorants for differentiable walks (`MajorantMargin`):

@@ -27,6 +27,12 @@ GRID_BYTES_PER_MACROCELL = 16
 THINNING_BYTES_PER_MACROCELL = 20
 
 
+def thinning_bytes_per_macrocell(masks: bool) -> int:
+    """`THINNING_BYTES_PER_MACROCELL`, less the value mask where the grid
+    has none."""
+    return THINNING_BYTES_PER_MACROCELL - (0 if masks else 8)
+
+
 def medium_bytes(volume, method: Reconstruction = DEFAULT_METHOD) -> dict:
     """Host bytes of an ``amr`` medium with the default structures (traversal
     ``grid``, sampling ``hash``) over ``volume`` (a `BlockVolume`), from its
@@ -38,9 +44,9 @@ def medium_bytes(volume, method: Reconstruction = DEFAULT_METHOD) -> dict:
     which it keeps depends on the TF and the density scale: an estimate),
     ``thinning``: the finer majorants built where the kept grid is coarser
     (``thinning_resolution``; 0 bytes where none can be), their ``total``
-    (``[low, high]``: the coarsest grid without thinning, the finest with it) and ``build_peak``: the peak the medium
-    checks against the memory limit before building the hash (`hash_bytes`
-    plus the values). On the CUDA backend the values and structures are
+    (``[low, high]``: the coarsest grid without thinning, the finest with
+    it) and ``build_peak``: the peak the medium checks against the memory
+    limit before building the hash (`hash_bytes` plus the values). On the CUDA backend the values and structures are
     copied to the GPU as well."""
     coord, level = volume.coord.astype(np.int64), np.asarray(volume.level)
     neighbour_bytes = 4
@@ -53,12 +59,13 @@ def medium_bytes(volume, method: Reconstruction = DEFAULT_METHOD) -> dict:
     slots = sum(1 << max(4, int(np.ceil(np.log2(n / 0.35)))) for n in np.unique(level, return_counts=True)[1])
     hash_ = slots * SLOT_BYTES + neighbour_bytes
     lo, hi = volume.bounds
+    ext = (hi - lo).astype(np.float64)
     per = GRID_BYTES_PER_MACROCELL + 8 * method.value_masks_tighten
     cands = _candidates(volume)
-    grid = [per * int(np.prod(axis_resolution(c, (hi - lo).astype(np.float64)))) for c in (cands[0], cands[-1])]
+    grid = [per * int(np.prod(axis_resolution(c, ext))) for c in (cands[0], cands[-1])]
     thin_res = thinning_candidate(volume)
-    thinning = (THINNING_BYTES_PER_MACROCELL - 8 * (not method.value_masks_tighten)) \
-        * int(np.prod(axis_resolution(thin_res, (hi - lo).astype(np.float64)))) if thin_res else 0
+    thinning = thinning_bytes_per_macrocell(method.value_masks_tighten) \
+        * int(np.prod(axis_resolution(thin_res, ext))) if thin_res else 0
     data = int(volume.nbytes)
     return {"data": data, "hash": int(hash_), "grid": grid, "grid_resolution": [int(cands[0]), int(cands[-1])],
             "thinning": int(thinning), "thinning_resolution": int(thin_res),
