@@ -32,15 +32,20 @@ from .data.metadata import physical_box
 from .data.transform import apply_value_transform
 from .data.yt_import import field_key, from_yt_blocks, load_dataset
 from .transfer.function import PRESETS, TransferFunction
+from .visibility import (OPAQUE_OPACITY, PREDICT_RES, Visibility, camera_rays, opacity_grid, projected_depth,
+                         scale_for_opacity, visibility_of_depths)
 
-#: Percentiles (volume-weighted) that bound the TF domain.
+#: Percentiles (of the volume and of the mass) that bound the TF domain.
 LOW_PERCENTILE, HIGH_PERCENTILE = 1.0, 99.9
-#: log10 is chosen when the values are positive and these percentiles are
-#: more than `LOG_RATIO` apart.
-LOG_RATIO = 1e3
+#: log10 is chosen when the volume's 1st and the mass's 99.9th percentiles
+#: of the positive values are at least this many decades apart ...
+LOG_DECADES = 2.0
 #: ... and at least this share of the volume holds positive values (the rest
 #: is floored: `mi_amr.data.transform`).
 MIN_POSITIVE_SHARE = 0.9
+#: A linear TF range leaves zeros out when they fill at least this share of
+#: the volume (empty space, covered cells): they take the TF's bottom.
+FLOOR_SHARE = 0.01
 #: Optical depth of the mean extinction across the domain's longest side.
 TARGET_DEPTH = 1.5
 #: Largest optical depth across the domain's longest side at the TF's highest
@@ -49,10 +54,6 @@ TARGET_DEPTH = 1.5
 #: a render (null collisions per unit length), where a tiny mean opacity
 #: would otherwise ask for a huge scale (the bundled data plan 20-480).
 MAX_DEPTH = 500.0
-#: The TF range is at least this share of the span of the (transformed)
-#: values: a field that is mostly one value would otherwise get percentiles
-#: a hair apart and its tail all at the TF's top.
-MIN_RANGE_SHARE = 0.1
 FOV = 35.0
 #: Opacity peaks at a few values, like the layered Gaussians of yt's volume
 #: renderings: shells of structure rather than a fog over the whole domain.
@@ -98,6 +99,7 @@ class ScenePlan:
     emission: "EmissionPlan | None" = None   # a glowing medium: no sun, sky or floor
     optical_depth: float | None = None       # of the mean opacity across the longest side (planned scale)
     peak_depth: float | None = None          # at the TF's highest opacity over the values, same length
+    visibility: "Visibility | None" = None   # the planned picture as predicted (`mi_amr.visibility`)
 
     @property
     def lit(self) -> bool:
@@ -264,32 +266,40 @@ def positive_share(data, field=None) -> float:
     return value_stats(data, field).positive_volume_share
 
 
-def weighted_percentiles(data, qs, log: bool = False, field=None) -> list[float]:
+def weighted_percentiles(data, qs, log: bool = False, field=None, mass: bool = False) -> list[float]:
     """Volume-weighted percentiles ``qs`` (0-100) of the values (of their
     log10 with ``log``, values <= 0 left out), from a histogram of
-    `HISTOGRAM_BINS` bins: within one bin width. ``data``: one data set or
-    several (a time series: one histogram over all of them)."""
+    `HISTOGRAM_BINS` bins: within one bin width. ``mass``: weighted by
+    volume times the value's magnitude instead (where the mass of a density
+    lies). ``data``: one data set or several (a time series: one histogram
+    over all of them)."""
     st = stored_stats(data, field)
     if st is None:
-        lo, hi, hist = _weighted_histogram(data, log, field)
+        lo, hi, hist = _weighted_histogram(data, log, field, mass)
     else:                                          # as `file_stats` stored them
-        name = f"hist_{'log' if log else 'linear'}"
+        name = _histogram_name(log, mass)
         lo, hi = st.get(name + "_span") or (np.inf, -np.inf)
         hist = st.get(name)
     if not np.isfinite(lo):
         raise ValueError("no values to place a transfer function over")
-    if hi <= lo:
+    if hi <= lo or hist is None or not np.sum(hist) > 0:
         return [lo for _ in qs]
     edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
     cdf = np.cumsum(hist) / hist.sum()
     return [float(edges[min(int(np.searchsorted(cdf, q / 100.0)) + (q > 0), HISTOGRAM_BINS)]) for q in qs]
 
 
-def _weighted_histogram(data, log: bool, field=None) -> tuple:
+def _histogram_name(log: bool, mass: bool) -> str:
+    """The key of a histogram in `file_stats`."""
+    return f"hist_{'log' if log else 'linear'}{'_mass' if mass else ''}"
+
+
+def _weighted_histogram(data, log: bool, field=None, mass: bool = False) -> tuple:
     """``(lo, hi, counts)``: the volume-weighted histogram of
     `HISTOGRAM_BINS` bins over [lo, hi], the extremes of the values (of
-    their log10, values <= 0 left out); ``(inf, -inf, None)`` without
-    values, ``(lo, hi, None)`` when all are one value."""
+    their log10, values <= 0 left out); ``mass``: weighted by volume times
+    the value's magnitude. ``(inf, -inf, None)`` without values, ``(lo, hi,
+    None)`` when all are one value."""
     lo, hi = (np.inf, -np.inf)
     for v, _ in cells_and_weights(data, field):
         if log:
@@ -304,6 +314,8 @@ def _weighted_histogram(data, log: bool, field=None) -> tuple:
     edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
     hist = np.zeros(HISTOGRAM_BINS)
     for v, w in cells_and_weights(data, field):
+        if mass:
+            w = w * np.abs(v)
         if log:
             keep = v > 0
             v, w = np.log10(v[keep]), w[keep]
@@ -344,7 +356,7 @@ def stored_fine_histogram(data, medium_volume, bins: int = VIEW_HISTOGRAM_BINS) 
 
 #: Bumped whenever `file_stats` computes anything differently: files with
 #: another version are planned from their values again.
-STATS_VERSION = 1
+STATS_VERSION = 2
 
 
 def file_stats(volume: BlockVolume) -> dict:
@@ -367,11 +379,12 @@ def file_stats(volume: BlockVolume) -> dict:
     if not vs.cells:
         return out
     for log in (False, True):
-        name = f"hist_{'log' if log else 'linear'}"
-        lo, hi, hist = _weighted_histogram(volume, log)
-        out[name + "_span"] = [float(lo), float(hi)] if np.isfinite(lo) else None
-        if hist is not None:
-            out[name] = hist
+        for mass in (False, True):
+            name = _histogram_name(log, mass)
+            lo, hi, hist = _weighted_histogram(volume, log, mass=mass)
+            out[name + "_span"] = [float(lo), float(hi)] if np.isfinite(lo) else None
+            if hist is not None:
+                out[name] = hist
     try:     # the choice of scale and range from the histograms just made (not counted again)
         log, value_range, _, _ = _value_scale(SimpleNamespace(stored_stats=out, n_cells=volume.n_cells,
                                                               value_range=volume.value_range), None, None, None)
@@ -394,30 +407,44 @@ use_stats_builder(file_stats)
 def _value_scale(stats, field, log, value_range, what="values", source="the data"):
     """``(log, (lo, hi), notes, ValueStats)``: log10 or linear values and the
     TF domain for ``field`` of ``stats`` (one data set or several), by the
-    rule of `plan_scene`. With log10 the range comes from the positive
-    values alone; zeros and negatives take the TF's bottom (the medium
-    raises them to the smallest positive value, at or below the range).
-    A range narrower than `MIN_RANGE_SHARE` of the values' span is widened
-    within that span, with a note."""
+    rule of `plan_scene` (docs/manual/data.md "Default pictures").
+
+    log10 is chosen when at least `MIN_POSITIVE_SHARE` of the volume holds
+    positive values and the volume's and the mass's distributions together
+    span at least `LOG_DECADES` decades: from the volume's 1st percentile
+    to the mass's 99.9th (the mass: volume times value, where a density
+    keeps its matter). The TF range covers where the volume lies (its
+    1st-99.9th percentiles) and where the mass lies (the same percentiles
+    of the mass); with log10 zeros and negatives take the TF's bottom (the
+    medium raises them to the smallest positive value, at or below the
+    range). A value that fills at least `FLOOR_SHARE` of the volume below
+    all others (zeros: empty space, an embedded boundary's covered cells) is
+    left out of a linear range and takes the TF's bottom. A range is never
+    widened beyond the data's distributions; only one value gets a range
+    centred on it."""
     vs = value_stats(stats, field)
     notes = []
     if not vs.cells:
         raise ValueError(f"{source}: no values to place a transfer function over")
     share_note = vs.shares(what)
-    log_percentiles = None
+    vol = mass = None                 # log10 percentiles of the volume and of the mass
     if log is None:
         share = vs.positive_volume_share
         if vs.has_positive:
-            log_percentiles = weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True, field=field)
-        p = log_percentiles
-        log = bool(share >= MIN_POSITIVE_SHARE and p[1] - p[0] > np.log10(LOG_RATIO))
+            vol = weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True, field=field)
+            mass = weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True, field=field, mass=True)
+        decades = max(vol[1], mass[1]) - min(vol[0], mass[0]) if vol else 0.0
+        log = bool(share >= MIN_POSITIVE_SHARE and decades >= LOG_DECADES)
         if log:
-            notes.append(f"log10 chosen for the {what}: they span 10^{p[0]:.3g} to 10^{p[1]:.3g}")
+            notes.append(f"log10 chosen for the {what}: the volume lies from 10^{vol[0]:.3g} "
+                         f"and the mass up to 10^{max(vol[1], mass[1]):.3g} ({decades:.2g} decades; "
+                         f"log10 from {LOG_DECADES:g})")
         elif share < MIN_POSITIVE_SHARE:
             notes.append(f"linear {what}: only {100 * share:.3g}% of the volume holds positive ones "
                          f"(log10 needs {100 * MIN_POSITIVE_SHARE:.0f}%; --log to force it)")
         else:
-            notes.append(f"linear {what}: the positive ones are within {LOG_RATIO:g}x")
+            notes.append(f"linear {what}: the volume and the mass lie within {decades:.2g} decades "
+                         f"(log10 from {LOG_DECADES:g}; --log to force it)")
     if log and not vs.has_positive:
         raise ValueError(f"{source}: log10 of the {what} needs positive values, but none is above 0 "
                          f"(min {vs.min:.6g}, max {vs.max:.6g}); use --linear")
@@ -426,10 +453,7 @@ def _value_scale(stats, field, log, value_range, what="values", source="the data
                                    f"TF's bottom (raised to the smallest positive value, {vs.positive_min:.4g})"
                                    if log else ""))
     if value_range is None:
-        # the log percentiles of the choice above are the TF range already
-        value_range = tuple(log_percentiles if log and log_percentiles else
-                            weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=log, field=field))
-        value_range, note = _widened(value_range, vs.span(log), what, log)
+        value_range, note = _planned_range(stats, field, vs, log, vol, mass, what)
         if note:
             notes.append(note)
     value_range = (float(value_range[0]), float(value_range[1]))
@@ -438,26 +462,31 @@ def _value_scale(stats, field, log, value_range, what="values", source="the data
     return bool(log), value_range, notes, vs
 
 
-def _widened(value_range, span, what, log):
-    """``(range, note or None)``: the percentile range, at least
-    `MIN_RANGE_SHARE` of the values' ``span`` (lo, hi) wide, kept within it
-    (so that no value lies below the TF's bottom); constant values get a
-    range centred on them."""
-    lo, hi = float(value_range[0]), float(value_range[1])
-    dlo, dhi = span
-    width = MIN_RANGE_SHARE * (dhi - dlo)
-    if hi - lo >= width and hi > lo:
-        return (lo, hi), None
-    if not dhi > dlo:                        # one value: centre it
-        pad = max(0.5, 1e-3 * abs(lo))
-        return (lo - pad, hi + pad), None
-    mid = 0.5 * (lo + hi)
-    new_lo = min(max(mid - 0.5 * width, dlo), dhi - width)
-    units = " (log10 units)" if log else ""
-    note = (f"TF range [{lo:.6g}, {hi:.6g}]{units} of the {LOW_PERCENTILE:g}-{HIGH_PERCENTILE:g}th percentiles is "
-            f"{hi - lo:.3g} wide, under {100 * MIN_RANGE_SHARE:g}% of the {what}' span [{dlo:.6g}, {dhi:.6g}]: "
-            f"widened to [{new_lo:.6g}, {new_lo + width:.6g}]")
-    return (new_lo, new_lo + width), note
+def _planned_range(stats, field, vs: ValueStats, log: bool, vol=None, mass=None, what="values"):
+    """``((lo, hi), note or None)``: the TF range of `_value_scale` in the
+    chosen space (``vol``, ``mass``: the log10 percentiles when known)."""
+    qs = [LOW_PERCENTILE, HIGH_PERCENTILE]
+    if log:
+        vol = vol or weighted_percentiles(stats, qs, log=True, field=field)
+        mass = mass or weighted_percentiles(stats, qs, log=True, field=field, mass=True)
+        lo, hi = vol[0], max(vol[1], mass[1])
+        note = None
+    else:
+        vol = weighted_percentiles(stats, qs, field=field)
+        mass = weighted_percentiles(stats, qs, field=field, mass=True)
+        floor = vs.min == 0 and vs.zero_volume >= FLOOR_SHARE * vs.volume
+        if floor:                                 # zeros fill a share of the volume: the TF's bottom
+            lo, hi = (mass[0], mass[1]) if mass[1] > mass[0] else (0.0, mass[1])
+            note = (f"{what}: {100 * vs.zero_volume / vs.volume:.3g}% of the volume is 0 (empty space or "
+                    f"covered cells): left out of the TF range, they take its bottom")
+        else:
+            lo, hi = min(vol[0], mass[0]), max(vol[1], mass[1])
+            note = None
+    if hi > lo:
+        return (float(lo), float(hi)), note
+    pad = max(0.5, 1e-3 * abs(lo))              # one value: centre it
+    return (lo - pad, lo + pad), (f"the {what} are one value, {lo:.6g}{' (log10 units)' if log else ''}: "
+                                  f"the TF range is centred on it")
 
 
 def _check_tf_name(tf, flag):
@@ -468,7 +497,7 @@ def _check_tf_name(tf, flag):
                              f"colormap nor a TF .json file")
 
 
-def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = None, value_range=None,
+def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = None, value_range=None,
                density_scale: float | None = None, emission: str | None = None,
                emission_field: str | None = None, emission_log: bool | None = None, emission_range=None,
                emission_scale: float | None = None, stats=None) -> ScenePlan:
@@ -478,11 +507,16 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
     positive values and their 1st and 99.9th volume-weighted percentiles
     are more than 1000x apart;
     ``value_range``: the TF domain (in transformed units), else those
-    percentiles (of the positive values under log10; at least
-    `MIN_RANGE_SHARE` of the values' span wide); ``tf``: a preset name or a
-    TF .json file; ``density_scale`` (inverse world units, the longest side
+    volume's and the mass's percentiles (`_value_scale`); ``tf``: a preset
+    name or a TF .json file (None: `DEFAULT_TF`, which the check below may
+    change); ``density_scale`` (inverse world units, the longest side
     1): else `TARGET_DEPTH` over the mean opacity, at most `MAX_DEPTH` over
     the TF's highest opacity over the values (`_planned_density_scale`).
+    Then the plan is checked as a user would look at it: the picture is
+    predicted (`mi_amr.visibility`) and, when nearly
+    nothing of the data shows or the footprint is a flat opaque block, the
+    TF (if not given) and the density scale (if not given) are planned
+    again, each change with a note (`_checked`).
     ``emission``: an emission TF (preset such as ``blackbody``, colormap
     or .json file) makes the gas glow, from ``emission_field`` (a further
     field, e.g. ``temperature``; None: the extinction field), with its own
@@ -499,6 +533,8 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
     log, value_range, more, vs = _value_scale(stats, None, log, value_range, source=what)
     notes += more
     transform = "log10" if log else "none"
+    tf_given, scale_given = tf is not None, density_scale is not None
+    tf = DEFAULT_TF if tf is None else tf
     _check_tf_name(tf, "--tf")
     world = extent / extent.max()
     mean = _mean_alpha(stats, tf, value_range, log)
@@ -533,8 +569,92 @@ def plan_scene(data, field=None, *, tf: str = DEFAULT_TF, log: bool | None = Non
     radius = 0.5 * float(np.linalg.norm(world))
     direction = np.array([1.5, 1.0, 0.35]) / np.linalg.norm([1.5, 1.0, 0.35])    # just above the horizon
     origin = direction * radius / np.sin(np.radians(FOV / 2)) * 1.1
-    return ScenePlan(volume, transform, tf, value_range, float(density_scale), world, origin, notes=notes,
+    plan = ScenePlan(volume, transform, tf, value_range, float(density_scale), world, origin, notes=notes,
                      emission=glow, optical_depth=float(depth), peak_depth=float(peak_depth))
+    return _checked(plan, stats, vs, tf_given, scale_given)
+
+
+#: The plan's check: a predicted picture showing the data in less than this
+#: share of the domain's footprint is planned again ...
+MIN_SHOWN = 0.02
+#: ... and so is one opaque in at least this share of the pixels that show
+#: the data (a flat opaque block: nothing inside can be seen).
+MAX_OPAQUE = 0.9
+#: A re-planned density makes this share of the footprint's pixels that see
+#: any medium reach `mi_amr.visibility.OPAQUE_OPACITY` (too opaque) or half
+#: opacity (too faint).
+REPLAN_SHARE = 0.5
+#: TF used when the planned one is transparent at every value the data hold.
+FALLBACK_TF = "ramp"
+
+
+def _checked(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scale_given: bool) -> ScenePlan:
+    """``plan`` after its check (docs/manual/data.md "Default pictures"):
+    predict the picture (`mi_amr.visibility`); when it shows the data in
+    under `MIN_SHOWN` of the footprint, take `FALLBACK_TF` if the TF is
+    transparent at every value the data hold (and was not given), then
+    raise the density scale (if not given) within the `MAX_DEPTH` bound;
+    when at least `MAX_OPAQUE` of what shows is opaque, lower it. Each
+    change is a note; the last prediction is ``plan.visibility``."""
+    log = plan.transform == "log10"
+    rays = camera_rays(plan.origin, plan.target, plan.up, plan.fov, PREDICT_RES)
+
+    def depths(tf):
+        fn = TransferFunction.load(tf, plan.tf_range)
+        grid = opacity_grid(plan.data, lambda v: fn(_log_or_floor(v) if log else v)[:, 3])
+        return projected_depth(grid, plan.extent, *rays)
+    tau, hits = depths(plan.tf)
+    seen = visibility_of_depths(tau, hits, plan.density_scale)
+    if seen.shown < MIN_SHOWN and not tau.any() and not tf_given:
+        tau_b, hits_b = depths(FALLBACK_TF)
+        if tau_b.any():
+            mean = _mean_alpha(stats, FALLBACK_TF, plan.tf_range, log)
+            peak = _peak_alpha(FALLBACK_TF, plan.tf_range, log, vs)
+            scale = plan.density_scale if scale_given else _planned_density_scale(mean, peak)[0]
+            plan.notes.append(f"check: TF '{plan.tf}' is transparent at every value the data hold (nothing would "
+                              f"show): TF '{FALLBACK_TF}' instead, density_scale {scale:.3g}")
+            plan.tf, plan.density_scale, tau, hits = FALLBACK_TF, float(scale), tau_b, hits_b
+            plan.optical_depth, plan.peak_depth = scale * mean, scale * peak
+            seen = visibility_of_depths(tau, hits, plan.density_scale)
+    if not scale_given and tau.any():
+        bound = MAX_DEPTH / plan.peak_depth * plan.density_scale if plan.peak_depth else np.inf
+        new = None
+        if seen.shown < MIN_SHOWN:
+            new = max(plan.density_scale, min(scale_for_opacity(tau, hits, REPLAN_SHARE, 0.5), bound))
+            why = f"shows the data in {100 * seen.shown:.2g}% of the footprint"
+        elif seen.opaque >= MAX_OPAQUE * seen.shown:
+            new = min(plan.density_scale, scale_for_opacity(tau, hits, REPLAN_SHARE, OPAQUE_OPACITY))
+            why = (f"is opaque in {100 * seen.opaque:.3g}% of the footprint, nearly all it shows "
+                   f"({100 * seen.shown:.3g}%): a flat block")
+        if new is not None and new > 0 and abs(np.log(new / plan.density_scale)) > 0.05:
+            after = visibility_of_depths(tau, hits, new)
+            plan.notes.append(f"check: the picture {why} at density_scale {plan.density_scale:.3g}: "
+                              f"{new:.3g} instead{' (the bound)' if new == bound else ''}")
+            ratio = new / plan.density_scale
+            plan.density_scale, plan.optical_depth, plan.peak_depth = \
+                float(new), plan.optical_depth * ratio, plan.peak_depth * ratio
+            seen = after
+    plan.visibility = seen
+    plan.notes.append(f"predicted picture: {seen}")
+    return plan
+
+
+def planned_display(data, stored, log: bool, table) -> tuple[tuple[float, float], float]:
+    """``((lo, hi), density_scale)`` that `plan_scene` chooses for ``data``
+    shown in ``log`` (log10) or linear units with a TF of the caller's
+    (``table(range) -> TransferFunction`` over the medium's stored values
+    ``stored``, a `BlockVolume`): the viewer's log10 toggle re-plans both,
+    so that a linear plan's density never carries over to a log10 display
+    (or back). The range is in the display's units."""
+    _, value_range, _, _ = _value_scale(data, None, log, None)
+    fn = table(value_range)
+    total = weight = 0.0
+    for v, w in cells_and_weights(stored):
+        total += float((fn(v)[:, 3] * w).sum())
+        weight += float(w.sum())
+    lo, hi = stored.value_range
+    peak = float(fn.max_alpha(lo, hi)[0])
+    return value_range, _planned_density_scale(total / weight if weight else 0.0, peak)[0]
 
 
 def _planned_density_scale(mean, peak) -> tuple[float, str]:

@@ -27,7 +27,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import distributed, series
-from .autoscene import DEFAULT_TF, GLOW_TF, field_scalars, plan_scene, scene_for, write_scene_xml
+from .autoscene import GLOW_TF, field_scalars, plan_scene, scene_for, write_scene_xml
 from .data.io import save_cells
 from .images import write_exr, write_png
 from .plugins.medium import require_jit_rgb_variant
@@ -181,7 +181,7 @@ def render_jobs(args, jobs, desc: str | None = None) -> list:
 # ---- data planned into a scene --------------------------------------------
 def plan_options(args) -> dict:
     """`mi_amr.autoscene.plan_scene` options from the data flags."""
-    return dict(tf=args.tf or (GLOW_TF if args.emission else DEFAULT_TF),
+    return dict(tf=args.tf or (GLOW_TF if args.emission else None),      # None: the default, which the check may change
                 log={"log": True, "linear": False}.get(args.scale),
                 value_range=tuple(args.range) if args.range else None,
                 emission=args.emission, emission_field=args.emission_field,

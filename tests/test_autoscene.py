@@ -110,7 +110,7 @@ def test05_cli_data_options_are_checked(llvm, tmp_path):
     r = render_cli([str(data), "-o", str(tmp_path / "o.exr"), "--tf", "nosuch", "--spp", "1", "--res", "8"])
     assert r.returncode != 0 and "nosuch" in r.stderr
     r = render_cli([str(data), "-o", str(tmp_path / "o.exr"), "--range", "2", "1", "--spp", "1", "--res", "8"])
-    assert r.returncode != 0 and "LO < HI" in r.stderr
+    assert r.returncode == 2 and "LO must be below HI" in r.stderr and r.stderr.count("\n") == 1
     r = render_cli([str(tmp_path / "missing.plt"), "-o", str(tmp_path / "o.exr"), "--field", "density"])
     assert r.returncode != 0 and "missing.plt" in r.stderr
     xml_scene = tmp_path / "s.xml"
@@ -261,8 +261,9 @@ def column_depths(plan, cells):
 
 def test11_zeros_and_negatives_under_log10(llvm):
     """--log on a field 62.5% zero and 3.1% negative by volume: the notes
-    name both shares (as numpy counts them), the TF range is the 1st-99.9th
-    volume percentiles of the positive values' log10, zeros and negatives
+    name both shares (as numpy counts them), the TF range runs from the 1st
+    volume percentile of the positive values' log10 to the higher of their
+    99.9th volume and mass (volume times value) percentiles, zeros and negatives
     sit at the TF's bottom in the medium, and a render has no NaN, with a
     finite majorant within the bound. Without --log the values stay linear
     and the note says why."""
@@ -279,9 +280,12 @@ def test11_zeros_and_negatives_under_log10(llvm):
     lv, pw = np.log10(cells.value[pos].astype(np.float64)), w[pos]
     order = np.argsort(lv)
     cdf = np.cumsum(pw[order]) / pw.sum()
+    mass_cdf = np.cumsum((pw * 10.0 ** lv)[order]) / (pw * 10.0 ** lv).sum()
     bin_width = (lv.max() - lv.min()) / 4096
-    for q, got in zip((1.0, 99.9), plan.tf_range):
-        assert abs(got - lv[order][np.searchsorted(cdf, q / 100)]) <= 1.01 * bin_width + 1e-9
+    expected = (lv[order][np.searchsorted(cdf, 0.01)],
+                max(lv[order][np.searchsorted(cdf, 0.999)], lv[order][np.searchsorted(mass_cdf, 0.999)]))
+    for want, got in zip(expected, plan.tf_range):
+        assert abs(got - want) <= 1.01 * bin_width + 1e-9
     scene = mi.load_dict(scene_for(plan, res=16, spp=4))
     med = mi_amr.amr_media(scene)[0]
     assert med.volume.meta["log_floor"] == pytest.approx(cells.value[pos].min())
@@ -295,18 +299,27 @@ def test11_zeros_and_negatives_under_log10(llvm):
         plan_scene(mi_amr.AMRCells(cells.pos, cells.level, -np.abs(cells.value) - 1, source="neg"), log=True)
 
 
-def test12_a_nearly_constant_field_gets_a_range_of_minimum_width(llvm):
-    """A field that is 1.0 but for 16 cells: its percentiles are a bin
-    apart; the TF range is widened to MIN_RANGE_SHARE of the values' span,
-    within it, with a note."""
-    from mi_amr.autoscene import MIN_RANGE_SHARE
+def test12_a_nearly_constant_field_gets_the_range_its_mass_spans(llvm):
+    """A field that is 1.0 but for 16 cells (0.2% of the mass): its volume
+    percentiles are one value, and the TF range reaches from it to the
+    mass's 99.9th percentile (as numpy computes it, within a histogram
+    bin), inside the values' span: never widened into values the data do
+    not hold. A field of one value gets a range centred on it."""
     cells = nearly_constant()
     plan = plan_scene(cells)
+    assert plan.transform == "none"
     lo, hi = plan.tf_range
-    span = float(cells.value.max() - cells.value.min())
-    assert hi - lo == pytest.approx(MIN_RANGE_SHARE * span, rel=1e-6)
-    assert lo >= cells.value.min() and hi <= cells.value.max()
-    assert any("widened" in n for n in plan.notes), plan.notes
+    v = cells.value.astype(np.float64)
+    w = np.exp2(3.0 * cells.level)
+    order = np.argsort(v)
+    mass_cdf = np.cumsum((w * v)[order]) / (w * v).sum()
+    bin_width = (v.max() - v.min()) / 4096
+    assert abs(lo - 1.0) <= 1.01 * bin_width
+    assert abs(hi - v[order][np.searchsorted(mass_cdf, 0.999)]) <= 1.01 * bin_width
+    assert lo >= v.min() and hi <= v.max() + 1e-6 and hi > 1.5
+    flat = mi_amr.dense_to_amr(np.full((8, 8, 8), 3.0, np.float32), 0.0, 1, source="flat")
+    plan = plan_scene(flat)
+    assert plan.tf_range[0] < 3.0 < plan.tf_range[1] and any("one value" in n for n in plan.notes)
 
 
 @pytest.mark.parametrize("make,capped", [(nearly_constant, True), (signed_field, True), (cosmology_like, False)])
@@ -332,7 +345,7 @@ def test13_density_scale_is_bounded(llvm, make, capped):
     assert plan.density_scale * peak <= MAX_DEPTH * (1 + 1e-6)
     assert (TARGET_DEPTH / (tau.mean() / plan.density_scale) * peak > MAX_DEPTH) == capped
     if capped:
-        assert plan.density_scale == pytest.approx(MAX_DEPTH / peak) and "capped" in plan.notes[-1]
+        assert plan.density_scale == pytest.approx(MAX_DEPTH / peak) and any("capped" in n for n in plan.notes)
     else:
         assert plan.optical_depth == pytest.approx(TARGET_DEPTH, rel=1e-6)
     scene = mi.load_dict(scene_for(plan, res=12, spp=2))

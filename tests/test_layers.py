@@ -33,8 +33,8 @@ FLOORS = [
     ["mi_amr.builds", "mi_amr.strategies", "mi_amr.pipeline"],
     # the Mitsuba plugins
     ["mi_amr.plugins"],
-    # images, scene files, the native file, test helpers
-    ["mi_amr.images", "mi_amr.scene_xml", "mi_amr.native_file", "mi_amr.testing"],
+    # images, what a picture shows, scene files, the native file, test helpers
+    ["mi_amr.images", "mi_amr.visibility", "mi_amr.scene_xml", "mi_amr.native_file", "mi_amr.testing"],
     # scenes planned from data, a run's outputs
     ["mi_amr.autoscene", "mi_amr.series"],
     # the package's front (plugin registration, short-cuts)
