@@ -602,3 +602,44 @@ def test15_an_xml_scene_keeps_its_own_tf(tmp_path):
     assert s.table(spec) is long and s.table(TFSpec(spec.points, "scene", False, (0.0, 2.0), 3.0)) is long
     edited = TFSpec([(0.0, 0.0), (1.0, 1.0)], "scene", False, (0.0, 2.0), 1.0)
     assert s.table(edited) is not long and len(s.table(edited)) == TABLE_SIZE
+
+
+def test16_the_log10_toggle_plans_range_and_density_again(tmp_path):
+    """Data planned linear (within a decade, all positive: log10 stored):
+    ticking log10 gives the range and density the plan chooses for a log10
+    display (`planned_display`), not the linear plan's density; the next
+    histogram carries the density to the page once; unticking gives the
+    linear plan back (range and density within the table's discretisation).
+    A density sent with the toggle is the user's and is kept."""
+    import mi_amr
+    from mi_amr.autoscene import planned_display
+    from mi_amr.data.io import write_exabricks
+    from mi_amr.view.engine import ViewEngine
+    z, y, x = np.meshgrid(*[np.linspace(0, 1, 16)] * 3, indexing="ij")
+    v = 5.5 + 4.5 * np.sin(2 * np.pi * x) * np.cos(2 * np.pi * y) * np.sin(np.pi * z)
+    path, _ = write_exabricks(mi_amr.dense_to_amr(v.astype(np.float32), 0.0, 1), tmp_path / "waves.cells")
+    engine = ViewEngine(path, res=16, max_spp=2).start()
+    try:
+        assert engine.ready.wait(120) and engine.error is None, engine.error
+        view = engine.open_view(lambda header, jpeg: None)
+        linear = view.spec
+        assert not linear.log and engine.loaded.stored_log
+        lo, hi = linear.range
+        assert engine.change(view, {"type": "tf", "log": True, "range": [np.log10(lo), np.log10(hi)]})
+        logged = view.spec
+        loaded = engine.loaded
+        want_range, want_density = planned_display(
+            loaded.plan.data, loaded.medium.volume, True,
+            lambda r: TFSpec(logged.points, logged.colormap, True, tuple(r), 1.0).table(True))
+        assert logged.log and logged.range == pytest.approx(want_range) and logged.density == pytest.approx(want_density)
+        assert abs(np.log(logged.density / linear.density)) > 0.1
+        reply = engine.histogram(view)
+        assert reply.density == pytest.approx(logged.density) and engine.histogram(view).density is None
+        engine.change(view, {"type": "tf", "log": False, "range": [lo, hi]})
+        back = view.spec
+        assert back.range == pytest.approx(linear.range, rel=1e-6)
+        assert back.density == pytest.approx(linear.density, rel=0.03)
+        engine.change(view, {"type": "tf", "log": True, "range": [0.0, 1.0], "density": 7.0})
+        assert view.spec.density == 7.0 and view.spec.range == (0.0, 1.0)
+    finally:
+        engine.stop()

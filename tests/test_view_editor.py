@@ -235,7 +235,8 @@ def enzo(tmp_path_factory):
 
 
 def test04_the_tf_editor_on_yt_data(enzo, browser):
-    """A point's colour picked, the range typed: the saved file is the TF
+    """The log10 box plans range and density again (the page shows the
+    server's); a point's colour picked, the range typed: the saved file is the TF
     `TransferFunction.load` reads (the view's table, colour included), and
     loading it after a preset brings the editor back; a typed density is
     the view's; the shares below and above the range are numpy's; the
@@ -247,6 +248,21 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
     fields = page.eval_on_selector("#field", "s => [...s.options].map(o => o.value)")
     assert "enzo,Density" in fields and "enzo,Temperature" in fields
     assert not page.get_by_test_id("field").is_disabled() and page.get_by_test_id("field").input_value() == "enzo,Density"
+
+    # log10 ticked: the server plans range and density again and the page shows them; unticked: back
+    linear = view.spec
+    page.get_by_test_id("log").check()
+    page.wait_for_function(f"+document.getElementById('density-number').value !== {linear.density!r} && "
+                           "document.getElementById('log').checked", timeout=20000)
+    assert view.spec.log and abs(np.log(view.spec.density / linear.density)) > 0.1
+    shown = float(page.get_by_test_id("density-number").input_value())
+    assert shown == pytest.approx(view.spec.density, rel=1e-5)
+    assert float(page.get_by_test_id("range-hi").input_value()) == pytest.approx(view.spec.range[1], rel=1e-4)
+    page.get_by_test_id("log").uncheck()
+    page.wait_for_function("!document.getElementById('log').checked && "
+                           f"Math.abs(+document.getElementById('density-number').value / {linear.density!r} - 1) < 0.03",
+                           timeout=20000)
+    assert not view.spec.log and view.spec.range == pytest.approx(linear.range, rel=1e-6)
 
     # the range, then the shares under the histogram
     page.get_by_test_id("range-lo").fill("1.5")

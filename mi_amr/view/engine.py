@@ -150,6 +150,7 @@ class View:
     failures: int = 0                    # passes of the view's state failed in a row
     broken: str | None = None            # why its state does not render (nothing to go back to)
     closed: bool = False
+    replanned: bool = False              # the spec's range and density were planned again (log10 toggle)
 
 
 class ViewEngine:
@@ -335,8 +336,12 @@ class ViewEngine:
                     view.camera = camera
                 case TFChange():
                     spec = view.spec.changed(change, self.loaded.log_available, self.loaded.colormaps)
+                    replan = spec.log != before.log and change.density in (None, before.density)
+                    if replan:                         # the log10 toggle: range and density planned again
+                        spec = self.loaded.replanned(spec)
                     self.loaded.check(spec)            # one that cannot render is refused here
                     view.spec = spec
+                    view.replanned = replan or view.replanned
                 case DenoiseChange(on=on):
                     if on and self._denoise is None:
                         raise ValueError(self.denoiser_missing)
@@ -460,7 +465,8 @@ class ViewEngine:
         """The volume-weighted histogram under the view's TF editor."""
         spec = view.spec
         below, above = self.loaded.outside(spec)
-        return HistogramReply(tuple(self.loaded.shares(spec)), tuple(spec.range), spec.log, below, above)
+        density, view.replanned = (spec.density if view.replanned else None), False
+        return HistogramReply(tuple(self.loaded.shares(spec)), tuple(spec.range), spec.log, below, above, density)
 
     # ---- Rendering ---------------------------------------------------------------
     def _run(self):

@@ -178,13 +178,15 @@ class Hello(Message):
 @dataclass(frozen=True)
 class HistogramReply(Message):
     """Volume shares in equal bins over the display ``range`` (lo, hi) of
-    the ``log`` or linear display."""
+    the ``log`` or linear display; ``density``: see below."""
     TYPE: ClassVar[str] = "histogram"
     counts: tuple[float, ...]
     range: tuple[float, float]
     log: bool
     below: float | None = _optional()          # the share of the volume below the range
     above: float | None = _optional()          # ... and above it
+    density: float | None = _optional()        # the density scale, when the server planned it again
+                                               # with the range (the log10 toggle): the page takes both
 
 
 @dataclass(frozen=True)

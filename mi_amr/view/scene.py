@@ -31,7 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 import mi_amr
-from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, positive_share, scene_for
+from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, planned_display, positive_share, scene_for
 from ..data.yt_import import load_dataset
 from ..plugins.integrator import MODES, AMRVolpathIntegrator
 from ..transfer.classification import check_density_scale
@@ -164,6 +164,17 @@ class LoadedScene:
                 (first.points, first.colormap, first.log, first.range):
             return self.scene_tf
         return spec.table(self.stored_log, self.scene_rgb)
+
+    def replanned(self, spec: TFSpec) -> TFSpec:
+        """``spec`` with the range and density scale the plan chooses for its
+        log10 or linear display (`planned_display`): what the log10 toggle
+        gets for data (an XML scene's spec is returned as it is)."""
+        if self.plan is None:
+            return spec
+        value_range, density = planned_display(
+            self.plan.data, self.medium.volume, spec.log,
+            lambda r: replace(spec, range=tuple(r)).table(self.stored_log, self.scene_rgb))
+        return replace(spec, range=tuple(float(x) for x in value_range), density=float(density))
 
     def check(self, spec: TFSpec):
         """A `ValueError` naming why ``spec`` cannot render (a TF domain

@@ -266,7 +266,14 @@ export function createTfEditor({ send, changed, message }) {
     send({ type: "histogram" });
   };
   editor.setTf = (spec) => { tf = spec; editor.pending = false; sync(); };
-  editor.histogram = (msg) => { histogram = msg; showShares(); draw(); };
+  editor.histogram = (msg) => {
+    histogram = msg;
+    if (msg.density !== undefined && msg.density !== null && tf && msg.log === tf.log) {
+      tf.range = [...msg.range]; tf.density = msg.density;       // planned again by the server (log10 toggle)
+      sync();
+    }
+    showShares(); draw();
+  };
   editor.error = () => { if (extras.field) $("field").value = extras.field; };
   // The server's TF file: offered as a download.
   editor.file = (msg) => {
