@@ -118,7 +118,7 @@ def test06_unsupported_yt_data_are_named():
     from mi_amr.data.yt_import import from_yt_blocks
     flat = yt.load_uniform_grid({"density": np.ones((8, 8, 1))}, [8, 8, 1])
     flat.dimensionality = 2
-    with pytest.raises(ValueError, match="2D data"):
+    with pytest.raises(ValueError, match="a 2-D output"):
         from_yt_blocks(flat, ("stream", "density"))
     particles = yt.load_particles({("io", "particle_position_x"): np.random.random(50),
                                    ("io", "particle_position_y"): np.random.random(50),

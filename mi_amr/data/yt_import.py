@@ -17,13 +17,20 @@ One level (uniform grids, single-level outputs) is AMR too, whatever
 
 `load_dataset` wraps ``yt.load``; a package that yt's reader needs and does
 not find is one line naming it (`MissingDependency`), while loading and
-while reading fields.
+while reading fields. A field is what a user types (`resolve_field`: yt's
+own names, ``TYPE,NAME``, any case), else one line with the closest names
+(`FieldNotFound`); a file of the output that yt's reader fails on is one
+line naming it (`DamagedFile`); a 2-D output is refused before its files
+are read (`require_3d`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import difflib
+import os
 import re
+import struct
 import warnings
 
 import mitsuba as mi
@@ -56,6 +63,20 @@ class MissingDependency(ImportError, ValueError):
     (a ValueError too, so that the command line prints it as one line)."""
 
 
+class FieldNotFound(ValueError):
+    """A field the data set does not have; the message names the closest
+    ones and the fields on disk (`resolve_field`)."""
+
+
+class DamagedFile(ValueError):
+    """A file of a simulation output that yt's reader fails on (truncated,
+    damaged or missing); ``path`` is the file, when it could be told."""
+
+    def __init__(self, message: str, path=None):
+        super().__init__(message)
+        self.path = path
+
+
 def from_yt(ds, field, *, overlap: str = "error") -> AMRCells:
     """Leaf cells of a grid- or octree-based yt data set (Enzo, FLASH,
     AMReX/BoxLib, Athena++, RAMSES, ``yt.load_amr_grids``,
@@ -64,13 +85,14 @@ def from_yt(ds, field, *, overlap: str = "error") -> AMRCells:
     `from_yt_blocks` goes straight to the compact form."""
     with _reading(ds):
         layout = _layout(ds)
-        parts = list(_source(ds, layout).cells(field))
+        key = resolve_field(ds, field)
+        parts = list(_source(ds, layout).cells(key))
     if not parts:
         raise ValueError(f"{ds}: no leaf cells found")
     cells = AMRCells(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
                      np.concatenate([p[2] for p in parts]), overlap=overlap,
                      source=f"yt dataset {ds} field {field}")
-    cells.meta = _metadata(ds, field, layout)
+    cells.meta = _metadata(ds, key, layout)
     return cells
 
 
@@ -82,16 +104,89 @@ def from_yt_blocks(ds, field, *, overlap: str = "error", method: str = "tent", f
     are kept between the passes, 13 bytes per cell, rather than asked of yt
     three times). ``fields``: further fields to read onto the same cells
     (names or ``(type, name)`` tuples; stored under their last name, e.g.
-    ``temperature``, `BlockVolume.add_field`)."""
+    ``temperature``, `BlockVolume.add_field`). Every field is resolved
+    (`resolve_field`) before any value is read."""
     with _reading(ds):
         layout = _layout(ds)
+        key = resolve_field(ds, field)
+        extras = [(field_key(extra), resolve_field(ds, extra)) for extra in fields]
         src = _source(ds, layout)
-        vol = BlockVolume.from_chunks(lambda: src.cells(field), f"yt dataset {ds} field {field}",
+        vol = BlockVolume.from_chunks(lambda: src.cells(key), f"yt dataset {ds} field {field}",
                                       overlap=overlap, method=method, positions=src.positions, sample=src.sample)
-        vol.meta = _metadata(ds, field, layout)
-        for extra in fields:
-            vol.add_field(field_key(extra), lambda extra=extra: src.cells(extra))
+        vol.meta = _metadata(ds, key, layout)
+        for name, extra in extras:
+            vol.add_field(name, lambda extra=extra: src.cells(extra))
     return vol
+
+
+def resolve_field(ds, field) -> tuple:
+    """The yt field ``(type, name)`` that ``field`` means: a yt field tuple,
+    ``"TYPE,NAME"``, or a bare name as yt resolves it (``density`` ->
+    ``("gas", "density")``); failing those, the one field whose name (and
+    type, when given) matches in any case (``temperature`` ->
+    ``("enzo", "Temperature")``). Else a one-line `FieldNotFound` with
+    the closest names and the fields on disk."""
+    want = _field_tuple(field)
+    known = list(dict.fromkeys([tuple(f) for f in ds.field_list] + [tuple(f) for f in ds.derived_field_list]))
+    if isinstance(want, tuple) and want in known:
+        return want
+    if isinstance(want, str):
+        from yt.utilities.exceptions import YTException
+        try:
+            return tuple(ds._get_field_info(want).name)      # yt's rule for bare names (gas first)
+        except (YTException, KeyError):
+            pass
+    fold = want.lower() if isinstance(want, str) else tuple(s.lower() for s in want)
+    same = [f for f in known if (f[1].lower() if isinstance(want, str) else tuple(s.lower() for s in f)) == fold]
+    gas = [f for f in same if f[0] == "gas"]
+    if len(same) == 1 or len(gas) == 1:
+        return (same if len(same) == 1 else gas)[0]
+    raise FieldNotFound(_field_message(ds, field, want, known, same))
+
+
+def _field_tuple(field):
+    """``"TYPE,NAME"`` -> ``(TYPE, NAME)``; a bare name stays a string."""
+    if isinstance(field, (tuple, list)):
+        parts = tuple(str(s).strip() for s in field)
+    elif isinstance(field, str):
+        parts = tuple(s.strip() for s in field.split(","))
+    else:
+        raise FieldNotFound(f"field {field!r}: a yt field is a name, 'TYPE,NAME' or a (type, name) tuple")
+    if not all(parts) or len(parts) > 2:
+        raise FieldNotFound(f"field {_shown(field)!r}: a yt field is NAME or TYPE,NAME (e.g. density or gas,density)")
+    return parts[0] if len(parts) == 1 else parts
+
+
+def _shown(f) -> str:
+    """A field as users type it: ``gas,density``."""
+    return ",".join(str(s) for s in f) if isinstance(f, (tuple, list)) else str(f)
+
+
+def _field_message(ds, field, want, known, same) -> str:
+    """``DATA: no field 'x' (did you mean A or B?); on disk: ...; yt derives N more``."""
+    where = _where(ds)
+    if len(same) > 1:
+        return (f"{where}: field {_shown(field)!r} could be any of {', '.join(_shown(f) for f in same)}: "
+                f"give one as TYPE,NAME")
+    names = {}
+    for f in known:                       # one spelling per field: the bare name when it is unique
+        names.setdefault(f[1], []).append(f)
+    typed = _shown(want).lower()
+    spelled = {(_shown(f) if isinstance(want, tuple) or len(names[f[1]]) > 1 else f[1]): f for f in known}
+    by_fold = {}
+    for s in spelled:
+        by_fold.setdefault(s.lower(), s)
+    close = difflib.get_close_matches(typed, list(by_fold), n=3, cutoff=0.6)
+    hint = f" (did you mean {' or '.join(by_fold[c] for c in close)}?)" if close else ""
+    disk = [tuple(f) for f in ds.field_list]
+    more = len([f for f in known if f not in disk])
+    return (f"{where}: no field {_shown(field)!r}{hint}; on disk: {', '.join(_shown(f) for f in disk) or 'none'}"
+            + (f"; yt derives {more} more (mi-amr info DATA lists them all)" if more else ""))
+
+
+def _where(ds) -> str:
+    """The path of a data set for messages (its name when it has none)."""
+    return str(getattr(ds, "parameter_filename", None) or ds)
 
 
 def field_key(field) -> str:
@@ -111,9 +206,7 @@ def _layout(ds):
     of a grid- or octree-based 3D data set (edges and sizes in code
     units, levels counted as yt does: 0 = root), or a ValueError naming
     what is not supported."""
-    dim = int(getattr(ds, "dimensionality", 3))
-    if dim != 3:
-        raise ValueError(f"{ds}: {dim}D data are not supported; mi-amr renders 3D volumes")
+    require_3d(ds)
     index = ds.index
     octree = _is_octree(index)
     if not octree and not hasattr(index, "grids"):
@@ -299,7 +392,7 @@ def load_dataset(path):
         # fields are read) names it in one line
         warnings.filterwarnings("ignore", message="This dataset appears to be of type")
         try:
-            return yt.load(str(path))
+            return require_3d(yt.load(str(path)))
         except YTAmbiguousDataType as e:
             names = ", ".join(c.__name__ for c in e.candidates)
             raise ValueError(f"{path}: yt finds it could be any of {names}") from e
@@ -324,17 +417,101 @@ def _unidentified(path) -> str:
             f"try for want of a Python package: {told} ({hint})")
 
 
+def require_3d(ds):
+    """``ds`` if it is 3-D, else a one-line ValueError saying it is 2-D (or
+    1-D). RAMSES: yt says 3 whatever the output holds, so the ``ndim`` of
+    the info file decides, before yt reads a record of its files."""
+    dim = int(getattr(ds, "dimensionality", 3))
+    if _code_name(ds, ValueError()) == "RAMSES":
+        dim = int(getattr(ds, "parameters", {}).get("ndim", dim))
+    if dim < 3:
+        code = _code_name(ds, ValueError())
+        raise ValueError(f"{_where(ds)}: a {dim}-D {code + ' ' if code else ''}output; mi-amr renders 3-D "
+                         f"volumes only")
+    return ds
+
+
+#: What yt's readers raise on a truncated or damaged file (a numpy reshape of
+#: too few bytes, an HDF5 file cut short, a Fortran record whose lengths
+#: disagree, a header that no longer parses).
+DAMAGE_ERRORS = (OSError, ValueError, EOFError, struct.error, IndexError, KeyError, AttributeError)
+
+
 @contextlib.contextmanager
 def _reading(ds, path=None):
     """An ImportError raised by yt while it loads or reads ``ds`` (or the
     data at ``path``) becomes one `MissingDependency` line naming the
-    package and how to install it."""
+    package and how to install it; an error of `DAMAGE_ERRORS` raised
+    inside yt (not in mi-amr's own code) one `DamagedFile` line naming the
+    file (`_damage_message`)."""
     try:
         yield
-    except MissingDependency:
+    except (MissingDependency, FieldNotFound, DamagedFile):
         raise
     except ImportError as e:
         raise MissingDependency(_missing_message(e, ds, path), name=_package(e)) from e
+    except DAMAGE_ERRORS as e:
+        if not _raised_in_yt(e):
+            raise
+        file = _file_of(e, ds, path)
+        raise DamagedFile(_damage_message(e, ds, path, file), file) from e
+
+
+def _raised_in_yt(e: BaseException) -> bool:
+    """Whether the innermost frame of yt or mi-amr that ``e`` went through
+    is yt's (h5py's and numpy's frames below yt's count as yt's)."""
+    owner, tb = None, e.__traceback__
+    ours = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    while tb is not None:
+        name = tb.tb_frame.f_code.co_filename
+        if os.path.abspath(name).startswith(ours + os.sep):
+            owner = "mi_amr"
+        elif re.search(r"(^|[/\\])yt[/\\]", name):
+            owner = "yt"
+        tb = tb.tb_next
+    return owner == "yt"
+
+
+def _file_of(e: BaseException, ds, path) -> str | None:
+    """The data file the reader was at when ``e`` was raised: the innermost
+    frame's local naming an existing file of the output (a path, an open
+    file, or an object's ``fname``/``filename``; a RAMSES domain's
+    ``amr_fn``, whose reader is Cython), else the file of a
+    FileNotFoundError, else None."""
+    if isinstance(e, FileNotFoundError) and e.filename:
+        return os.fsdecode(e.filename)
+    origin = getattr(ds, "parameter_filename", None) or path
+    folder = os.path.dirname(os.path.abspath(str(origin))) if origin is not None else None
+    frames, tb = [], e.__traceback__
+    while tb is not None:
+        frames.append(tb.tb_frame)
+        tb = tb.tb_next
+    for frame in reversed(frames):
+        for value in list(frame.f_locals.values()):
+            attrs = getattr(value, "__dict__", None) or {}
+            for c in (value, getattr(value, "name", None) if hasattr(value, "read") else None,
+                      attrs.get("fname"), attrs.get("filename"), attrs.get("amr_fn")):
+                if isinstance(c, (str, bytes, os.PathLike)):
+                    try:
+                        c = os.path.abspath(os.fsdecode(c))
+                    except (TypeError, ValueError):
+                        continue
+                    if (os.path.isfile(c) and not c.endswith((".py", ".pyx", ".so"))
+                            and (folder is None or c.startswith(folder + os.sep))):
+                        return c
+    return None
+
+
+def _damage_message(e: BaseException, ds, path, file) -> str:
+    """``FILE: truncated or damaged (what the reader said)``, one line."""
+    code = _code_name(ds, e)
+    what = f"this {code} output" if code else "this output"
+    said = " ".join(str(e).split()) or type(e).__name__
+    if isinstance(e, FileNotFoundError):
+        return f"{file or path or _where(ds)}: missing, and {what} needs it"
+    if file is None:
+        return f"{path or _where(ds)}: a file of {what} is truncated or damaged (yt: {type(e).__name__}: {said})"
+    return f"{file}: truncated or damaged file of {what} (yt: {type(e).__name__}: {said})"
 
 
 def _package(e: ImportError) -> str | None:
