@@ -225,7 +225,8 @@ def test13_info_on_an_enzo_output(llvm, tmp_path, capsys):
     (tests/amr_formats.py) with zeros and negatives: levels, counts, range
     and shares as numpy counts them from the written grids, the domain and
     cell sizes from the metadata, the field's units and the fields on disk;
-    without --field the error names the fields there are."""
+    without --field the data set's levels (grids, cells, sizes) and fields
+    with units, from the index."""
     pytest.importorskip("yt")
     pytest.importorskip("h5py")
     from amr_formats import write_enzo
@@ -246,9 +247,12 @@ def test13_info_on_an_enzo_output(llvm, tmp_path, capsys):
     sizes = {r["level"]: r["cell_size"] for r in info["level_table"]}
     assert sizes == {0: [1 / 32] * 3, 1: [1 / 16] * 3}
     assert info["fields"]["density"]["units"] and "enzo,Density" in info["fields_on_disk"]
-    assert main(["info", str(path)]) == 2
-    err = capsys.readouterr().err
-    assert "--field" in err and "enzo,Density" in err
+    assert main(["info", str(path), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [(r["level"], r["grids"], r["cells"]) for r in summary["levels"]] == [(0, 1, 16 ** 3), (1, 1, 8 ** 3)]
+    assert [r["cell_size"] for r in summary["levels"]] == [[1 / 16] * 3, [1 / 32] * 3]
+    assert summary["fields_on_disk"] == {"enzo,Density": "code_mass / code_length**3"}
+    assert summary["fields_derived"]["gas,density"] == "g/cm**3"
 
 
 def test14_refusals_through_the_cli_are_one_line(tmp_path):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 
 from ..params import plugin_error
@@ -36,8 +37,10 @@ def cmd_frametime(args):
 def cmd_info(args):
     """Levels, cells, domain, fields (ranges, shares of zeros and negatives)
     and the memory of an ``amr`` medium over the data (`mi_amr.tools.info`);
-    with ``--json`` one JSON object on one line."""
-    info = describe(args.file, args.field, args.scalars)
+    yt data without ``--field``: code, domain, levels and every field with
+    its units, from the index (no value read); with ``--json`` one JSON
+    object on one line."""
+    info = describe(args.file, args.field, args.scalars, plan=args.plan)
     print(json.dumps(info) if args.json else format_info(info))
 
 
@@ -64,6 +67,74 @@ def _count(text: str) -> int:
     return int(round(v))
 
 
+def _positive(text: str) -> int:
+    """An integer of at least 1 (``--res``, ``--spp``, ...)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{v}: at least 1")
+    return v
+
+
+def _finite(text: str) -> float:
+    """A finite real number."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{text}: not finite")
+    return v
+
+
+def _above_zero(text: str) -> float:
+    """A finite real number above 0."""
+    v = _finite(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"{text}: must be > 0")
+    return v
+
+
+def _not_negative(text: str) -> float:
+    """A finite real number of at least 0."""
+    v = _finite(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{text}: must be >= 0")
+    return v
+
+
+def _level(text: str) -> int:
+    """An integer of at least 0 (a level)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"{v}: at least 0")
+    return v
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors in one line: ``mi-amr render: error:
+    argument --res: -5: at least 1`` (exit status 2; ``--help`` shows the
+    usage)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())}\n")
+
+
+def check_ranges(args):
+    """Refuse ``--range``/``--emission-range`` with LO >= HI as argparse
+    refuses a bad value (one line, exit status 2), before any data are read."""
+    for flag in ("range", "emission_range"):
+        lo_hi = getattr(args, flag, None)
+        if lo_hi is not None and not lo_hi[0] < lo_hi[1]:
+            _Parser(prog=f"mi-amr {args.command}").error(
+                f"argument --{flag.replace('_', '-')}: {lo_hi[0]:g} {lo_hi[1]:g}: LO must be below HI")
+
+
 def _block_sizes(text: str):
     """``16`` or ``8,16,32``: one block size, or mixed sizes."""
     try:
@@ -79,7 +150,7 @@ def _block_sizes(text: str):
 def _render_flags(p, spp: int | None):
     """The flags every command that renders takes (``spp`` None: the
     scene's own sample count, else 64)."""
-    p.add_argument("--spp", type=int, default=spp,
+    p.add_argument("--spp", type=_positive, default=spp,
                    help=f"samples per pixel (default {spp})" if spp else
                    "samples per pixel (default: an XML scene's own sample_count, else 64)")
     p.add_argument("--seed", type=int, default=0)
@@ -96,7 +167,7 @@ def _command(sub, name, help, example, **kw):
 
 
 def build_parser():
-    p = argparse.ArgumentParser(prog="mi-amr", description=__doc__,
+    p = _Parser(prog="mi-amr", description=__doc__,
                                 epilog="example:\n  mi-amr render scenes/cloud.xml -o out/cloud.exr --spp 64",
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
@@ -113,7 +184,7 @@ def build_parser():
                        help="data: TF over log10 of the values (default: chosen from their dynamic range)")
     scale.add_argument("--linear", dest="scale", action="store_const", const="linear",
                        help="data: TF over the values themselves")
-    r.add_argument("--range", type=float, nargs=2, metavar=("LO", "HI"),
+    r.add_argument("--range", type=_finite, nargs=2, metavar=("LO", "HI"),
                    help="data: TF domain (in log10 units with --log; default: 1st-99.9th volume percentiles)")
     r.add_argument("--tf", help="data: TF preset (spiky, foggy, ramp, constant) or .json file (default spiky)")
     r.add_argument("--emission", metavar="TF",
@@ -121,19 +192,19 @@ def build_parser():
                         "colormap or .json file); the scene then has no other light")
     r.add_argument("--emission-field", metavar="NAME",
                    help="data: the field the emission reads (e.g. temperature; default: --field)")
-    r.add_argument("--emission-range", type=float, nargs=2, metavar=("LO", "HI"),
+    r.add_argument("--emission-range", type=_finite, nargs=2, metavar=("LO", "HI"),
                    help="data: emission TF domain (default: 1st-99.9th volume percentiles, log10 chosen "
                         "as for --field)")
-    r.add_argument("--emission-scale", type=float, default=None,
+    r.add_argument("--emission-scale", type=_above_zero, default=None,
                    help="data: radiance of emission TF colour 1 (default: the mean glow of the gas is 1)")
     r.add_argument("--movie", metavar="OUT.mp4",
                    help="data: render every output the pattern names (e.g. 'DD00??/DD00??') with one TF "
                         "range over all of them, and encode the frames as an H.264 movie (without -o, the "
                         "frames and scenes go beside it: see -o)")
-    r.add_argument("--fps", type=int, default=10, help="frames per second of --movie (default 10)")
-    r.add_argument("--orbit", type=float, default=0.0, metavar="DEGREES",
+    r.add_argument("--fps", type=_positive, default=10, help="frames per second of --movie (default 10)")
+    r.add_argument("--orbit", type=_finite, default=0.0, metavar="DEGREES",
                    help="turn the camera by this much about the up axis over a run's outputs (default 0)")
-    r.add_argument("--res", type=int, default=400, help="data: image width and height (default 400)")
+    r.add_argument("--res", type=_positive, default=400, help="data: image width and height (default 400)")
     r.add_argument("-o", "--output", help="output .exr path; with --movie OUT.mp4 it may be left out: then "
                                           "OUT.exr beside the movie (--frames writes OUT_000.exr, ...; the "
                                           "scenes and data go to OUT_outputs/)")
@@ -144,9 +215,9 @@ def build_parser():
                    help="the amrvolpath integrator's lighting mode: emission_absorption (albedo times the "
                         "ambient light), single (single scattering) or multi (default: the scene's own; "
                         "data scenes: multi); a data scene's OUT.xml keeps it")
-    r.add_argument("--chunk-spp", type=int, default=None,
+    r.add_argument("--chunk-spp", type=_positive, default=None,
                    help="samples per chunk (default: spp / max(8, 2 x workers), rounded up)")
-    r.add_argument("--workers", type=int, default=None,
+    r.add_argument("--workers", type=_positive, default=None,
                    help="render on a local Dask cluster of this many processes (mi-amr[distributed])")
     r.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="render on the Dask cluster of this scheduler, e.g. tcp://host:8786")
@@ -170,9 +241,9 @@ def build_parser():
                    help="allow a --host other machines reach (the traffic is not encrypted)")
     v.add_argument("--out", default=".", help="folder for snapshots (default: the current one)")
     v.add_argument("--no-browser", action="store_true", help="print the URL, do not open a browser")
-    v.add_argument("--res", type=int, default=256, help="image width (default 256)")
-    v.add_argument("--max-spp", type=int, default=1024, help="stop refining at this many spp (default 1024)")
-    v.add_argument("--preview-scale", type=float, default=0.5,
+    v.add_argument("--res", type=_positive, default=256, help="image width (default 256)")
+    v.add_argument("--max-spp", type=_positive, default=1024, help="stop refining at this many spp (default 1024)")
+    v.add_argument("--preview-scale", type=_above_zero, default=0.5,
                    help="resolution of the passes while the camera or the TF moves (rendered in "
                         "emission_absorption) and of the first pass in the page's mode after it stops "
                         "(default 0.5; 1: full size)")
@@ -195,18 +266,22 @@ def build_parser():
                  "mi-amr frametime scenes/cloud.xml --spp 16 --repeats 3 --json out/frametime.json")
     t.add_argument("scene")
     _render_flags(t, 16)
-    t.add_argument("--repeats", type=int, default=3)
+    t.add_argument("--repeats", type=_positive, default=3)
     t.add_argument("--json", help="also write the numbers to this file")
     t.set_defaults(func=cmd_frametime)
 
     i = _command(sub, "info", "summarise AMR data, opened as render opens them: levels, cells per level and "
                  "their sizes, the domain, each field's range with its shares of zeros and negatives, the memory "
-                 "of an amr medium over them",
+                 "of an amr medium over them; yt data without --field: the levels and fields there are",
                  "mi-amr info DD0018/DD0018 --field density --json")
     i.add_argument("file", help="a .cells/.npz/.amrb file or anything yt can load")
-    i.add_argument("--field", help="the field (yt data: needed; .cells: reads NAME-FIELD.scalars when there)")
+    i.add_argument("--field", help="the field (yt data: without it, the code, domain, levels and every field with "
+                                   "its units, read from the index alone; .cells: reads NAME-FIELD.scalars when there)")
     i.add_argument("--scalars", help="a .cells file's scalars file (default NAME.scalars)")
     i.add_argument("--json", action="store_true", help="print the same as one JSON object (one line)")
+    i.add_argument("--plan", action="store_true", help="also plan the picture mi-amr render would make (log10 or "
+                                                       "linear, TF range, density) and print its check: the share "
+                                                       "of the domain's footprint predicted to show the data")
     i.set_defaults(func=cmd_info)
 
     c = _command(sub, "convert", "convert between .npz, .cells and .amrb (the native file that opens at "
@@ -214,9 +289,9 @@ def build_parser():
                  "mi-amr convert volume.raw volume.cells --shape 256 256 256 --threshold 0.01")
     c.add_argument("input")
     c.add_argument("output")
-    c.add_argument("--threshold", type=float, default=0.0, help="max value spread of merged blocks")
-    c.add_argument("--max-level", type=int, default=4)
-    c.add_argument("--shape", type=int, nargs=3, metavar=("X", "Y", "Z"), help="dimensions of a .raw volume")
+    c.add_argument("--threshold", type=_not_negative, default=0.0, help="max value spread of merged blocks")
+    c.add_argument("--max-level", type=_level, default=4)
+    c.add_argument("--shape", type=_positive, nargs=3, metavar=("X", "Y", "Z"), help="dimensions of a .raw volume")
     c.add_argument("--dtype", default="float32", help="element type of a .raw volume")
     c.add_argument("--overlap", choices=("error", "finest"), default="error")
     c.add_argument("--field", help="field of a yt-loadable dataset, e.g. density or gas,density")
@@ -244,7 +319,7 @@ def build_parser():
                         "densities spanning decades); one uniform level (the cloud field on a grid of about --cells points): sparse")
     d.add_argument("output")
     d.add_argument("--cells", type=_count, default=20000, help="about this many cells (1e8 and 1.31e9 are taken)")
-    d.add_argument("--levels", type=int, default=4)
+    d.add_argument("--levels", type=_positive, default=4)
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--layout", default="blocks", choices=("blocks", "zfast", "level", "space", "shuffled"),
                    help="order of the cells in the file, as other writers lay them out: blocks (each block's "
@@ -254,7 +329,25 @@ def build_parser():
     d.add_argument("--nxb", type=_block_sizes, default=None, metavar="N[,N...]",
                    help="cells per block side of 'blocks' (default 16); several (e.g. 8,16,32): mixed sizes")
     d.set_defaults(func=cmd_dataset)
+    for name, command in sub.choices.items():
+        if name != "bench":
+            command.add_argument("--traceback", action="store_true",
+                                 help=f"show the full traceback of an error (also: {TRACEBACK_ENV}=1)")
     return p
+
+
+#: Set to 1, it shows the full traceback of an error, as ``--traceback`` does.
+TRACEBACK_ENV = "MI_AMR_TRACEBACK"
+
+#: What bad input raises (our ValueErrors and ParameterError, a reader's
+#: OSError, a missing file, no memory for the data): one line, exit status
+#: 2. Anything else is a bug and keeps its traceback.
+EXPECTED_ERRORS = (ValueError, OSError, MemoryError)
+
+
+def one_line(e: BaseException) -> str:
+    """An exception's message on one line (its type when it has none)."""
+    return " ".join(str(e).split()) or type(e).__name__
 
 
 def main(argv=None):
@@ -263,13 +356,17 @@ def main(argv=None):
         from ..bench.__main__ import main as bench_main
         return bench_main(argv[1:])
     args = build_parser().parse_args(argv)
+    check_ranges(args)
+    traceback = args.traceback or os.environ.get(TRACEBACK_ENV, "") not in ("", "0")
     try:
         code = args.func(args)
-    except (ValueError, FileNotFoundError, MemoryError) as e:
-        print(f"mi-amr {args.command}: error: {e}", file=sys.stderr)
+    except EXPECTED_ERRORS as e:
+        if traceback:
+            raise
+        print(f"mi-amr {args.command}: error: {one_line(e)}", file=sys.stderr)
         return 2
     except RuntimeError as e:
-        if "failed to instantiate" not in str(e):     # not a scene that failed to load
+        if "failed to instantiate" not in str(e) or traceback:     # not a scene that failed to load
             raise
         if plugin_error(str(e)).rstrip(": ").endswith("KeyboardInterrupt"):   # Ctrl-C inside a plugin
             print(f"mi-amr {args.command}: interrupted", file=sys.stderr)

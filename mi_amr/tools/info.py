@@ -1,6 +1,8 @@
 """``mi-amr info DATA [--field F]``: what a data set holds, opened the way
 ``mi-amr render DATA --field F`` opens it (`mi_amr.autoscene.open_data`:
-``.cells``/``.npz``/``.amrb`` files, or anything yt loads).
+``.cells``/``.npz``/``.amrb`` files, or anything yt loads). A yt data set
+without ``--field`` is described from its headers and index, no value read
+(`mi_amr.data.yt_summary`, printed by `format_dataset`).
 
 `describe` gathers levels, cells per level and their physical sizes, the
 domain, each field's range with its shares of zeros and negatives (per cell
@@ -14,20 +16,24 @@ from pathlib import Path
 
 import numpy as np
 
-from ..autoscene import _yt_field, _yt_load, open_data, value_stats
+from ..autoscene import _yt_field, _yt_load, open_data, plan_scene, value_stats
 from ..data.io import load_volume
 from ..data.metadata import cell_size
+from ..data.yt_import import resolve_field
+from ..data.yt_summary import summarise
 from ..memory import format_bytes
 from ..structures.footprint import medium_bytes
 
 DATA_SUFFIXES = (".cells", ".npz", ".amrb")
 
 
-def describe(data, field: str | None = None, scalars: str | None = None) -> dict:
+def describe(data, field: str | None = None, scalars: str | None = None, plan: bool = False) -> dict:
     """Everything `format_info` prints about ``data`` (a path), as plain
     JSON types. ``field``: the yt field, or for a ``.cells`` file the
     ``NAME-FIELD.scalars`` beside it; ``scalars``: a ``.cells`` file's
-    scalars file, named."""
+    scalars file, named; ``plan``: also the scene ``mi-amr render`` plans
+    for them (`mi_amr.autoscene.plan_scene` on the data read once), with
+    its predicted picture."""
     path = Path(str(data))
     ds = None
     if scalars is not None:
@@ -41,8 +47,7 @@ def describe(data, field: str | None = None, scalars: str | None = None) -> dict
             raise FileNotFoundError(f"{path}: no such file or directory")
         ds = _yt_load(path)
         if field is None:
-            raise ValueError(f"{path}: give the field to describe (--field NAME); its fields: "
-                             f"{', '.join(_field_name(f) for f in ds.field_list)}")
+            return summarise(ds)
         volume, _, _ = open_data(ds, field)
     meta = dict(getattr(volume, "meta", {}) or {})
     lo, hi = volume.bounds
@@ -50,7 +55,7 @@ def describe(data, field: str | None = None, scalars: str | None = None) -> dict
     counts = _level_counts(volume)
     dx = cell_size(meta)
     total_volume = sum(counts[L] * 8.0 ** L for L in levels)
-    main_units = _units(ds, field) if ds is not None else meta.get("units", "")
+    main_units = _units(ds, resolve_field(ds, field)) if ds is not None else meta.get("units", "")
     info = {
         "source": str(volume.source), "data": str(path), "field": field, "code": meta.get("code"),
         "cells": int(len(volume)),
@@ -72,7 +77,20 @@ def describe(data, field: str | None = None, scalars: str | None = None) -> dict
         info["fields_on_disk"] = {_field_name(f): _units(ds, f) for f in ds.field_list}
     if meta.get("value_transform"):
         info["value_transform"] = meta["value_transform"]
+    if plan:
+        info["plan"] = _plan(volume)
     return info
+
+
+def _plan(volume) -> dict:
+    """The default plan of ``volume`` as plain JSON types (`plan_scene`)."""
+    p = plan_scene(volume)
+    seen = p.visibility
+    return {"transform": p.transform, "tf": p.tf, "tf_range": list(p.tf_range), "density_scale": p.density_scale,
+            "optical_depth": p.optical_depth, "peak_depth": p.peak_depth,
+            "predicted": None if seen is None else {"shown": seen.shown, "opaque": seen.opaque,
+                                                    "footprint_pixels": seen.footprint},
+            "notes": list(p.notes[1:])}
 
 
 def _field_name(f) -> str:
@@ -135,11 +153,43 @@ def _mib(n) -> str:
     return format_bytes(float(n))
 
 
+def format_dataset(info: dict) -> str:
+    """The text of a yt data set described without a field
+    (`mi_amr.data.yt_summary.summarise`): code, domain, levels (yt's
+    numbering: 0 the coarsest) and every field with its units."""
+    d = info["domain"]
+    cm = f" (1 code_length = {d['cm_per_unit']:.6g} cm)" if d.get("cm_per_unit") else ""
+    lines = [f"data set     : {info['dataset']}",
+             f"code         : {info['code']} (yt's {info['dataset_type']}), {info['dimensionality']}-D, "
+             f"{'an octree' if info['index'] == 'octree' else 'grid patches'}",
+             f"domain       : {d['left']} .. {d['right']} {d['unit']}{cm}, root "
+             f"{' x '.join(str(n) for n in d['root_cells'])} cells, refined by {d['refine_by']:g}",
+             f"levels       : {len(info['levels'])} (0 the coarsest, as yt counts; mi-amr's level 0 is the finest)"]
+    for row in info["levels"]:
+        held = (f"{row['grids']} grids, {row['cells']} cells" if "grids" in row else
+                f"{row['octs']} octs, {row['cells']} cells ({row['leaf_cells']} leaves)" if "octs" in row else
+                "cells not counted by this reader")
+        size = " x ".join(f"{x:.4g}" for x in row["cell_size"])
+        lines.append(f"  level {row['level']:2d}: {held}; cells of {size} code_length")
+    lines.append(f"fields on disk ({len(info['fields_on_disk'])}; --field NAME or TYPE,NAME):")
+    lines += [f"  {k} [{u}]" if u else f"  {k}" for k, u in info["fields_on_disk"].items()]
+    by_type = {}
+    for k, u in info["fields_derived"].items():
+        ftype, name = k.split(",", 1)
+        by_type.setdefault(ftype, []).append(f"{name} [{u}]" if u else name)
+    lines.append(f"fields yt derives ({len(info['fields_derived'])}):")
+    lines += [f"  {ftype}: {', '.join(names)}" for ftype, names in by_type.items()]
+    return "\n".join(lines)
+
+
 def format_info(info: dict) -> str:
     """The text ``mi-amr info`` prints: the summary `AMRCells.summary`
     always printed (source, cells, box, extent, value range, memory, cells
     per level; level 0 the finest, refinement 0 the coarsest), then the
-    domain, the fields and the medium's memory."""
+    domain, the fields and the medium's memory; a data set described
+    without a field: `format_dataset`."""
+    if "fields_derived" in info:
+        return format_dataset(info)
     lo, hi = info["bounds"]
     unit = (info["domain"] or {}).get("unit", "")
     lines = [f"source       : {info['source']}",
@@ -182,4 +232,7 @@ def format_info(info: dict) -> str:
                  + (f", + the thinning grid's finer majorants {_mib(m['thinning'])} ({m['thinning_resolution']} per "
                     "axis) where the grid is coarser" if m["thinning"] else "")
                  + f"; building the hash peaks at {_mib(m['build_peak'])}")
+    if "plan" in info:
+        lines.append("the picture mi-amr render plans (docs/manual/data.md, Default pictures):")
+        lines += [f"  {note}" for note in info["plan"]["notes"]]
     return "\n".join(lines)
