@@ -530,3 +530,33 @@ def test08b_new_values_rebuild_when_the_pairs_do_not_fit(llvm, monkeypatch):
     assert "revalue" not in med.build_seconds
     fresh = mi.load_dict(desc | {"data": mi_amr.AMRCells(cells.pos, cells.level, v[idx])})
     np.testing.assert_array_equal(med.majorant_grid, fresh.majorant_grid)
+
+
+def test12_amrvolpath_refuses_to_be_differentiated(llvm):
+    """``dr.backward`` through ``amrvolpath`` (a primal estimator: detached
+    majorants, no replay) gave a gradient 7x too small, silently. Now the
+    derivative of a render with a differentiated amr parameter (backward
+    and forward) is refused in one line that names ``amrprbvolpath``; a primal render with gradients enabled on the
+    parameters (Mitsuba suspends them) still renders; ``amrprbvolpath`` on
+    the same scene gives a finite, non-zero gradient."""
+    from mi_amr.params import ParameterError
+    desc, _ = small_medium("nearest")
+    grads = {}
+    for integrator in ("amrvolpath", "amrprbvolpath"):
+        scene = mi.load_dict(volume_scene(desc, res=8, integrator=integrator, max_depth=4))
+        params = mi.traverse(scene)
+        key = f"{M}.density_scale"
+        dr.enable_grad(params[key])
+        params.update()
+        assert np.isfinite(np.array(mi.render(scene, spp=2))).all()
+        if integrator == "amrvolpath":
+            image = mi.render(scene, params, spp=2)          # the primal; the derivative comes below
+            for propagate in (lambda: dr.backward(dr.mean(image, axis=None)),
+                              lambda: dr.forward(params[key])):
+                with pytest.raises(ParameterError, match="use the 'amrprbvolpath' integrator") as e:
+                    propagate()
+                assert "\n" not in str(e.value)
+        else:
+            dr.backward(dr.mean(mi.render(scene, params, spp=2), axis=None))
+            grads[integrator] = float(dr.grad(params[key])[0])
+    assert np.isfinite(grads["amrprbvolpath"]) and grads["amrprbvolpath"] != 0.0

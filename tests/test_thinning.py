@@ -68,8 +68,8 @@ def test02_emission_absorption_on_a_thinned_two_level_field(llvm, colours):
     mean, err = mean_and_error(image)
     tau_a, tau_b = s * 0.25 / 2, s * 0.75 / 2
     a, b = c0 + 0.25 * (c1 - c0), c0 + 0.75 * (c1 - c0)
-    expected = (a * ENV * (1 - np.exp(-tau_a)) + np.exp(-tau_a) * b * ENV * (1 - np.exp(-tau_b))
-                + np.exp(-tau_a - tau_b) * ENV)
+    expected = (a * (1 - np.exp(-tau_a)) + np.exp(-tau_a) * b * (1 - np.exp(-tau_b))
+                + np.exp(-tau_a - tau_b) * ENV)         # self-lit colours, the environment behind
     check(mean, err, expected)
     assert c["capped"] == 0 and c["lookups"] < c["null"] + c["real"]
     _, plain = render(0)

@@ -244,8 +244,8 @@ def cases(args):
 def mode_figure(path: Path, args, name: str = "cloud", tf_name: str = "spiky") -> dict:
     """The three modes side by side on one data set (the paper's Fig. 4):
     the protocol's ``cloud`` data (``args.cells``) with the ``spiky`` TF in
-    the benchmark's view (sun and a constant sky, so emission_absorption's
-    ambient light is the sky's colour), each rendered at
+    the benchmark's view (sun and a constant sky; emission_absorption shows
+    the TF colours self-lit), each rendered at
     ``args.modes_figure_res`` with ``args.modes_figure_spp`` samples, and its
     1-spp frame at that size timed as the tables time them (`time_passes`).
     Writes one PNG of the three pictures; returns ``{mode: {"frame_s",

@@ -16,7 +16,9 @@ real collision; stock volpath has no medium emission.
 
 ``mode`` chooses what a real collision in a medium does (the sci-vis
 lighting modes of Zellmann et al.'s ExaBricks-style renderer):
-``emission_absorption`` scores the albedo times the ambient light and stops,
+``emission_absorption`` scores the TF colour (albedo) times a constant
+``brightness`` and stops, whatever the lights (self-lit, as ParaView, VisIt
+and yt render),
 ``single`` scores one next-event estimate and stops, ``multi`` (the default)
 is volpath's estimator. The mode is a Python constant of the kernel.
 """
@@ -29,7 +31,7 @@ import mitsuba as mi
 from ..device.rng import Rng
 from ..device.structs import jit_struct
 from ..device.tracking import TrackingCounts
-from ..params import ParameterError, check_known, get_bool, get_int, get_string
+from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
 from .medium import AMRMedium, require_jit_rgb_variant, scene_media
 from .variant_class import VariantPlugin
 
@@ -43,7 +45,7 @@ COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped",
 #: The parameters ``amrvolpath`` accepts (docs/manual/integrator.md's table and the
 #: docstring's are tested against this set: tests/test_docs.py).
 KNOWN = {"max_depth", "rr_depth", "hide_emitters", "counters",
-         "residual_ratio_tracking", "decomposition_tracking", "mode"}
+         "residual_ratio_tracking", "decomposition_tracking", "mode", "brightness"}
 #: The lighting modes (``mode``; docs/design.md section 6d), the default last:
 #: what a real collision in a medium does.
 MODES = ("emission_absorption", "single", "multi")
@@ -120,11 +122,11 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
        - |string|
        - What a real collision in a medium does (the lighting modes of
          sci-vis volume renderers). ``emission_absorption``: the path stops
-         there and scores the collision's albedo times the ambient light,
-         the radiance the scene's environment emitter (``constant`` or
-         ``envmap``) gives to a ray leaving in the path's direction, i.e.
-         what the ray would have seen had it escaped (1.0, white, in a
-         scene without an environment emitter); other lights are not used.
+         there and scores the collision's albedo (the TF colour) times
+         ``brightness``, whatever the lights, the environment and the view
+         direction: the expectation is the emission-absorption integral
+         with emission sigma_t times the colour and absorption sigma_t, as
+         ParaView, VisIt and yt render it (self-lit colours).
          ``single``: one shadow ray towards one emitter chosen at random
          (Mitsuba's emitter sampling, ratio-tracked transmittance), the
          phase function's value times its light with no MIS weight, then
@@ -135,6 +137,10 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
          the collision, a ray that leaves the media sees the emitters and
          the background as usual, and surfaces are lit as in ``multi``.
          Default: ``multi``.
+     * - brightness
+       - |float|
+       - The constant that multiplies the TF colour of ``emission_absorption``
+         (>= 0; other modes ignore it). Default: 1.
     """
 
     def __init__(self, props: mi.Properties):
@@ -158,6 +164,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         self.hide_emitters = get_bool(props, plugin, "hide_emitters", False)
         # a Python constant: it shapes the kernel (docs/design.md section 6d)
         self.mode = get_string(props, plugin, "mode", "multi", choices=MODES)
+        # opaque: another brightness compiles nothing
+        self.brightness = dr.opaque(mi.Float, get_float(props, plugin, "brightness", 1.0, minimum=0.0))
 
     # ---- Counters ------------------------------------------------------------
     def reset_counters(self):
@@ -205,8 +213,26 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
 
     # ---- Radiance ------------------------------------------------------------
     def sample(self, scene, sampler, ray, medium=None, active=True):
+        self._refuse_gradients(scene)
         L, valid_ray, _ = self._trace(scene, sampler, ray, medium, active)
         return L, valid_ray, []
+
+    def _refuse_gradients(self, scene):
+        """A `ParameterError` when this primal estimator is differentiated
+        (an ``amr`` medium's density scale, TF table or cell values carry
+        gradients while it traces: ``dr.backward``/``dr.forward`` through
+        ``mi.render``). Its free flights use detached majorants and no
+        replay, so automatic differentiation through it gives a wrong
+        gradient (7x too small on the test field), never a right one:
+        ``amrprbvolpath`` differentiates these media (docs/design.md
+        section 13b). A primal render (Mitsuba suspends gradients) passes."""
+        media, _ = self._media(scene)
+        for m in media:
+            c = m.classification
+            if any(dr.grad_enabled(v) for v in (c.scale, c.tf_rgba, m._values)):
+                raise ParameterError(
+                    "amrvolpath: an amr medium's parameters carry gradients, and this integrator does not "
+                    "differentiate them (its gradient would be wrong): use the 'amrprbvolpath' integrator")
 
     @dr.syntax
     def _trace(self, scene, sampler, ray, medium=None, active=True, adjoint=None):
@@ -332,9 +358,10 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
 
             # ---- Lighting mode (docs/design.md section 6d) ----
             if dr.hint(self.mode == "emission_absorption", mode="scalar"):
-                # the collision's albedo (already in the throughput) times the
-                # ambient light, then the path stops there
-                L = _accumulate(L, act_scatter, throughput * self._ambient(scene, ray, act_scatter), adjoint)
+                # the collision's albedo (the TF colour, already in the
+                # throughput) times the brightness, whatever the lights; the
+                # path stops there (docs/design.md section 6d)
+                L = _accumulate(L, act_scatter, throughput * self.brightness, adjoint)
                 act_scatter &= False
 
             # ---- Medium scattering: the phase function (NEE below) ----
@@ -426,21 +453,6 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
 
         self._count(counts, shadow_counts)
         return L, valid_ray, dL
-
-    @staticmethod
-    def _ambient(scene, ray, active):
-        """The ambient light of ``emission_absorption``: the radiance of the
-        scene's environment emitter for a ray leaving along ``ray.d`` (what
-        the ray sees if it escapes), or 1.0 (white) without one."""
-        env = scene.environment()
-        if env is None:
-            return mi.Spectrum(1.0)
-        miss = dr.zeros(mi.SurfaceInteraction3f)
-        miss.t = dr.inf
-        miss.wi = -ray.d
-        miss.time = ray.time
-        miss.wavelengths = ray.wavelengths
-        return env.eval(miss, active)
 
     @staticmethod
     def _medium_interaction(ray, flight, ptr):

@@ -41,7 +41,7 @@ from .medium import require_jit_rgb_variant
 from .variant_class import VariantPlugin
 
 #: The parameters ``amrprbvolpath`` accepts.
-KNOWN = {"max_depth", "rr_depth", "hide_emitters", "mode", "majorant_margin", "majorant_floor"}
+KNOWN = {"max_depth", "rr_depth", "hide_emitters", "mode", "brightness", "majorant_margin", "majorant_floor"}
 
 
 def _rb_base():
@@ -119,6 +119,10 @@ class AMRPRBVolpathIntegrator(AMRVolpathIntegrator, metaclass=VariantPlugin, bas
        - |string|
        - ``emission_absorption``, ``single`` or ``multi``, as in
          ``amrvolpath``. Default: ``multi``.
+     * - brightness
+       - |float|
+       - The constant on the TF colour of ``emission_absorption``, as in
+         ``amrvolpath``. Default: 1.
      * - majorant_margin
        - |float|
        - Factor (> 1) on every leaf's majorant in the walks, so that a

@@ -212,8 +212,8 @@ def build_parser():
                    help="also write OUT-denoised.exr/.png: Intel Open Image Denoise (mi-amr[view] extra)")
     _render_flags(r, None)
     r.add_argument("--mode", choices=MODES, default=None,
-                   help="the amrvolpath integrator's lighting mode: emission_absorption (albedo times the "
-                        "ambient light), single (single scattering) or multi (default: the scene's own; "
+                   help="the amrvolpath integrator's lighting mode: emission_absorption (the TF colour, "
+                        "self-lit), single (single scattering) or multi (default: the scene's own; "
                         "data scenes: multi); a data scene's OUT.xml keeps it")
     r.add_argument("--chunk-spp", type=_positive, default=None,
                    help="samples per chunk (default: spp / max(8, 2 x workers), rounded up)")
