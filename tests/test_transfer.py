@@ -2,11 +2,13 @@
 matplotlib colour maps, and range majorants against brute force."""
 
 import json
+import re
 
 import mitsuba as mi
 import numpy as np
 import pytest
 
+import mi_amr
 from mi_amr.transfer.function import PRESETS, TransferFunction
 from mi_amr.transfer.device import DeviceTransferFunction
 
@@ -133,3 +135,102 @@ def test09_zero_opacity_regions_get_zero_majorants(llvm, tf, method):
     d = np.tile([0.0, 1.0, 0.0], (n, 1))
     T, counts = ratio_tracking(med, o, d, 1)
     assert (T == 1.0).all() and counts.lookups.numpy().sum() == 0
+
+
+# ---- .json files rescaled as ParaView applies a preset -----------------------------
+#: A [0, 1] preset as ParaView stores its own: blue to red, opacity 0 -> 1.
+BLUE_RED = {"Name": "Blue to Red", "RGBPoints": [0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0],
+            "Points": [0.0, 0.0, 0.5, 0.0, 1.0, 1.0, 0.5, 0.0]}
+#: Densities of a tenuous gas, in g/cm^3: far from the preset's [0, 1].
+TINY = (1e-30, 1e-26)
+
+
+def test10_json_files_are_rescaled_to_the_range_asked_for(tmp_path):
+    """`TransferFunction.load` stretches a ParaView preset onto the range
+    asked for, else onto the data's range; our own format onto the range
+    asked for, else it keeps its stored domain; ``keep_range`` (the
+    caller's, or the file's ``"keep_range": true``) keeps the file's own
+    range. Colours follow: the preset's first colour at the bottom of the
+    range, its last at the top, its middle in the middle (to 1e-6)."""
+    pv = tmp_path / "pv.json"
+    pv.write_text(json.dumps([BLUE_RED]))
+    tf = TransferFunction.load(pv, data_range=TINY)
+    assert tf.domain == TINY
+    np.testing.assert_allclose(tf(np.array(TINY)), [[0, 0, 1, 0], [1, 0, 0, 1]], atol=1e-6)
+    np.testing.assert_allclose(tf(np.mean(TINY)), [0.5, 0, 0.5, 0.5], atol=2e-3)   # a 256-entry table
+    assert TransferFunction.load(pv, (2.0, 3.0), data_range=TINY).domain == (2.0, 3.0)
+    assert TransferFunction.load(pv, (2.0, 3.0), keep_range=True).domain == (0.0, 1.0)
+    assert TransferFunction.load(pv).domain == (0.0, 1.0)                      # no range: its own
+    kept = tmp_path / "kept.json"
+    kept.write_text(json.dumps(dict(BLUE_RED, keep_range=True)))
+    assert TransferFunction.load(kept, (2.0, 3.0), data_range=TINY).domain == (0.0, 1.0)
+    ours = tmp_path / "ours.json"
+    TransferFunction.preset("ramp", (5.0, 7.0)).to_json(ours)
+    assert TransferFunction.load(ours, (2.0, 3.0)).domain == (2.0, 3.0)
+    assert TransferFunction.load(ours, data_range=TINY).domain == (5.0, 7.0)    # its stored domain
+    ours.write_text(json.dumps(dict(json.loads(ours.read_text()), keep_range=True)))
+    assert TransferFunction.load(ours, (2.0, 3.0)).domain == (5.0, 7.0)
+    ours.write_text(json.dumps(dict(json.loads(ours.read_text()), keep_range="yes")))
+    with pytest.raises(ValueError, match="keep_range"):
+        TransferFunction.load(ours, (2.0, 3.0))
+
+
+def test11_a_unit_preset_over_tiny_densities_shows_in_the_medium(variant, tmp_path):
+    """A [0, 1] ParaView preset given as the ``amr`` medium's
+    ``transfer_function`` over data in [1e-30, 1e-26], with no
+    ``tf_min``/``tf_max``: the medium's TF spans the data's range and the
+    gas shows where the ``ramp`` preset over that range (the same opacity,
+    other colours) shows it: the shares of pixels that differ from the
+    empty medium's image by more than 0.05 (above the noise of 4 spp in
+    the background, which is exact) agree within 0.05 and exceed 0.1; with ``tf_keep_range`` the preset stays over
+    [0, 1], every value sits at its transparent bottom and the image is
+    the empty medium's (to 1e-5). ``tf_min``/``tf_max`` give the range."""
+    from conftest import random_amr, volume_scene
+    pv = tmp_path / "pv.json"
+    pv.write_text(json.dumps([BLUE_RED]))
+    base = random_amr(2)
+    cells = type(base)(base.pos, base.level, TINY[0] + base.values * (TINY[1] - TINY[0]))
+
+    def render(**extra):
+        medium = dict({"type": "amr", "data": cells, "transfer_function": str(pv), "density_scale": 30.0}, **extra)
+        scene = mi.load_dict(volume_scene(medium, res=16))
+        return np.array(mi.render(scene, spp=4)), mi_amr.amr_media(scene)[0]
+
+    shown, medium = render()
+    lo, hi = cells.value_range
+    np.testing.assert_allclose(medium.tf.domain, (lo, hi), rtol=1e-6)
+    np.testing.assert_allclose(medium.tf(hi)[:3], [1, 0, 0], atol=1e-6)
+    kept, kept_medium = render(tf_keep_range=True)
+    assert kept_medium.tf.domain == (0.0, 1.0)
+    empty, _ = render(density_scale=0.0)
+    np.testing.assert_allclose(kept, empty, atol=1e-5)
+    ramp, _ = render(transfer_function="ramp")
+    shows = [(np.abs(img - empty).max(axis=-1) > 0.05).mean() for img in (shown, ramp)]
+    assert shows[0] > 0.1 and abs(shows[0] - shows[1]) < 0.05, shows
+    _, ranged = render(tf_min=2e-27, tf_max=4e-27)
+    assert ranged.tf.domain == (2e-27, 4e-27)
+
+
+def test12_a_relative_tf_path_in_a_scene_file_is_found_beside_it(variant, tmp_path, monkeypatch):
+    """A scene file that names its TF by a path relative to itself loads
+    from any working directory (Mitsuba's file resolver holds the scene's
+    folder), and a missing TF file is refused in one line that names it."""
+    from conftest import cloud_scene_xml, random_amr
+    from mi_amr.params import plugin_error
+    scene_dir = tmp_path / "scene"
+    scene_dir.mkdir()
+    xml = cloud_scene_xml(scene_dir, data=random_amr(2))
+    (scene_dir / "pv.json").write_text(json.dumps([BLUE_RED]))
+    text = xml.read_text()
+    assert text.count('name="transfer_function"') == 1
+    xml.write_text(re.sub(r'(name="transfer_function" value=)"[^"]*"', r'\1"pv.json"', text))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    medium = mi_amr.amr_media(mi.load_file(str(xml)))[0]
+    np.testing.assert_allclose(medium.tf(medium.tf.domain[1])[:3], [1, 0, 0], atol=1e-6)
+    (scene_dir / "pv.json").unlink()
+    with pytest.raises(Exception) as info:
+        mi.load_file(str(xml))
+    line = plugin_error(str(info.value))
+    assert "\n" not in line and "transfer_function" in line and "pv.json" in line, line

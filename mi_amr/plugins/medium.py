@@ -150,10 +150,16 @@ def _warn_if_volpath_is_slower(medium):
     medium whose majorants predict that it will be less efficient than
     Mitsuba's own ``heterogeneous`` medium on the same field
     (`volpath_speedup`: where a shell or a fog keeps the majorant of most
-    rays near the global one). Runs when a kernel is traced, not per ray."""
+    rays near the global one). Runs when a kernel is traced, not per ray.
+    The prediction reads the macrocell grid's majorants: a medium whose
+    traversal and sampling built no grid (``abr``, ``brick`` or ``kdtree``
+    with an ``abr`` or ``brick`` sampling) is not predicted, and nothing
+    is built for the warning."""
     if "volpath" in _WARNED or medium.majorant_mode != "ray" or medium._volpath_checked:
         return
     medium._volpath_checked = True               # with the TF of its first trace
+    if "grid" not in medium.structures.built:
+        return
     speedup = volpath_speedup(medium.majorant_grid)
     if speedup < 1.0:
         _WARNED.add("volpath")
@@ -207,7 +213,14 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
          ``.json`` file. Default: ``foggy``.
      * - tf_min, tf_max
        - |float|
-       - Value domain of a preset TF. Default: the data's value range.
+       - Value domain of a preset TF, and the range a ``.json`` TF is
+         rescaled to (as ParaView applies a preset). Default: the data's
+         value range (a ParaView preset is rescaled to it; our own format
+         keeps the domain it stores).
+     * - tf_keep_range
+       - |bool|
+       - A ``.json`` TF keeps the range it stores (ParaView's "Use preset
+         range"; a file may also say ``"keep_range": true``). Default: false.
      * - density_scale
        - |float|
        - Extinction of opacity 1, in inverse world units. Default: 1.

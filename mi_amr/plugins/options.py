@@ -36,7 +36,7 @@ MAX_CONDITION = 1e7
 #: The parameters ``amr`` accepts, besides a nested phase function (the
 #: docs/manual/medium.md's table and the plugin docstring's are tested against this set:
 #: tests/test_docs.py).
-KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max",
+KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max", "tf_keep_range",
          "density_scale", "reconstruction", "majorant", "grid_resolution", "grid_refinement", "thinning_resolution",
          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
          "kdtree_leaves", "max_iterations", "memory_limit", "value_masks", "value_transform",
@@ -152,6 +152,9 @@ def _load_data(props, method: str) -> AMRCells | BlockVolume:
         raise ValueError("amr: give exactly one of 'filename' (a .cells, .npz or .amrb file) "
                          "or 'data' (an AMRCells object)")
     if has_data:
+        if "scalars" in props.keys():
+            raise ParameterError("amr: 'scalars' names the scalars file of a 'filename', not of 'data' "
+                                 "(the cells carry their values)")
         data = props["data"]
         if not isinstance(data, (AMRCells, BlockVolume)):
             raise ParameterError(f"amr: 'data' must be an mi_amr.AMRCells or BlockVolume, "
@@ -166,6 +169,9 @@ def _load_data(props, method: str) -> AMRCells | BlockVolume:
 
 
 def _transfer_function(props, cells: BlockVolume) -> TransferFunction:
+    """The extinction TF: a preset over ``tf_min``/``tf_max`` (default: the
+    data's range), or a ``.json`` file rescaled as ParaView applies a
+    preset (`TransferFunction.load`; ``tf_keep_range`` keeps the file's)."""
     tf = props.get("transfer_function", "foggy")
     vlo, vhi = cells.value_range
     if vhi <= vlo:                 # constant data: centre the value in the TF domain
@@ -174,15 +180,31 @@ def _transfer_function(props, cells: BlockVolume) -> TransferFunction:
     domain = (get_float(props, "amr", "tf_min", vlo), get_float(props, "amr", "tf_max", vhi))
     if domain[1] <= domain[0]:
         raise ParameterError(f"amr: tf_min must be below tf_max, got {domain[0]} and {domain[1]}")
+    keep = get_bool(props, "amr", "tf_keep_range", False)
     if isinstance(tf, TransferFunction):
         return tf
     if isinstance(tf, str):
-        tf_path = tf
-        if tf.endswith(".json"):
-            tf_path = str(mi.file_resolver().resolve(tf))
-        return TransferFunction.load(tf_path, domain)
+        return _load_tf(tf, "transfer_function", domain, (vlo, vhi), _asked(props, "tf_min", "tf_max"), keep)
     raise ParameterError(f"amr: transfer_function must be a preset name, a .json path "
                          f"or a TransferFunction, got {type(tf).__name__}")
+
+
+def _asked(props, *names) -> bool:
+    """Whether the scene gives any of the range parameters ``names``."""
+    return any(n in props.keys() for n in names)
+
+
+def _load_tf(spec: str, name: str, domain, data_range, asked: bool, keep: bool = False) -> TransferFunction:
+    """The TF ``spec`` (preset, colormap or ``.json`` path, found through
+    Mitsuba's file resolver: relative to the scene file) over ``domain``,
+    a range the scene asked for (``asked``) or the data's ``data_range``
+    (`TransferFunction.load`); its errors as one line naming ``name``."""
+    if spec.endswith(".json"):
+        spec = str(mi.file_resolver().resolve(spec))
+    try:
+        return TransferFunction.load(spec, domain if asked else None, data_range=data_range, keep_range=keep)
+    except ValueError as e:
+        raise ParameterError(f"amr: {name}: {e}") from e
 
 
 def _emission(props, data) -> Emission | None:
@@ -208,15 +230,11 @@ def _emission(props, data) -> Emission | None:
     if domain[1] <= domain[0]:
         raise ParameterError(f"amr: emission_min must be below emission_max, got {domain[0]} and {domain[1]}")
     spec = props["emission"]
-    if isinstance(spec, str) and spec.endswith(".json"):
-        spec = str(mi.file_resolver().resolve(spec))
     if not isinstance(spec, (str, TransferFunction)):
         raise ParameterError(f"amr: emission must be a preset name, a colormap name, a .json path or a "
                              f"TransferFunction, got {type(spec).__name__}")
-    try:
-        tf = TransferFunction.load(spec, domain)
-    except ValueError as e:
-        raise ParameterError(f"amr: emission: {e}") from e
+    tf = spec if isinstance(spec, TransferFunction) else \
+        _load_tf(spec, "emission", domain, (lo, hi), _asked(props, "emission_min", "emission_max"))
     scale = check_emission_scale(get_float(props, "amr", "emission_scale", 1.0))
     return Emission(tf=tf, field=field, transform=transform, scale=scale)
 

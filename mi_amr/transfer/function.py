@@ -11,6 +11,7 @@ single-scattering albedo.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import mitsuba as mi
@@ -178,20 +179,33 @@ class TransferFunction(mi.Object):
     @classmethod
     def from_json(cls, path) -> "TransferFunction":
         """Our format ``{"domain": [lo, hi], "rgba": [[r, g, b, a], ...]}``, or a
-        ParaView preset file (recognised by its ``RGBPoints``)."""
+        ParaView preset file (recognised by its ``RGBPoints``), over the
+        domain the file stores (`load` rescales it)."""
+        return cls.read_json(path).tf
+
+    @classmethod
+    def read_json(cls, path, name: str | None = None) -> "TFFile":
+        """A TF ``.json`` file with what it says about its range (`TFFile`):
+        ours, or a ParaView preset (``name`` picks one from a list)."""
         path = Path(path)
         try:
             d = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"{path}: cannot read transfer function JSON ({e})") from e
         if isinstance(d, list) or (isinstance(d, dict) and "RGBPoints" in d):
-            return cls.from_paraview(path)
+            preset = _paraview_preset(d, path, name)
+            return TFFile(cls._from_paraview_preset(preset, path), True, _keep_range(preset, path))
         if not isinstance(d, dict) or "domain" not in d or "rgba" not in d:
             raise ValueError(f"{path}: expected an object with 'domain' and 'rgba'")
         try:
-            return cls(d["rgba"], d["domain"])
+            return TFFile(cls(d["rgba"], d["domain"]), False, _keep_range(d, path))
         except (ValueError, TypeError) as e:
             raise ValueError(f"{path}: {e}") from e
+
+    def rescaled(self, domain) -> "TransferFunction":
+        """The same table over ``domain`` (its entries stretched linearly
+        from this domain onto the new one, as ParaView rescales a preset)."""
+        return TransferFunction(self.rgba, domain)
 
     @classmethod
     def from_paraview(cls, path, name: str | None = None, n: int = 256) -> "TransferFunction":
@@ -204,20 +218,19 @@ class TransferFunction(mi.Object):
         linearly in RGB and opacity piecewise linearly (ParaView's default
         midpoint 0.5 / sharpness 0); without ``Points`` the opacity ramps
         from 0 to 1 over the domain. ``name`` picks a preset from a list.
+        The TF keeps the preset's own domain; `load` rescales it to the
+        data's range as ParaView does.
         """
         path = Path(path)
         try:
             d = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"{path}: cannot read ParaView preset ({e})") from e
-        presets = d if isinstance(d, list) else [d]
-        if name is not None:
-            presets = [p for p in presets if isinstance(p, dict) and p.get("Name") == name]
-            if not presets:
-                raise ValueError(f"{path}: no preset named {name!r}")
-        preset = presets[0] if presets else None
-        if not isinstance(preset, dict) or "RGBPoints" not in preset:
-            raise ValueError(f"{path}: not a ParaView preset (no 'RGBPoints')")
+        return cls._from_paraview_preset(_paraview_preset(d, path, name), path, n)
+
+    @classmethod
+    def _from_paraview_preset(cls, preset: dict, path, n: int = 256) -> "TransferFunction":
+        """The table of one ParaView preset object (`from_paraview`)."""
         rgb = np.asarray(preset["RGBPoints"], dtype=np.float64)
         if rgb.size < 8 or rgb.size % 4 or not np.all(np.isfinite(rgb)):
             raise ValueError(f"{path}: 'RGBPoints' must hold finite x, r, g, b quadruples (>= 2)")
@@ -247,17 +260,31 @@ class TransferFunction(mi.Object):
         return cls(np.clip(table, 0.0, 1.0), (lo, hi))
 
     @classmethod
-    def load(cls, spec, domain=None) -> "TransferFunction":
+    def load(cls, spec, domain=None, *, data_range=None, keep_range: bool = False) -> "TransferFunction":
         """A TF from a preset name, a matplotlib colormap name (opacity ramp
         0 -> 1), a ``.json`` path (ours or a ParaView preset) or a
-        TransferFunction. ``domain`` applies to presets and colormaps
-        (default [0, 1])."""
+        TransferFunction (returned as it is).
+
+        ``domain``: the value range asked for (a medium's ``tf_min`` /
+        ``tf_max``, a plan's range), value units; ``data_range``: the data's
+        own range, the default where no ``domain`` is asked for. Presets
+        and colormaps span ``domain``, else ``data_range``, else [0, 1]. A
+        ``.json`` file's table is rescaled as ParaView applies a preset:
+        stretched onto ``domain``; with no ``domain``, a ParaView preset
+        onto ``data_range`` (ParaView's rescale to the data range) while
+        our own format keeps the domain it stores (written in value units,
+        for these data). A file keeps its own range always when it says
+        ``"keep_range": true`` or the caller gives ``keep_range``
+        (ParaView's "Use preset range"); docs/manual/transfer-functions.md.
+        """
         if isinstance(spec, TransferFunction):
             return spec
         spec = str(spec)
         if spec.endswith(".json"):
-            return cls.from_json(spec)
-        domain = domain if domain is not None else (0.0, 1.0)
+            f = cls.read_json(spec)
+            target = domain if domain is not None else (data_range if f.paraview else None)
+            return f.tf if target is None or keep_range or f.keep_range else f.tf.rescaled(target)
+        domain = domain if domain is not None else (data_range if data_range is not None else (0.0, 1.0))
         if spec not in PRESETS:
             import matplotlib
             if spec in matplotlib.colormaps:
@@ -267,6 +294,39 @@ class TransferFunction(mi.Object):
 
 
 PRESETS = ("spiky", "foggy", "ramp", "constant", "dust", "blackbody")
+
+
+@dataclass(frozen=True)
+class TFFile:
+    """A TF ``.json`` file as read: the table over the domain it stores,
+    whether it is a ParaView preset (rescaled to the data's range unless
+    told otherwise) and whether it asks to keep its own range
+    (``"keep_range": true``)."""
+    tf: TransferFunction
+    paraview: bool
+    keep_range: bool
+
+
+def _paraview_preset(d, path, name: str | None) -> dict:
+    """The preset object of a ParaView preset file's JSON ``d`` (a list of
+    presets or one; ``name`` picks one by its ``Name``)."""
+    presets = d if isinstance(d, list) else [d]
+    if name is not None:
+        presets = [p for p in presets if isinstance(p, dict) and p.get("Name") == name]
+        if not presets:
+            raise ValueError(f"{path}: no preset named {name!r}")
+    preset = presets[0] if presets else None
+    if not isinstance(preset, dict) or "RGBPoints" not in preset:
+        raise ValueError(f"{path}: not a ParaView preset (no 'RGBPoints')")
+    return preset
+
+
+def _keep_range(d: dict, path) -> bool:
+    """A TF file's ``"keep_range"`` (default false): keep the range it stores."""
+    keep = d.get("keep_range", False)
+    if not isinstance(keep, bool):
+        raise ValueError(f"{path}: 'keep_range' must be true or false, got {keep!r}")
+    return keep
 
 
 def range_majorants_host(tf, vmin, vmax, density_scale: float) -> np.ndarray:
