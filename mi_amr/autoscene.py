@@ -779,6 +779,12 @@ def emission_parameters(plan: ScenePlan) -> dict:
     return out
 
 
+def _tf_reference(tf: str) -> str:
+    """How a scene file names a TF: a preset or colormap by its name, a TF
+    file by its absolute path (the scene renders from any folder)."""
+    return str(Path(tf).resolve()) if tf not in PRESETS and Path(tf).is_file() else str(tf)
+
+
 def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int = 64,
                     mode: str | None = None) -> Path:
     """Write ``plan`` as an XML scene that loads ``data_file`` (``res`` and
@@ -791,9 +797,10 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
     cube_matrix = " ".join(f"{x:.9g}" for x in _cube_matrix(plan).ravel())
     o, t, u = (", ".join(f"{float(x):.9g}" for x in v) for v in (plan.origin, plan.target, plan.up))
     notes = "\n         ".join(plan.notes)
+    glow_params = {k: _tf_reference(v) if k == "emission" else v for k, v in emission_parameters(plan).items()}
     glow = "".join(f"\n        <{'float' if isinstance(v, float) else 'string'} name=\"{k}\" value="
                    f"{quoteattr(format(v, '.9g') if isinstance(v, float) else str(v))}/>"
-                   for k, v in emission_parameters(plan).items())
+                   for k, v in glow_params.items())
     lights = "" if not plan.lit else f"""
     <emitter type="sunsky">
         <vector name="sun_direction" value="{', '.join(str(x) for x in SUN_DIRECTION)}"/>
@@ -840,7 +847,7 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
 {lights}
     <medium type="amr" id="volume">
         <string name="filename" value={quoteattr(str(data_file))}/>
-        <string name="transfer_function" value={quoteattr(str(plan.tf))}/>
+        <string name="transfer_function" value={quoteattr(_tf_reference(plan.tf))}/>
         <float name="tf_min" value="{plan.tf_range[0]:.9g}"/>
         <float name="tf_max" value="{plan.tf_range[1]:.9g}"/>
         <string name="value_transform" value="{plan.transform}"/>

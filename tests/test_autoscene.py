@@ -351,3 +351,23 @@ def test13_density_scale_is_bounded(llvm, make, capped):
     scene = mi.load_dict(scene_for(plan, res=12, spp=2))
     assert mi_amr.amr_media(scene)[0].global_majorant <= MAX_DEPTH * (1 + 1e-5)
     assert np.isfinite(np.array(mi.render(scene, spp=2))).all()
+
+
+def test14_a_tf_file_named_relatively_renders_from_any_folder(llvm, tmp_path, monkeypatch):
+    """``mi-amr render DATA --tf presets/cool.json`` (a path relative to
+    where it runs) writes a scene that names the file absolutely: rendered
+    from another folder, it finds the file and gives the same picture."""
+    from mi_amr.images import read_exr
+    from mi_amr.tools.cli import main
+    (tmp_path / "presets").mkdir()
+    mi_amr.TransferFunction.from_colormap("cool", [(0, 0), (1, 0.8)]).to_json(tmp_path / "presets" / "cool.json")
+    data = tmp_path / "d.cells"
+    write_exabricks(random_amr(0, 8, 2), data)
+    monkeypatch.chdir(tmp_path)
+    assert main(["render", str(data), "--tf", "presets/cool.json", "--res", "8", "--spp", "2",
+                 "-o", str(tmp_path / "out" / "a.exr"), "-q"]) == 0
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert main(["render", str(tmp_path / "out" / "a.xml"), "--spp", "2", "-o", str(tmp_path / "b.exr"), "-q"]) == 0
+    np.testing.assert_array_equal(read_exr(tmp_path / "out" / "a.exr"), read_exr(tmp_path / "b.exr"))

@@ -49,7 +49,7 @@ def test02_point_colours_and_files():
     """A point's own colour is the table's colour there, blending to the
     neighbours; the file is the table `TransferFunction.load` reads, and
     its editor state comes back exactly; a table from elsewhere comes back
-    as points with its colours."""
+    as points with its colours; a ParaView preset takes the range shown."""
     spec = TFSpec([(0.0, 0.0), (0.5, 0.6, "#ff0000"), (1.0, 1.0)], "gray", False, (2.0, 4.0), 3.0)
     u = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
     rgb = point_colours(spec.points, u, lambda x: np.stack([x, x, x], axis=1))
@@ -65,6 +65,13 @@ def test02_point_colours_and_files():
     loaded = other.from_file(table.to_json(), log_available=False)
     assert loaded.range == (1.0, 9.0) and len(loaded.points) == 16 and loaded.points[-1][1] == pytest.approx(0.5)
     np.testing.assert_allclose(loaded.table(False).rgba[:, :3][[0, -1]], table.rgba[[0, -1], :3], atol=3e-3)
+    # a ParaView preset (points in [0, 1]) takes the range shown, unless it keeps its own
+    preset = [{"Name": "p", "ColorSpace": "RGB", "RGBPoints": [0.0, 0, 0, 1, 1.0, 1, 0, 0],
+               "Points": [0.0, 0.0, 0.5, 0.0, 1.0, 1.0, 0.5, 0.0]}]
+    shown = TFSpec(log=False, range=(1e-30, 1e-26))
+    assert shown.from_file(json.dumps(preset), log_available=False).range == (1e-30, 1e-26)
+    preset[0]["keep_range"] = True
+    assert shown.from_file(json.dumps(preset), log_available=False).range == (0.0, 1.0)
     for bad in ("{", "[]", json.dumps({"domain": [1, 1], "rgba": [[0, 0, 0, 0]] * 2}),
                 json.dumps({"editor": {"points": [[0, 0, "red"], [1, 1]]}})):
         with pytest.raises(ValueError):

@@ -180,20 +180,28 @@ class TFSpec:
     def from_file(self, text: str, log_available: bool, colormaps=COLORMAPS) -> "TFSpec":
         """The spec of a TF JSON file's ``text``: a file `file_json` wrote
         (its editor state), or any table ``mi-amr render --tf`` reads (ours
-        or a ParaView preset: its domain in this spec's display units, or
-        log10 where it says so; up to `LOADED_POINTS` points with their
-        table colours). A `ValueError` says what is wrong."""
+        or a ParaView preset, which takes this spec's range as ParaView
+        applies a preset unless it says ``"keep_range": true``; a domain in
+        this spec's display units, or log10 where it says so; up to
+        `LOADED_POINTS` points with their table colours). A `ValueError`
+        says what is wrong."""
         try:
             d = json.loads(text)
         except json.JSONDecodeError as e:
             raise ValueError(f"TF file: not JSON ({e})") from None
         if isinstance(d, dict) and isinstance(d.get("editor"), dict):
             return self.changed(parse_message(dict(d["editor"], type="tf")), log_available, colormaps)
+        keep = True                                          # our own tables keep their domain
         if isinstance(d, list) or (isinstance(d, dict) and "RGBPoints" in d):
             with tempfile.TemporaryDirectory() as tmp:       # ParaView presets are read from a file
                 path = Path(tmp) / "preset.json"
                 path.write_text(text)
-                tf = TransferFunction.from_paraview(path)
+                try:
+                    read = TransferFunction.read_json(path)
+                except ValueError as e:
+                    raise ValueError(f"TF file: {str(e).replace(str(path) + ': ', '')}") from None
+                tf, keep = read.tf, read.keep_range          # a preset takes the range shown, as ParaView
+                                                             # applies one, unless it keeps its own
         elif isinstance(d, dict) and "domain" in d and "rgba" in d:
             try:
                 tf = TransferFunction(d["rgba"], d["domain"])
@@ -209,7 +217,8 @@ class TFSpec:
         grid = np.linspace(0.0, 1.0, len(tf))
         rgba = np.stack([np.interp(u, grid, tf.rgba[:, c]) for c in range(4)], axis=1)
         points = [[float(a), float(b), h] for a, b, h in zip(u, rgba[:, 3], rgb_hex(rgba[:, :3]))]
-        change = parse_message({"type": "tf", "points": points, "log": log, "range": list(map(float, tf.domain))})
+        value_range = tf.domain if keep else self.range
+        change = parse_message({"type": "tf", "points": points, "log": log, "range": list(map(float, value_range))})
         return self.changed(change, log_available, colormaps)
 
 
