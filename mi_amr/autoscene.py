@@ -27,10 +27,9 @@ import numpy as np
 from .data.amrb import use_stats_builder
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
-from .data.io import load_volume
-from .data.metadata import physical_box
+from .data.opening import open_data, yt_field
 from .data.transform import apply_value_transform
-from .data.yt_import import field_key, from_yt_blocks, load_dataset
+from .data.yt_import import field_key
 from .transfer.function import PRESETS, TransferFunction
 from .visibility import (OPAQUE_OPACITY, PREDICT_RES, Visibility, camera_rays, opacity_grid, projected_depth,
                          scale_for_opacity, visibility_of_depths)
@@ -117,55 +116,6 @@ class ScenePlan:
         m = np.diag([*self.extent, 1.0])
         m[:3, 3] = -0.5 * self.extent
         return m
-
-
-def open_data(data, field=None, fields=()):
-    """``(volume or cells, physical extent (3,), description)`` of ``data``:
-    an `AMRCells`, a `BlockVolume`, a ``.cells``/``.npz``/``.amrb`` file, a loaded yt
-    dataset, or any path yt can load (then ``field`` names the field, and
-    ``fields`` further fields to read onto the same cells)."""
-    if isinstance(data, (AMRCells, BlockVolume)):
-        lo, hi = data.bounds
-        box = physical_box(data)
-        return data, (hi - lo).astype(np.float64) if box is None else box[1], data.source
-    if hasattr(data, "domain_left_edge") and hasattr(type(data), "index"):   # a yt data set (its index is
-        return _from_yt(data, field, fields)                                 # built later, errors as one line)
-    path = Path(str(data))
-    if path.suffix in (".cells", ".npz", ".amrb"):
-        scalars = field_scalars(path, field)
-        vol = load_volume(path, None if scalars is None else str(scalars))
-        lo, hi = vol.bounds
-        box = physical_box(vol)
-        return vol, (hi - lo).astype(np.float64) if box is None else box[1], str(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such file or directory")
-    return _from_yt(_yt_load(path), field, fields)
-
-
-def field_scalars(path, field) -> Path | None:
-    """The ``NAME-FIELD.scalars`` file of a ``.cells`` file for ``field``
-    (ExaBricks' naming for several fields), or None (then ``NAME.scalars``)."""
-    path = Path(path)
-    if field is None or path.suffix != ".cells":
-        return None
-    candidate = path.with_suffix("").parent / f"{path.stem}-{field}.scalars"
-    return candidate if candidate.is_file() else None
-
-
-def _yt_load(path):
-    return load_dataset(path)
-
-
-def _yt_field(field):
-    return tuple(field.split(",")) if isinstance(field, str) and "," in field else field
-
-
-def _from_yt(ds, field, fields=()):
-    if field is None:
-        raise ValueError(f"{ds}: give the field to render (--field NAME), e.g. density")
-    cells = from_yt_blocks(ds, _yt_field(field), fields=[_yt_field(f) for f in fields])
-    ext = np.asarray((ds.domain_right_edge - ds.domain_left_edge).to("code_length").d, dtype=np.float64)
-    return cells, ext, f"{ds} field {field}"
 
 
 def cells_and_weights(data, field=None):
@@ -552,7 +502,7 @@ def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = No
         _check_tf_name(emission, "--emission")
         key = None
         if emission_field:
-            key = field_key(_yt_field(emission_field))
+            key = field_key(yt_field(emission_field))
             if key not in volume.fields:
                 have = ", ".join(repr(n) for n in sorted(volume.fields)) or "none besides the main one"
                 raise ValueError(f"{what}: no field {key!r} for the emission (further fields: {have})")

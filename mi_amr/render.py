@@ -27,7 +27,8 @@ import drjit as dr
 import mitsuba as mi
 
 from . import distributed, series
-from .autoscene import GLOW_TF, field_scalars, plan_scene, scene_for, write_scene_xml
+from .autoscene import GLOW_TF, plan_scene, scene_for, write_scene_xml
+from .data.opening import field_scalars, is_native
 from .data.io import save_cells
 from .images import write_exr, write_png
 from .plugins.medium import require_jit_rgb_variant
@@ -199,7 +200,7 @@ def plan_data(args):
     out.parent.mkdir(parents=True, exist_ok=True)
     plan = plan_scene(args.scene, args.field, **plan_options(args))
     data = Path(args.scene)
-    if data.suffix in (".cells", ".npz", ".amrb") and data.is_file():
+    if is_native(data) and data.is_file():
         data_file = data.resolve()
         if field_scalars(data, args.field) is not None:     # the XML names .cells + scalars: convert to one file
             data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()

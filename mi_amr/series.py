@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .autoscene import open_data, plan_scene, write_scene_xml
+from .autoscene import plan_scene, write_scene_xml
+from .data.opening import open_data
 from .data.amrb import read_amrb, save_amrb
 from .data.volume import as_volume
 from .data.yt_import import field_key
@@ -60,7 +61,7 @@ class StoredVolumes:
 
 
 def store_outputs(outputs, field, folder, fields=(), log=print):
-    """Read each output (`mi_amr.autoscene.open_data`: anything yt loads,
+    """Read each output (`mi_amr.data.opening.open_data`: anything yt loads,
     or a data file) and keep it as ``folder/NNN_NAME.amrb``. Returns
     ``(stored, failed)``: ``[(output, amrb path)]`` and ``[(output,
     message)]`` for those that could not be read (each named through

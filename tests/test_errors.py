@@ -203,7 +203,7 @@ def test06_bad_arguments_are_refused_before_the_data(outputs, capsys, tmp_path, 
     def never(*a, **k):
         raise AssertionError("the data were read before the arguments were checked")
     monkeypatch.setattr("mi_amr.data.yt_import.load_dataset", never)
-    monkeypatch.setattr("mi_amr.autoscene.load_dataset", never)
+    monkeypatch.setattr("mi_amr.data.opening.load_dataset", never)
     for data in (tmp_path / "missing" / "DD0001", outputs["enzo"]):
         line = one_error(capsys, [a.format(data=data, out=tmp_path / "o.exr") for a in argv])
         assert words in line and "missing" not in line, line

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..autoscene import _yt_load
+from ..data.opening import is_native, open_dataset, yt_field
 from ..data.convert import dense_to_amr
 from ..data.datasets import BLOCK_DATASETS, make_dataset, write_block_dataset
 from ..data.io import load_cells, load_volume, save_cells
@@ -168,9 +168,9 @@ def frametime(args):
 
 def convert(args):
     src = Path(args.input)
-    if src.suffix in (".cells", ".npz", ".amrb") and Path(args.output).suffix == ".amrb":
+    if is_native(src) and Path(args.output).suffix == ".amrb":
         cells = load_volume(src, overlap=args.overlap)      # streamed into blocks, never per-cell records
-    elif src.suffix in (".cells", ".npz", ".amrb"):
+    elif is_native(src):
         cells = load_cells(src, overlap=args.overlap)
     elif src.suffix in (".npy", ".raw"):
         if src.suffix == ".npy":
@@ -188,10 +188,10 @@ def convert(args):
         cells = dense_to_amr(vol, args.threshold, args.max_level, source=str(src))
     elif args.field:
         try:
-            ds = _yt_load(src)
+            ds = open_dataset(src, must_exist=False)      # yt names what it cannot find
         except ImportError as e:
             raise SystemExit(f"mi-amr convert: {e}")
-        field = tuple(args.field.split(",")) if "," in args.field else args.field
+        field = yt_field(args.field)
         cells = from_yt_blocks(ds, field, overlap=args.overlap)        # grids straight into blocks
     else:
         raise SystemExit(f"mi-amr convert: unknown input type '{src.suffix}' (expected .cells, "

@@ -1,5 +1,5 @@
 """``mi-amr info DATA [--field F]``: what a data set holds, opened the way
-``mi-amr render DATA --field F`` opens it (`mi_amr.autoscene.open_data`:
+``mi-amr render DATA --field F`` opens it (`mi_amr.data.opening.open_data`:
 ``.cells``/``.npz``/``.amrb`` files, or anything yt loads). A yt data set
 without ``--field`` is described from its headers and index, no value read
 (`mi_amr.data.yt_summary`, printed by `format_dataset`).
@@ -16,15 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..autoscene import _yt_field, _yt_load, open_data, plan_scene, value_stats
+from ..autoscene import plan_scene, value_stats
+from ..data.opening import is_native, open_data, open_dataset, yt_field
 from ..data.io import load_volume
 from ..data.metadata import cell_size
 from ..data.yt_import import resolve_field
 from ..data.yt_summary import summarise
 from ..memory import format_bytes
 from ..structures.footprint import medium_bytes
-
-DATA_SUFFIXES = (".cells", ".npz", ".amrb")
 
 
 def describe(data, field: str | None = None, scalars: str | None = None, plan: bool = False) -> dict:
@@ -40,12 +39,10 @@ def describe(data, field: str | None = None, scalars: str | None = None, plan: b
         if path.suffix != ".cells":
             raise ValueError(f"{path}: --scalars is for .cells files")
         volume = load_volume(path, scalars)
-    elif path.suffix in DATA_SUFFIXES:
+    elif is_native(path):
         volume, _, _ = open_data(path, field)
     else:
-        if not path.exists():
-            raise FileNotFoundError(f"{path}: no such file or directory")
-        ds = _yt_load(path)
+        ds = open_dataset(path)
         if field is None:
             return summarise(ds)
         volume, _, _ = open_data(ds, field)
@@ -104,7 +101,7 @@ def _main_name(field, meta) -> str:
 def _units(ds, field) -> str:
     """The units yt gives ``field`` ('' when it cannot say)."""
     try:
-        return str(ds._get_field_info(_yt_field(field)).units)
+        return str(ds._get_field_info(yt_field(field)).units)
     except Exception:           # yt's field lookup varies by frontend: units are informative only
         return ""
 

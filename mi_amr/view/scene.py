@@ -32,6 +32,7 @@ import numpy as np
 
 import mi_amr
 from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, planned_display, positive_share, scene_for
+from ..data.opening import is_native
 from ..data.yt_import import load_dataset
 from ..plugins.integrator import MODES, AMRVolpathIntegrator
 from ..transfer.classification import check_density_scale
@@ -302,7 +303,7 @@ def data_fields(source, field) -> tuple[tuple, str, str]:
     """``(fields, note, units)``: the fields of ``source`` the viewer can
     switch between (a yt data set's on-disk fields, ``"type,name"``), or
     ``()`` and why not; the units yt gives ``field`` ("" unknown)."""
-    if str(source).lower().endswith((".cells", ".npz", ".amrb")):
+    if is_native(source):
         return (), f"{Path(str(source)).suffix} data hold a single field", ""
     if not isinstance(source, (str, Path)):
         return (), "data given as an object: the field is fixed", ""

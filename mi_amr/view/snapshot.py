@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..autoscene import field_scalars, write_scene_xml
+from ..autoscene import write_scene_xml
+from ..data.opening import field_scalars, is_native
 from ..images import write_exr, write_png
 from ..native_file import save_native
 from ..scene_xml import amr_elements, integrator_elements, parse_scene, set_parameters
@@ -159,7 +160,7 @@ def _data_file(loaded: LoadedScene, out_dir: Path, tmp: Path) -> Path:
     into ``out_dir``, or (yt data, a field's own .scalars) the data written
     now as ``.amrb`` into the private folder ``tmp``."""
     src, field = Path(str(loaded.source)), loaded.field
-    if src.suffix in (".cells", ".npz", ".amrb") and src.is_file() and field_scalars(src, field) is None:
+    if is_native(src) and src.is_file() and field_scalars(src, field) is None:
         return src.resolve()
     name = f"{src.stem or 'data'}{'-' + str(field).replace(',', '-') if field else ''}.amrb"
     target = out_dir / name
