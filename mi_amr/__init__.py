@@ -12,12 +12,12 @@ ensure_llvm_path()
 
 import mitsuba as mi  # noqa: E402
 
-from . import native_file  # noqa: E402,F401  (gives the one .amrb writer its macrocell grids)
 from .autoscene import scene_for as _scene_for  # noqa: E402
 from .data import datasets  # noqa: E402,F401
 from .data.cells import AMRCells  # noqa: E402
 from .data.convert import dense_to_amr  # noqa: E402
-from .data.io import load_cells, read_exabricks, read_npz, save_cells, write_exabricks, write_npz  # noqa: E402
+from .data.io import load_cells, read_exabricks, read_npz, write_exabricks, write_npz  # noqa: E402
+from .native_file import save_data as save_cells  # noqa: E402  (.amrb with its grids and statistics)
 from .data.yt_import import from_yt as _from_yt, world_transform as _world_transform  # noqa: E402
 from .device.structs import refresh  # noqa: E402
 from .plugins.integrator import integrator_class  # noqa: E402

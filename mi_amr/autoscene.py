@@ -24,7 +24,6 @@ from xml.sax.saxutils import quoteattr
 import mitsuba as mi
 import numpy as np
 
-from .data.amrb import use_stats_builder
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .data.opening import open_data, yt_field
@@ -350,8 +349,6 @@ def file_stats(volume: BlockVolume) -> dict:
         out["view_log10"], out["view_log10_span"] = fine_histogram(logged)[1], [float(x) for x in logged.value_range]
     return out
 
-
-use_stats_builder(file_stats)
 
 
 def _value_scale(stats, field, log, value_range, what="values", source="the data"):

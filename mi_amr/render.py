@@ -29,7 +29,7 @@ import mitsuba as mi
 from . import distributed, series
 from .autoscene import GLOW_TF, plan_scene, scene_for, write_scene_xml
 from .data.opening import field_scalars, is_native
-from .data.io import save_cells
+from .native_file import save_data
 from .images import write_exr, write_png
 from .plugins.medium import require_jit_rgb_variant
 
@@ -203,9 +203,9 @@ def plan_data(args):
     if is_native(data) and data.is_file():
         data_file = data.resolve()
         if field_scalars(data, args.field) is not None:     # the XML names .cells + scalars: convert to one file
-            data_file = save_cells(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
+            data_file = save_data(plan.data.to_cells(), out.with_suffix(".cells")).resolve()
     else:      # a native file: it holds further fields (emission) and reopens at disk speed
-        data_file = save_cells(plan.data, out.with_suffix(".amrb" if plan.data.fields else ".cells")).resolve()
+        data_file = save_data(plan.data, out.with_suffix(".amrb" if plan.data.fields else ".cells")).resolve()
     xml = write_scene_xml(plan, data_file, out.with_suffix(".xml"), res=args.res, spp=args.spp,
                           mode=getattr(args, "mode", None))
     if not args.quiet:

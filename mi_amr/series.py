@@ -23,7 +23,8 @@ import numpy as np
 
 from .autoscene import plan_scene, write_scene_xml
 from .data.opening import open_data
-from .data.amrb import read_amrb, save_amrb
+from .data.amrb import read_amrb
+from .native_file import save_native
 from .data.volume import as_volume
 from .data.yt_import import field_key
 from .images import srgb8
@@ -75,7 +76,7 @@ def store_outputs(outputs, field, folder, fields=(), log=print):
                 raise FileNotFoundError(f"{src}: no such file or directory")
             volume, _, _ = open_data(src, field, fields)
             volume = as_volume(volume)
-            path = save_amrb(volume, folder / f"{k:03d}_{Path(src).name}.amrb")
+            path = save_native(volume, folder / f"{k:03d}_{Path(src).name}.amrb")
             stored.append((src, path))
         except Exception as e:                   # named, and the others go on
             message = f"{type(e).__name__}: {e}"

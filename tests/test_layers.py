@@ -33,10 +33,10 @@ FLOORS = [
     ["mi_amr.builds", "mi_amr.strategies", "mi_amr.pipeline"],
     # the Mitsuba plugins
     ["mi_amr.plugins"],
-    # images, what a picture shows, scene files, the native file, test helpers
-    ["mi_amr.images", "mi_amr.visibility", "mi_amr.scene_xml", "mi_amr.native_file", "mi_amr.testing"],
-    # scenes planned from data, a run's outputs
-    ["mi_amr.autoscene", "mi_amr.series"],
+    # images, what a picture shows, scene files, test helpers
+    ["mi_amr.images", "mi_amr.visibility", "mi_amr.scene_xml", "mi_amr.testing"],
+    # scenes planned from data, the native file written with what they and a medium read first, a run's outputs
+    ["mi_amr.autoscene", "mi_amr.native_file", "mi_amr.series"],
     # the package's front (plugin registration, short-cuts)
     ["mi_amr"],
     # services: rendering on a cluster, the viewer, render jobs and their frames

@@ -25,7 +25,8 @@ layout, for other tools). Little-endian throughout:
   macrocell, x fastest; the file ends where the last section does.
 
 The header's optional ``stats`` object holds what a scene planned from the
-values reads of them (`use_stats_builder`): ``values``, JSON numbers, and
+values reads of them (`mi_amr.autoscene.file_stats`, passed by
+`mi_amr.native_file.save_native`): ``values``, JSON numbers, and
 ``arrays``, each ``{"dtype": "<f8", "size": N, "base64": ...}`` (a few
 hundred kB at most: histograms), covered by the header's checksum. Readers
 that do not know it skip it.
@@ -87,42 +88,15 @@ def _chunks(nbytes: int, chunk: int):
     return [(s, min(chunk, nbytes - s)) for s in range(0, nbytes, chunk)]
 
 
-#: Builds the macrocell grids a medium would build first, for `save_amrb`:
-#: ``volume -> {method: grid}``. The builder lives a floor above the data
-#: (`mi_amr.structures.cost_model.file_grids`); `mi_amr.native_file`
-#: installs it when the package is imported (`use_grid_builder`).
-_GRID_BUILDER = None
-
-
-def use_grid_builder(builder) -> None:
-    """Make ``builder`` (``volume -> grids``) the one `save_amrb` stores."""
-    global _GRID_BUILDER
-    _GRID_BUILDER = builder
-
-
-#: Computes what a scene planned from the values reads of them, for
-#: `save_amrb`: ``volume -> {name: JSON value or float64 array}``. It lives
-#: floors above the data (`mi_amr.autoscene.file_stats`), which installs it
-#: when imported (`use_stats_builder`).
-_STATS_BUILDER = None
-
-
-def use_stats_builder(builder) -> None:
-    """Make ``builder`` (``volume -> stats``) the one `save_amrb` stores."""
-    global _STATS_BUILDER
-    _STATS_BUILDER = builder
-
-
-def save_amrb(data, path) -> Path:
-    """The one writer of ``.amrb`` files (`mi_amr.data.io.save_cells`,
-    ``mi-amr convert``, `mi_amr.native_file.save_native`): ``data`` (an
-    `AMRCells` or a `BlockVolume`) as blocks, with the macrocell grids of
-    every reconstruction method, so that a medium opened from the file
-    builds none, and the statistics of the values a planned scene reads;
-    returns the path."""
-    volume = as_volume(data)
-    return write_amrb(volume, path, grids=None if _GRID_BUILDER is None else _GRID_BUILDER(volume),
-                      stats=None if _STATS_BUILDER is None else _STATS_BUILDER(volume))
+def save_amrb(data, path, grids: dict | None = None, stats: dict | None = None) -> Path:
+    """The one writer of ``.amrb`` files: ``data`` (an `AMRCells` or a
+    `BlockVolume`) as blocks, with ``grids`` (the macrocell grids of every
+    reconstruction method, so that a medium opened from the file builds
+    none) and ``stats`` (what a planned scene reads of the values) when
+    given: both are made floors above the data, and
+    `mi_amr.native_file.save_native` passes them; without them the file
+    holds the blocks alone. Returns the path."""
+    return write_amrb(as_volume(data), path, grids=grids, stats=stats)
 
 
 def write_amrb(volume: BlockVolume, path, grids: dict | None = None, stats: dict | None = None) -> Path:

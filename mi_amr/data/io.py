@@ -298,7 +298,9 @@ def load_volume(path, scalars=None, *, overlap: str = "error", method: str = "te
 
 def save_cells(cells: AMRCells | BlockVolume, path) -> Path:
     """Write AMR data to ``.cells`` (+ ``.scalars``), ``.npz`` or ``.amrb``
-    (the resident blocks with their macrocell grids: `mi_amr.data.amrb.save_amrb`)
+    (the resident blocks alone: `mi_amr.data.amrb.save_amrb`; with the
+    macrocell grids and planning statistics that a medium and a plan read
+    first: `mi_amr.native_file.save_data`, which ``mi_amr.save_cells`` is)
     by extension."""
     path = Path(path)
     if path.suffix == ".amrb":

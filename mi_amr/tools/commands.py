@@ -19,7 +19,8 @@ import numpy as np
 from ..data.opening import is_native, open_dataset, yt_field
 from ..data.convert import dense_to_amr
 from ..data.datasets import BLOCK_DATASETS, make_dataset, write_block_dataset
-from ..data.io import load_cells, load_volume, save_cells
+from ..data.io import load_cells, load_volume
+from ..native_file import save_data
 from ..data.transform import apply_value_transform
 from ..data.yt_import import from_yt_blocks
 from ..images import compare_images, read_exr, write_exr
@@ -199,7 +200,7 @@ def convert(args):
     if args.log:
         cells, floor = apply_value_transform(cells, "log10")
         print(f"values replaced by log10(max(v, {floor:.6g})): {floor:.6g} is the smallest positive value")
-    out = save_cells(cells, args.output)     # .amrb: with the grids a medium builds first
+    out = save_data(cells, args.output)     # .amrb: with the grids a medium builds first
     print(f"wrote {out}: {cells}")
 
 
@@ -240,5 +241,5 @@ def dataset(args):
     if args.layout != "blocks":
         raise SystemExit("mi-amr dataset: --layout applies to 'blocks' and 'cosmo' written as .cells")
     cells = make_dataset(args.name, args.cells, args.levels, args.seed)
-    out = save_cells(cells, args.output)
+    out = save_data(cells, args.output)
     print(f"wrote {out}: {cells}")
