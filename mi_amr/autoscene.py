@@ -743,7 +743,8 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
     matrix = " ".join(f"{x:.9g}" for x in m.ravel())
     cube_matrix = " ".join(f"{x:.9g}" for x in _cube_matrix(plan).ravel())
     o, t, u = (", ".join(f"{float(x):.9g}" for x in v) for v in (plan.origin, plan.target, plan.up))
-    notes = "\n         ".join(plan.notes)
+    # an XML comment may not hold "--" (the notes name flags such as --log)
+    notes = "\n         ".join(n.replace("--", "- -") for n in plan.notes)
     glow_params = {k: _tf_reference(v) if k == "emission" else v for k, v in emission_parameters(plan).items()}
     glow = "".join(f"\n        <{'float' if isinstance(v, float) else 'string'} name=\"{k}\" value="
                    f"{quoteattr(format(v, '.9g') if isinstance(v, float) else str(v))}/>"

@@ -371,3 +371,24 @@ def test14_a_tf_file_named_relatively_renders_from_any_folder(llvm, tmp_path, mo
     monkeypatch.chdir(elsewhere)
     assert main(["render", str(tmp_path / "out" / "a.xml"), "--spp", "2", "-o", str(tmp_path / "b.exr"), "-q"]) == 0
     np.testing.assert_array_equal(read_exr(tmp_path / "out" / "a.exr"), read_exr(tmp_path / "b.exr"))
+
+
+def test15_the_written_scene_parses_whatever_the_notes_say(llvm, tmp_path):
+    """The plan's notes go into an XML comment, which may not hold "--";
+    a linear plan's notes name --log: the written scene is well-formed XML
+    (Mitsuba's parser let it pass, Python's, on a cluster's workers, did
+    not: --workers failed on every planned scene whose notes named a flag), and
+    renders the image of the plan's own dictionary (same seed)."""
+    from mi_amr.autoscene import write_scene_xml
+    from mi_amr.data.io import write_exabricks
+    cells = random_amr(0, 8, 2)
+    data = tmp_path / "d.cells"
+    write_exabricks(cells, data)
+    plan = plan_scene(str(data))
+    assert any("--" in n for n in plan.notes), plan.notes
+    xml = write_scene_xml(plan, data, tmp_path / "d.xml", res=8, spp=4)
+    import xml.etree.ElementTree as ET
+    ET.parse(xml)                        # well-formed: Python's parser (a cluster's workers) is strict
+    from_xml = np.array(mi.render(mi.load_file(str(xml)), seed=1))
+    from_dict = np.array(mi.render(mi.load_dict(scene_for(plan, res=8, spp=4)), seed=1))
+    np.testing.assert_allclose(from_xml, from_dict, rtol=1e-5, atol=1e-6)
