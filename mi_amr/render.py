@@ -18,7 +18,6 @@ import itertools
 import os
 import sys
 import time
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -27,14 +26,13 @@ import drjit as dr
 import mitsuba as mi
 
 from . import distributed, series
-from .autoscene import GLOW_TF, plan_scene, scene_for, write_scene_xml
+from .autoscene import GLOW_TF, plan_scene, write_scene_xml
 from .data.opening import field_scalars, is_native
 from .native_file import save_data
 from .images import write_exr, write_png
 from .plugins.medium import require_jit_rgb_variant
+from .rendering import DEFAULT_SPP, RenderJob, render_jobs, scene_spp
 
-#: Samples per pixel of ``render`` when neither ``--spp`` nor the XML scene says.
-DEFAULT_SPP = 64
 DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
                       "not XML scenes (set those in the scene)")
 
@@ -112,30 +110,6 @@ def scene_params(defines) -> dict:
     return params
 
 
-def scene_spp(path, params: dict) -> int | None:
-    """The ``sample_count`` of an XML scene's first sensor (a ``$name``
-    taken from ``params``, the ``-D`` values, else the scene's
-    ``<default>``); None when the scene names none (or does not parse:
-    its load says why)."""
-    try:
-        root = ET.parse(path).getroot()
-    except (ET.ParseError, OSError):
-        return None
-    sensor = root.find("sensor")
-    sampler = sensor.find("sampler") if sensor is not None else None
-    counts = [e.get("value", "") for e in (sampler if sampler is not None else []) if e.get("name") == "sample_count"]
-    if not counts:
-        return None
-    value = counts[0]
-    if value.startswith("$"):
-        defaults = {e.get("name"): e.get("value") for e in root.findall("default")}
-        value = params.get(value[1:], defaults.get(value[1:], ""))
-    try:
-        return int(value) if int(value) >= 1 else None
-    except ValueError:
-        return None
-
-
 def frames(args) -> tuple[list[dict], list[str]]:
     """The ``-D`` parameters of each frame, and the names that vary: one
     frame, or with ``--frames`` every combination of the comma-separated
@@ -150,33 +124,39 @@ def frames(args) -> tuple[list[dict], list[str]]:
     return [dict(zip(lists, combo)) for combo in itertools.product(*lists.values())], varying
 
 
-def render_jobs(args, jobs, desc: str | None = None) -> list:
-    """Render ``(scene, -D parameters)`` jobs (an XML path, or a scene
-    dictionary): on a Dask cluster with ``--workers``/``--scheduler``
-    (frame-parallel), else one after the other here. Returns the images."""
+def cli_jobs(args, scenes) -> list:
+    """`RenderJob`s of the command line: ``scenes`` are ``(XML path,
+    -D values)`` or ``(ScenePlan, -D values)``, with ``--spp``, ``--seed``,
+    ``--mode`` and ``--res`` from ``args``."""
+    mode = getattr(args, "mode", None)
+    return [RenderJob(scene, spp=args.spp, seed=args.seed, mode=mode, res=args.res, defines=dict(p))
+            for scene, p in scenes]
+
+
+def render_cli_jobs(args, jobs, desc: str | None = None) -> list:
+    """Render `RenderJob`s for the command line (`mi_amr.rendering.render_jobs`):
+    on a Dask cluster with ``--workers``/``--scheduler`` (frame-parallel),
+    else one after the other here, in chunks of ``--chunk-spp``. Returns
+    the images."""
     spp, workers = args.spp, args.workers
-    # --mode: the amrvolpath integrator's lighting mode, set on every scene
-    integrator = {"mode": args.mode} if getattr(args, "mode", None) else None
     chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
-    name = desc or Path(jobs[0][0]).name
-    if workers or args.scheduler:
-        client = None
-        if args.scheduler:
-            from dask.distributed import Client
-            client = Client(args.scheduler)
-        elif workers:
-            client = distributed.local_cluster(workers)
-        try:
-            threads = max(1, (os.cpu_count() or 1) // workers) if workers and not args.scheduler else None
-            return distributed.render_frames(jobs, spp, client, chunk_spp, args.seed, progress=not args.quiet,
-                                             desc=name, drjit_threads=threads, integrator=integrator)
-        finally:
-            cluster = getattr(client, "cluster", None)
-            client.close()
-            if cluster is not None and not args.scheduler:
-                cluster.close()
-    return [distributed.render_local(scene, spp, chunk_spp, args.seed, params=p, progress=not args.quiet,
-                                     desc=desc or Path(scene).name, integrator=integrator) for scene, p in jobs]
+    plans = [None if job.is_xml else job.source for job in jobs]
+    options = dict(plans=plans, chunk_spp=chunk_spp, progress=not args.quiet, desc=desc)
+    if not (workers or args.scheduler):
+        return [r.image for r in render_jobs(jobs, **options)]
+    if args.scheduler:
+        from dask.distributed import Client
+        client = Client(args.scheduler)
+    else:
+        client = distributed.local_cluster(workers)
+    try:
+        threads = max(1, (os.cpu_count() or 1) // workers) if workers and not args.scheduler else None
+        return [r.image for r in render_jobs(jobs, client, drjit_threads=threads, **options)]
+    finally:
+        cluster = getattr(client, "cluster", None)
+        client.close()
+        if cluster is not None and not args.scheduler:
+            cluster.close()
 
 
 # ---- data planned into a scene --------------------------------------------
@@ -216,13 +196,12 @@ def plan_data(args):
 
 
 def data_jobs(args, plan, xml, frame_params) -> list:
-    """The jobs of planned data: here, the plan's scene dictionary over the
-    data in memory (``-D res`` and ``spp`` apply to it as to the XML); on a
-    cluster, or for other ``-D`` names, the XML (workers load its file)."""
+    """The jobs of planned data: here, the plan over the data in memory
+    (``-D res`` and ``spp`` apply to it as to the XML); on a cluster, or for
+    other ``-D`` names, the XML (workers load its file)."""
     if args.workers or args.scheduler or any(set(p) - {"res", "spp"} for p in frame_params):
-        return [(str(xml), p) for p in frame_params]
-    return [(scene_for(plan, res=int(p.get("res", args.res)), spp=int(p.get("spp", args.spp))), {})
-            for p in frame_params]
+        return cli_jobs(args, [(str(xml), p) for p in frame_params])
+    return cli_jobs(args, [(plan, p) for p in frame_params])
 
 
 # ---- the jobs --------------------------------------------------------------
@@ -258,13 +237,13 @@ def render(args):
     params, varying = None, None
     if is_xml:
         params, varying = frames(args)
-        jobs, desc = [(args.scene, p) for p in params], None
+        jobs, desc = cli_jobs(args, [(args.scene, p) for p in params]), None
     else:
         plan, xml = plan_data(args)
         params, varying = frames(args)
         jobs, desc = data_jobs(args, plan, xml, params), Path(xml).name
     t0 = time.perf_counter()
-    images = render_jobs(args, jobs, desc)
+    images = render_cli_jobs(args, jobs, desc)
     seconds = time.perf_counter() - t0
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -307,7 +286,7 @@ def render_series(args):
     scenes = series.frame_scenes(plan, stored, folder, args.res, args.spp, args.orbit,
                                  mode=getattr(args, "mode", None))
     t0 = time.perf_counter()
-    images = render_jobs(args, [(str(s), {}) for s in scenes])
+    images = render_cli_jobs(args, cli_jobs(args, [(str(s), {}) for s in scenes]))
     seconds = time.perf_counter() - t0
     images = [check_finite(im, f"the frame of {src}") for (src, _), im in zip(stored, images)]
     clean = denoised(images) if args.denoise else None       # the movie shows the denoised frames

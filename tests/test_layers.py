@@ -40,7 +40,7 @@ FLOORS = [
     # the package's front (plugin registration, short-cuts)
     ["mi_amr"],
     # services: rendering on a cluster, the viewer, render jobs and their frames
-    ["mi_amr.distributed", "mi_amr.view", "mi_amr.render"],
+    ["mi_amr.distributed", "mi_amr.rendering", "mi_amr.view", "mi_amr.render"],
     # what a user runs: the command line (tools), the benchmarks (bench: protocol, scale,
     # resample, peers, view, distributed and their shared harness)
     ["mi_amr.tools", "mi_amr.bench"],
