@@ -16,19 +16,20 @@ from .autoscene import scene_for as _scene_for  # noqa: E402
 from .data import datasets  # noqa: E402,F401
 from .data.cells import AMRCells  # noqa: E402
 from .data.convert import dense_to_amr  # noqa: E402
+from .data_scene import DataScene, scene  # noqa: E402
 from .data.io import load_cells, read_exabricks, read_npz, write_exabricks, write_npz  # noqa: E402
 from .native_file import save_data as save_cells  # noqa: E402  (.amrb with its grids and statistics)
 from .data.yt_import import from_yt as _from_yt, world_transform as _world_transform  # noqa: E402
 from .device.structs import refresh  # noqa: E402
 from .plugins.integrator import integrator_class  # noqa: E402
 from .plugins.prb_integrator import prb_integrator_class  # noqa: E402
-from .plugins.medium import AMRMedium, medium_class, require_jit_rgb_variant, scene_media  # noqa: E402
+from .plugins.medium import AMRMedium, amr_media, medium_class, require_jit_rgb_variant, scene_media  # noqa: E402
 from .transfer.function import TransferFunction  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",
            "read_exabricks", "write_exabricks", "read_npz", "write_npz", "register",
-           "set_transfer_function", "amr_media", "from_yt", "world_transform", "scene_for"]
+           "set_transfer_function", "amr_media", "from_yt", "world_transform", "scene_for", "scene", "DataScene"]
 
 
 def register(variant: str | None = None):
@@ -80,13 +81,6 @@ def scene_for(data, field=None, **options) -> dict:
     camera framing the domain at its true aspect, sun and sky, a TF over
     the values' distribution (see `mi_amr.autoscene.scene_for`)."""
     return _scene_for(data, field, **options)
-
-
-def amr_media(scene_or_medium) -> list:
-    """The `amr` media of a scene (or the medium itself, in a list)."""
-    if isinstance(scene_or_medium, AMRMedium):
-        return [scene_or_medium]
-    return [m for m in scene_media(scene_or_medium) if isinstance(m, AMRMedium)]
 
 
 def set_transfer_function(scene_or_medium, tf=None, density_scale=None):

@@ -60,6 +60,14 @@ def write_png(path, image) -> Path:
     return Path(path)
 
 
+def png_bytes(image) -> bytes:
+    """The sRGB 8-bit PNG of a linear float image, as bytes (what `write_png`
+    writes; for a notebook's inline display)."""
+    stream = mi.MemoryStream()
+    _srgb8_bitmap(image).write(stream, mi.Bitmap.FileFormat.PNG)
+    return bytes(stream.raw_buffer())
+
+
 def compare_images(a, b) -> dict:
     """Error statistics of image ``a`` against reference ``b`` (H, W, C)."""
     a = np.asarray(a, dtype=np.float64)

@@ -20,7 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: The manual's pages with Python examples, in the order their examples run
 #: (one namespace: the transfer-function page changes the medium's scene).
-EXAMPLE_PAGES = ("docs/manual/medium.md", "docs/manual/cluster.md", "docs/manual/transfer-functions.md")
+EXAMPLE_PAGES = ("docs/manual/medium.md", "docs/manual/cluster.md", "docs/manual/transfer-functions.md",
+                 "docs/manual/python.md")
 
 
 def test01_manual_python_examples_run():

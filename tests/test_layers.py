@@ -37,10 +37,11 @@ FLOORS = [
     ["mi_amr.images", "mi_amr.visibility", "mi_amr.scene_xml", "mi_amr.testing"],
     # scenes planned from data, the native file written with what they and a medium read first, a run's outputs
     ["mi_amr.autoscene", "mi_amr.native_file", "mi_amr.series"],
-    # the package's front (plugin registration, short-cuts)
+    # services: rendering on a cluster, rendering as a library, the Python API from data
+    # to picture, the viewer, render jobs and their frames
+    ["mi_amr.distributed", "mi_amr.rendering", "mi_amr.data_scene", "mi_amr.view", "mi_amr.render"],
+    # the package's front (plugin registration, short-cuts to the floors below)
     ["mi_amr"],
-    # services: rendering on a cluster, the viewer, render jobs and their frames
-    ["mi_amr.distributed", "mi_amr.rendering", "mi_amr.view", "mi_amr.render"],
     # what a user runs: the command line (tools), the benchmarks (bench: protocol, scale,
     # resample, peers, view, distributed and their shared harness)
     ["mi_amr.tools", "mi_amr.bench"],

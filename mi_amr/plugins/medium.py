@@ -43,6 +43,13 @@ def scene_media(scene) -> list:
     return found
 
 
+def amr_media(scene_or_medium) -> list:
+    """The ``amr`` media of a scene (or the medium itself, in a list)."""
+    if isinstance(scene_or_medium, AMRMedium):
+        return [scene_or_medium]
+    return [m for m in scene_media(scene_or_medium) if isinstance(m, AMRMedium)]
+
+
 def require_jit_rgb_variant(what: str = "mi_amr"):
     """Raise a clear error unless the active Mitsuba variant is a JIT rgb one."""
     v = mi.variant()

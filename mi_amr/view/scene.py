@@ -30,11 +30,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-import mi_amr
 from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, planned_display, positive_share, scene_for
 from ..data.opening import is_native
 from ..data.yt_import import load_dataset
 from ..plugins.integrator import MODES, AMRVolpathIntegrator
+from ..plugins.medium import amr_media
 from ..transfer.classification import check_density_scale
 from ..transfer.function import TransferFunction
 from .camera import OrbitCamera, floor_height, world_up
@@ -249,7 +249,7 @@ def load_scene(source, field, res: int, say) -> LoadedScene:
     reports each step. Under `JIT_LOCK`, with the Mitsuba variant set."""
     loaded = _load_xml(mi, source, res, say) if str(source).lower().endswith(".xml") \
         else _load_data(mi, source, field, res, say)
-    loaded.medium = mi_amr.amr_media(loaded.scene)[0]
+    loaded.medium = amr_media(loaded.scene)[0]
     cam = loaded.initial_camera
     loaded.initial_camera = replace(cam, floor=floor_height(ground_boxes(loaded.scene), cam.up))
     loaded.units = loaded.units or str(loaded.medium.volume.meta.get("units") or "")
@@ -339,7 +339,7 @@ def _load_data(mi, source, field, res: int, say) -> LoadedScene:
 def _load_xml(mi, source, res: int, say) -> LoadedScene:
     say(f"loading {source}")
     scene = mi.load_file(str(source), parallel=False)
-    media = mi_amr.amr_media(scene)
+    media = amr_media(scene)
     if not media:
         raise ValueError(f"{source}: the scene has no amr medium to explore")
     med = media[0]

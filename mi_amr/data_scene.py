@@ -1,0 +1,225 @@
+"""A picture of AMR data from Python, in the words yt users know:
+``sc = mi_amr.scene(ds_or_path, field="density")``, ``sc.render()``,
+``sc.save("x.exr")`` (docs/manual/python.md).
+
+`DataScene` plans as ``mi-amr render DATA --field F`` plans
+(`mi_amr.autoscene.plan_scene`, printing nothing), keeps the plan's
+choices as attributes to edit (``tf``, ``tf_range``, ``density_scale``,
+the camera's ``origin``/``target``/``up``/``fov``, ``mode``, ``res``,
+``spp``) and renders them with the command line's estimator and chunks
+(`mi_amr.distributed.render_local`): the same seed gives the image
+``mi-amr render`` writes. The Mitsuba scene is loaded once and kept; a
+new TF, density scale, camera or image size goes into it as parameters
+(majorants recomputed, nothing rebuilt, no kernel compiled); a new mode or
+log10/linear choice loads it again. ``mitsuba_scene`` and ``params`` give
+the Mitsuba objects for scripting and gradients.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+from .autoscene import ScenePlan, plan_scene, scene_for, write_scene_xml
+from .data.opening import is_native
+from .distributed import render_local
+from .images import png_bytes, write_exr, write_png
+from .native_file import save_data
+from .plugins.integrator import MODES
+from .plugins.medium import AMRMedium, scene_media
+from .rendering import DEFAULT_SPP
+from .scene_xml import dict_with_integrator_parameters
+from .transfer.function import TransferFunction
+
+
+class Image(np.ndarray):
+    """A rendered picture: float32 ``(H, W, C)`` linear RGB (a numpy array),
+    shown inline by Jupyter as an sRGB PNG (`_repr_png_`)."""
+
+    def _repr_png_(self) -> bytes:
+        return png_bytes(np.asarray(self))
+
+    def to_bitmap(self) -> mi.Bitmap:
+        """The picture as a ``mitsuba.Bitmap`` (linear RGB, float32)."""
+        return mi.Bitmap(np.ascontiguousarray(np.asarray(self, np.float32)[..., :3]), mi.Bitmap.PixelFormat.RGB)
+
+
+class DataScene:
+    """AMR data planned into a scene (see the module docstring). ``data``:
+    a path of any kind mi-amr opens, a yt data set, `AMRCells`, a
+    `BlockVolume` or a `ScenePlan`; ``field``: the field (yt data);
+    ``mode``: the ``amrvolpath`` lighting mode (None: ``multi``); ``res``,
+    ``spp``: the picture's width and height (pixels) and samples per pixel;
+    ``plan``: `mi_amr.autoscene.plan_scene` options (``tf``, ``log``,
+    ``value_range``, ``density_scale``, ``emission``...)."""
+
+    def __init__(self, data, field: str | None = None, *, mode: str | None = None, res: int = 400,
+                 spp: int = DEFAULT_SPP, **plan):
+        if mode is not None and mode not in MODES:
+            raise ValueError(f"mode: one of {', '.join(MODES)}, got {mode!r}")
+        self.source = data
+        self.plan: ScenePlan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **plan)
+        self.mode, self.res, self.spp = mode, int(res), int(spp)
+        self._loaded = None           # (key, mi.Scene)
+
+    # ---- the plan's choices, to edit ---------------------------------------------
+    tf = property(lambda self: self.plan.tf, lambda self, v: setattr(self.plan, "tf", str(v)),
+                  doc="The TF: a preset name, a matplotlib colormap or a TF .json file.")
+    density_scale = property(lambda self: self.plan.density_scale,
+                             lambda self, v: setattr(self.plan, "density_scale", float(v)),
+                             doc="Extinction at opacity 1, inverse world units (the domain's longest side 1).")
+    fov = property(lambda self: self.plan.fov, lambda self, v: setattr(self.plan, "fov", float(v)),
+                   doc="The camera's field of view along x, degrees.")
+
+    @property
+    def tf_range(self) -> tuple[float, float]:
+        """The TF's domain, in the values' units (log10 units when ``log``)."""
+        return self.plan.tf_range
+
+    @tf_range.setter
+    def tf_range(self, value):
+        lo, hi = (float(x) for x in value)
+        if not hi > lo:
+            raise ValueError(f"tf_range: LO < HI, got ({lo}, {hi})")
+        self.plan.tf_range = (lo, hi)
+
+    @property
+    def log(self) -> bool:
+        """Whether the medium holds log10 of the values (choose it with
+        ``mi_amr.scene(..., log=True)``)."""
+        return self.plan.transform == "log10"
+
+    @property
+    def origin(self) -> np.ndarray:
+        """The camera's position, world units (the domain centred at 0, z up)."""
+        return np.asarray(self.plan.origin, np.float64)
+
+    @origin.setter
+    def origin(self, value):
+        self.plan.origin = np.asarray(value, np.float64).reshape(3)
+
+    @property
+    def target(self) -> np.ndarray:
+        """The point the camera looks at, world units."""
+        return np.asarray(self.plan.target, np.float64)
+
+    @target.setter
+    def target(self, value):
+        self.plan.target = tuple(float(x) for x in np.asarray(value).reshape(3))
+
+    @property
+    def up(self) -> np.ndarray:
+        """The camera's up direction."""
+        return np.asarray(self.plan.up, np.float64)
+
+    @up.setter
+    def up(self, value):
+        self.plan.up = tuple(float(x) for x in np.asarray(value).reshape(3))
+
+    @property
+    def notes(self) -> list:
+        """What the plan chose and why (what ``mi-amr render`` prints)."""
+        return list(self.plan.notes)
+
+    @property
+    def visibility(self):
+        """The plan's predicted picture (`mi_amr.visibility.Visibility`)."""
+        return self.plan.visibility
+
+    # ---- Mitsuba -----------------------------------------------------------------
+    @property
+    def mitsuba_scene(self) -> mi.Scene:
+        """The Mitsuba scene with this scene's current choices in it."""
+        key = (self.mode, self.plan.transform, id(self.plan.data), repr(self.plan.emission))
+        if self._loaded is None or self._loaded[0] != key:
+            d = scene_for(self.plan, res=self.res, spp=self.spp)
+            if self.mode:
+                d = dict_with_integrator_parameters(d, {"mode": self.mode})
+            self._loaded = (key, mi.load_dict(d, parallel=False), dict(self._state()))
+            return self._loaded[1]
+        self._apply()
+        return self._loaded[1]
+
+    @property
+    def params(self) -> mi.SceneParameters:
+        """``mi.traverse`` of `mitsuba_scene` (for scripting and gradients:
+        use ``amrprbvolpath`` for derivatives)."""
+        return mi.traverse(self.mitsuba_scene)
+
+    @property
+    def medium(self) -> AMRMedium:
+        """The scene's ``amr`` medium."""
+        return next(m for m in scene_media(self.mitsuba_scene) if isinstance(m, AMRMedium))
+
+    def _state(self) -> dict:
+        return {"tf": (self.plan.tf, tuple(self.plan.tf_range), self.plan.density_scale),
+                "camera": (tuple(self.origin), tuple(self.target), tuple(self.up), self.plan.fov),
+                "res": self.res}
+
+    def _apply(self):
+        """Put what changed since the last render into the loaded scene."""
+        _, scene, before = self._loaded
+        now = self._state()
+        if now["tf"] != before["tf"]:
+            tf, tf_range, density = now["tf"]
+            medium = next(m for m in scene_media(scene) if isinstance(m, AMRMedium))
+            medium.set_transfer_function(TransferFunction.load(tf, tf_range), density)
+        if now["camera"] != before["camera"] or now["res"] != before["res"]:
+            fresh = mi.traverse(mi.load_dict({"type": "scene", "sensor": scene_for(
+                self.plan, res=self.res, spp=self.spp)["sensor"]}, parallel=False))
+            params = mi.traverse(scene)
+            for k in ("sensor.to_world", "sensor.x_fov", "sensor.film.size"):
+                params[k] = fresh[k]
+            params.update()
+        self._loaded = (self._loaded[0], scene, dict(now))
+
+    # ---- pictures ----------------------------------------------------------------
+    def render(self, spp: int | None = None, res: int | None = None, seed: int = 0, progress: bool = False) -> Image:
+        """The picture at ``spp`` samples per pixel and ``res`` x ``res``
+        pixels (defaults: the scene's), float32 (H, W, 3) linear RGB; the
+        same chunks and seeds as ``mi-amr render --seed SEED``."""
+        spp = self.spp if spp is None else int(spp)
+        if spp < 1:
+            raise ValueError(f"spp: at least 1, got {spp}")
+        if res is not None:
+            if int(res) < 1:
+                raise ValueError(f"res: at least 1, got {res}")
+            self.res = int(res)
+        scene = self.mitsuba_scene
+        image = render_local(scene, spp, -(-spp // 8), seed, progress=progress, desc="mi_amr.scene")
+        image = np.array(image, dtype=np.float32)
+        if not np.all(np.isfinite(image)):
+            raise ValueError(f"the rendered image holds {int((~np.isfinite(image)).sum())} non-finite values")
+        return image.view(Image)
+
+    def save(self, path, spp: int | None = None, res: int | None = None, seed: int = 0) -> dict:
+        """Render and write ``path`` (EXR), its PNG preview and the scene as
+        XML beside it (``PATH.xml``, naming the data file: the source itself
+        when it is a native file, else the data written once as
+        ``PATH.amrb``), as ``mi-amr render`` does. Returns the paths."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        image = self.render(spp, res, seed)
+        written = {"exr": write_exr(path, image), "png": write_png(path.with_suffix(".png"), image)}
+        source = self.source
+        if isinstance(source, (str, Path)) and is_native(source) and Path(source).is_file():
+            data_file = Path(source).resolve()
+        else:
+            data_file = save_data(self.plan.data, path.with_suffix(".amrb")).resolve()
+            written["data"] = data_file
+        written["xml"] = write_scene_xml(self.plan, data_file, path.with_suffix(".xml"), res=self.res,
+                                         spp=self.spp if spp is None else int(spp), mode=self.mode)
+        return written
+
+    def __repr__(self):
+        return (f"DataScene[{self.plan.notes[0] if self.plan.notes else ''}; tf {self.tf!r} over "
+                f"{self.tf_range}{' (log10)' if self.log else ''}, density_scale {self.density_scale:.4g}, "
+                f"mode {self.mode or 'multi'}, {self.res}x{self.res}, {self.spp} spp]")
+
+
+def scene(data, field: str | None = None, **options) -> DataScene:
+    """``DataScene(data, field, **options)``: AMR data planned into a scene
+    (`DataScene`), as ``yt.create_scene`` makes one."""
+    return DataScene(data, field, **options)
