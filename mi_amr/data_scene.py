@@ -46,6 +46,18 @@ class Image(np.ndarray):
         return mi.Bitmap(np.ascontiguousarray(np.asarray(self, np.float32)[..., :3]), mi.Bitmap.PixelFormat.RGB)
 
 
+def _plan_vector(name: str, doc: str, as_tuple: bool) -> property:
+    """A 3-vector of the plan (``ScenePlan.NAME``) as an attribute: read as
+    a float64 array, written as the plan keeps it (array or tuple)."""
+    def get(self):
+        return np.asarray(getattr(self.plan, name), np.float64)
+
+    def put(self, value):
+        v = np.asarray(value, np.float64).reshape(3)
+        setattr(self.plan, name, tuple(float(x) for x in v) if as_tuple else v)
+    return property(get, put, doc=doc)
+
+
 class DataScene:
     """AMR data planned into a scene (see the module docstring). ``data``:
     a path of any kind mi-amr opens, a yt data set, `AMRCells`, a
@@ -91,32 +103,9 @@ class DataScene:
         ``mi_amr.scene(..., log=True)``)."""
         return self.plan.transform == "log10"
 
-    @property
-    def origin(self) -> np.ndarray:
-        """The camera's position, world units (the domain centred at 0, z up)."""
-        return np.asarray(self.plan.origin, np.float64)
-
-    @origin.setter
-    def origin(self, value):
-        self.plan.origin = np.asarray(value, np.float64).reshape(3)
-
-    @property
-    def target(self) -> np.ndarray:
-        """The point the camera looks at, world units."""
-        return np.asarray(self.plan.target, np.float64)
-
-    @target.setter
-    def target(self, value):
-        self.plan.target = tuple(float(x) for x in np.asarray(value).reshape(3))
-
-    @property
-    def up(self) -> np.ndarray:
-        """The camera's up direction."""
-        return np.asarray(self.plan.up, np.float64)
-
-    @up.setter
-    def up(self, value):
-        self.plan.up = tuple(float(x) for x in np.asarray(value).reshape(3))
+    origin = _plan_vector("origin", "The camera's position, world units (the domain centred at 0, z up).", False)
+    target = _plan_vector("target", "The point the camera looks at, world units.", True)
+    up = _plan_vector("up", "The camera's up direction.", True)
 
     @property
     def notes(self) -> list:

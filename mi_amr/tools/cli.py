@@ -67,15 +67,23 @@ def _count(text: str) -> int:
     return int(round(v))
 
 
-def _positive(text: str) -> int:
-    """An integer of at least 1 (``--res``, ``--spp``, ...)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{v}: at least 1")
-    return v
+def _integer_from(least: int):
+    """An argparse type: an integer of at least ``least``."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if v < least:
+            raise argparse.ArgumentTypeError(f"{v}: at least {least}")
+        return v
+    return parse
+
+
+#: An integer of at least 1 (``--res``, ``--spp``, ...).
+_positive = _integer_from(1)
+#: An integer of at least 0 (a level).
+_level = _integer_from(0)
 
 
 def _finite(text: str) -> float:
@@ -104,16 +112,6 @@ def _not_negative(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{text}: must be >= 0")
     return v
 
-
-def _level(text: str) -> int:
-    """An integer of at least 0 (a level)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"{v}: at least 0")
-    return v
 
 
 class _Parser(argparse.ArgumentParser):
