@@ -20,7 +20,7 @@ from .data_scene import DataScene, scene  # noqa: E402
 from .data.io import load_cells, read_exabricks, read_npz, write_exabricks, write_npz  # noqa: E402
 from .native_file import save_data as save_cells  # noqa: E402  (.amrb with its grids and statistics)
 from .data.yt_import import from_yt as _from_yt, world_transform as _world_transform  # noqa: E402
-from .device.structs import refresh  # noqa: E402
+from .core.jit_struct import refresh  # noqa: E402
 from .plugins.integrator import integrator_class  # noqa: E402
 from .plugins.prb_integrator import prb_integrator_class  # noqa: E402
 from .plugins.medium import AMRMedium, amr_media, medium_class, require_jit_rgb_variant, scene_media  # noqa: E402

@@ -29,8 +29,8 @@ from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .data.volume import as_method
 from .device.grid import DeviceTwoLevelGrid
-from .device.structs import jit_struct
-from .device.values import device_field
+from .core.jit_struct import jit_struct
+from .data.device_values import device_field
 from .memory import MemoryLimitError, require
 from .reconstruction import Reconstruction
 from .strategies import SAMPLINGS, TRAVERSALS

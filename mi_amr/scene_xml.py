@@ -7,7 +7,7 @@
   integrator (``mi-amr render --mode``).
 * `parse_scene`, `amr_elements`, `set_parameters`, `load_root`: the
   pieces, shared with the viewer's snapshots (`mi_amr.view.snapshot`) and
-  the reference scenes of `mi_amr.tools.reference.reference_scene` (every
+  the reference scenes of `mi_amr.reference.reference_scene` (every
   ``amr`` medium as Mitsuba's own ``heterogeneous`` medium).
 
 Scenes are loaded with the original file's directory on Mitsuba's

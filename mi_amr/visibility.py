@@ -29,7 +29,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .data.block_keys import block_offsets
+from .core.block_keys import block_offsets
 
 #: A pixel shows the data when the medium takes at least this share of the
 #: light along its ray (predicted) ...

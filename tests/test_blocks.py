@@ -351,7 +351,7 @@ def test14_dense_block_counts_equal_the_sorted_ones(monkeypatch):
     dense index over its budget, loads fall back to sorting and give the
     same blocks."""
     import mi_amr.data.blocks as blocks
-    from mi_amr.data.block_keys import ghost_blocks, level_coords
+    from mi_amr.core.block_keys import ghost_blocks, level_coords
     from mi_amr.data.blocks import TileIndex, _dense_ghosts, _pool
     for name in ("cloud", "stadium", "blocks"):
         cells = DATA[name]()
@@ -400,7 +400,7 @@ def test15_packed_ghosts_and_stencils_equal_the_general_ones(monkeypatch):
     block and ghost, on octree-like, sparse and block-structured data (the
     two key kinds sort differently, so ghosts are compared as sets and
     neighbours by the blocks they name)."""
-    import mi_amr.data.block_keys as block_keys
+    import mi_amr.core.block_keys as block_keys
     import mi_amr.data.blocks as blocks
 
     def named(volume, index):

@@ -14,7 +14,7 @@ from mi_amr.tools.cli import main
 from mi_amr.images import read_exr, write_exr
 from mi_amr.data.io import write_exabricks
 from mi_amr.testing import block_z_scores, render_passes
-from mi_amr.tools.reference import reference_medium, resample_dense
+from mi_amr.reference import reference_medium, resample_dense
 
 from conftest import cloud_scene_xml, random_amr, render_cli, volume_scene
 
@@ -108,7 +108,7 @@ def test08_reference_scene_from_xml_matches_amr(llvm, tmp_path):
     """`reference_scene` swaps the amr medium for heterogeneous + gridvolume
     in an XML scene; with nearest reconstruction both agree in expectation."""
     from mi_amr.scene_xml import with_amr_parameters
-    from mi_amr.tools.reference import reference_scene
+    from mi_amr.reference import reference_scene
     c = random_amr(5, levels=3, quantize=5)
     write_exabricks(c, tmp_path / "cloud.cells")
     scene = (ROOT / "scenes" / "cloud.xml").read_text()

@@ -5,7 +5,7 @@ import pytest
 
 import mi_amr
 from mi_amr.data.datasets import NAMES, make_dataset, uniform_dataset
-from mi_amr.tools.reference import resample_dense
+from mi_amr.reference import resample_dense
 
 
 def test01_dense_to_amr_is_exact_with_zero_threshold():

@@ -1,6 +1,6 @@
 """``emission_absorption`` equals a converged emission-absorption ray march
 of the same field and TF (emission sigma_t times the colour, absorption
-sigma_t): `mi_amr.tools.reference.emission_absorption_march` on a three-level
+sigma_t): `mi_amr.reference.emission_absorption_march` on a three-level
 field with a TF whose colour and opacity vary, per 4 x 4 pixel block within
 Monte Carlo error (the render's variance from independent passes)."""
 
@@ -10,7 +10,7 @@ import numpy as np
 
 from mi_amr import TransferFunction
 from mi_amr.testing import render_passes
-from mi_amr.tools.reference import emission_absorption_march
+from mi_amr.reference import emission_absorption_march
 
 from conftest import random_amr
 

@@ -13,28 +13,25 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mi_amr"
 #: that names it (``mi_amr`` alone is the package's ``__init__``, which
 #: registers the plugins and offers the short-cuts of the top floors).
 FLOORS = [
-    # foundations: no mi-amr import at all
-    ["mi_amr._llvm", "mi_amr.parallel", "mi_amr.progress", "mi_amr.params", "mi_amr.memory"],
-    # cells and their integer bookkeeping
-    ["mi_amr.data.block_keys", "mi_amr.data.cells", "mi_amr.data.metadata"],
+    # foundations: no mi-amr import at all; core/ holds the block keys and
+    # the Dr.Jit structs every folder above reaches downward
+    ["mi_amr._llvm", "mi_amr.parallel", "mi_amr.progress", "mi_amr.params", "mi_amr.memory", "mi_amr.core"],
     # reconstruction methods (host and device halves of tent and nearest)
     ["mi_amr.reconstruction"],
-    # data: blocks, files, yt, synthetic data sets
+    # data: cells, blocks, files, yt, synthetic data sets, their device copy
     ["mi_amr.data"],
-    # device arrays of the data, Dr.Jit structs, transfer function tables
-    ["mi_amr.device.values", "mi_amr.device.structs", "mi_amr.transfer.function"],
+    # transfer functions: the host table, its device tables, the classification
+    ["mi_amr.transfer"],
     # host structures: macrocell grids, bricks, trees, hashes, cost model
     ["mi_amr.structures"],
     # their device halves: traversal, sampling, tracking
     ["mi_amr.device"],
-    # classification: TF and density scale on the device
-    ["mi_amr.transfer"],
     # building the structures a medium asks for
     ["mi_amr.builds", "mi_amr.strategies", "mi_amr.pipeline"],
     # the Mitsuba plugins
     ["mi_amr.plugins"],
-    # images, what a picture shows, scene files, test helpers
-    ["mi_amr.images", "mi_amr.visibility", "mi_amr.scene_xml", "mi_amr.testing"],
+    # images, what a picture shows, scene files, Mitsuba's own medium on the same data, test helpers
+    ["mi_amr.images", "mi_amr.visibility", "mi_amr.scene_xml", "mi_amr.reference", "mi_amr.testing"],
     # scenes planned from data, the native file written with what they and a medium read first, a run's outputs
     ["mi_amr.autoscene", "mi_amr.native_file", "mi_amr.series"],
     # services: rendering on a cluster, rendering as a library, the Python API from data
@@ -42,9 +39,11 @@ FLOORS = [
     ["mi_amr.distributed", "mi_amr.rendering", "mi_amr.data_scene", "mi_amr.view", "mi_amr.render"],
     # the package's front (plugin registration, short-cuts to the floors below)
     ["mi_amr"],
-    # what a user runs: the command line (tools), the benchmarks (bench: protocol, scale,
-    # resample, peers, view, distributed and their shared harness)
-    ["mi_amr.tools", "mi_amr.bench"],
+    # the benchmarks (bench: protocol, scale, resample, peers, view, distributed and their
+    # shared harness)
+    ["mi_amr.bench"],
+    # what a user runs: the command line (tools; `mi-amr bench` hands over to the benchmarks)
+    ["mi_amr.tools"],
 ]
 
 
@@ -231,3 +230,35 @@ def test06_the_lazy_check_sees_an_inner_import(tmp_path, monkeypatch):
     assert ("mi_amr.m", "numpy", None) in found
     assert ("mi_amr.m", "yt", LAZY_IMPORTS["yt"]) in found
     assert ("mi_amr.m", "mi_amr.view", LAZY_IMPORTS["mi_amr.view"]) in found
+
+
+def folder_of(name: str) -> str:
+    """The folder (sub-package) a module sits in, or the module itself for
+    one at the package's top (``mi_amr.render``) and the package's front."""
+    parts = name.split(".")
+    return ".".join(parts[:2]) if len(parts) > 2 or (PACKAGE / parts[-1]).is_dir() else name
+
+
+def test07_a_folder_is_one_floor():
+    """Folders are floors: every module of a folder sits on the folder's
+    floor (no FLOORS entry splits a folder), so the floor plan can be read
+    from the folders themselves."""
+    split = sorted(f"{name} (floor {floor_of(name)}) in {folder_of(name)} (floor {floor_of(folder_of(name))})"
+                   for name in modules() if floor_of(name) != floor_of(folder_of(name)))
+    assert not split, "modules off their folder's floor:\n" + "\n".join(split)
+
+
+def test08_no_folder_imports_up_or_in_a_circle():
+    """Between folders: no import runs up a floor and no two folders import
+    each other (directly or round a circle), counted over every import,
+    inside functions too."""
+    edges = {}
+    for a, targets in graph().items():
+        for b in targets:
+            fa, fb = folder_of(a), folder_of(b)
+            if fa != fb and fb != "mi_amr":
+                edges.setdefault(fa, set()).add(fb)
+    up = sorted(f"{a} -> {b}" for a, bs in edges.items() for b in bs if floor_of(b) > floor_of(a))
+    assert not up, "folders importing up:\n" + "\n".join(up)
+    mutual = sorted(f"{a} <-> {b}" for a, bs in edges.items() for b in bs if a in edges.get(b, ()) and a < b)
+    assert not mutual, "folders importing each other:\n" + "\n".join(mutual)

@@ -13,7 +13,7 @@ import pytest
 import mi_amr
 from mi_amr.data.io import write_exabricks
 from mi_amr.testing import block_z_scores, render_passes
-from mi_amr.tools.reference import reference_medium
+from mi_amr.reference import reference_medium
 
 from conftest import random_amr, volume_scene
 

@@ -19,7 +19,7 @@ import mitsuba as mi
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.bench import peers
 from mi_amr.bench.harness import bench_scene
-from mi_amr.tools.reference import baked_grids, reference_medium
+from mi_amr.reference import baked_grids, reference_medium
 
 from conftest import random_amr
 

@@ -12,7 +12,7 @@ import pytest
 import mi_amr
 from mi_amr.autoscene import plan_scene, scene_for
 from mi_amr.testing import block_z_scores, render_passes
-from mi_amr.tools.reference import reference_medium
+from mi_amr.reference import reference_medium
 
 from amr_formats import write_amrex_plotfile, write_athena_pp, write_enzo
 from conftest import render_cli

@@ -254,7 +254,7 @@ def test08_stock_volpath_stops_its_span_walk_near_the_global_majorant(llvm):
     from conftest import volume_scene
     from mi_amr.plugins.medium import SPAN_STOP_SHARE
     from mi_amr.testing import block_z_scores, render_passes
-    from mi_amr.tools.reference import reference_medium
+    from mi_amr.reference import reference_medium
     med = two_level_medium(tf="foggy", f=2)
     assert med._span_stop == SPAN_STOP_SHARE
     assert two_level_medium(f=1)._span_stop is None           # uniform grids walk to the end

@@ -16,7 +16,7 @@ cells of ``cloud`` on 4 levels and 10^6 cells on 3 levels), with the
   ``tf_rgba``;
 * Mitsuba's ``heterogeneous`` + ``gridvolume`` on the same field resampled
   at the finest resolution (``nearest``: the same extinction and albedo,
-  `mi_amr.tools.reference.reference_medium`) in ``prbvolpath``: the primal
+  `mi_amr.reference.reference_medium`) in ``prbvolpath``: the primal
   frame and a gradient step with respect to the ``sigma_t`` grid's voxels.
 
 A gradient step is what an optimisation loop runs per iteration before its
@@ -60,7 +60,7 @@ import numpy as np
 
 import mi_amr
 from ..data.datasets import make_dataset
-from ..tools.reference import dense_shape, reference_medium
+from ..reference import dense_shape, reference_medium
 from .harness import bench_scene, check_alone, process_cpu_seconds, wait_idle
 from .protocol import SCALES
 

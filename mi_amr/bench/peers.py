@@ -30,7 +30,7 @@ import numpy as np
 
 from .._llvm import find_llvm19
 from ..reconstruction import reconstruction_method
-from ..tools.reference import baked_grids
+from ..reference import baked_grids
 
 ROOT = Path(__file__).resolve().parents[2]
 PEERS = ("eradiate",)

@@ -58,7 +58,7 @@ from ..device.grid import DeviceMacrocellGrid
 from ..strategies import SAMPLINGS, TRAVERSALS
 from ..structures.cost_model import REFINEMENTS, auto_grid
 from ..structures.value_masks import ValueBins
-from ..tools.reference import dense_bytes, reference_medium, resample_dense
+from ..reference import dense_bytes, reference_medium, resample_dense
 from ..transfer.device import DeviceTransferFunction
 from .harness import FROZEN_WARMUP, bench_scene, check_alone, frame_function, wait_idle
 from .peers import run_peers

@@ -23,7 +23,7 @@ from ..memory import CHUNK
 from ..parallel import ordered_map
 from ..progress import progress
 from ..reconstruction import Reconstruction, reconstruction_method
-from .block_keys import (KEY_AXIS_BITS, UPPER_OFFSETS, block_keys, block_offsets, distinct_keys, fits_packed,
+from ..core.block_keys import (KEY_AXIS_BITS, UPPER_OFFSETS, block_keys, block_offsets, distinct_keys, fits_packed,
                          ghost_blocks, key_offset, level_coords, packed_keys, slot_index, unpack_keys)
 from .cells import MAX_LEVEL, AMRCells, check_cells
 

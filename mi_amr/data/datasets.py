@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from ..parallel import ordered_map
-from .block_keys import block_offsets
+from ..core.block_keys import block_offsets
 from .cells import AMRCells
 from .io import save_cells
 

@@ -23,8 +23,8 @@ from ..reconstruction import Reconstruction
 from ..structures.brick_lists import BrickLists
 from ..structures.bricks import Bricks
 from .ray import in_unit_cube
-from .structs import jit_struct
-from .values import CellValues, device_values
+from ..core.jit_struct import jit_struct
+from ..data.device_values import CellValues, device_values
 
 
 @jit_struct(lo="Vector3f", dims="Vector3i", width="Float", offset="UInt32", values="Float")

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..structures.cost_model import refine_gain
 from ..structures.footprint import thinning_bytes_per_macrocell
-from .structs import jit_struct
+from ..core.jit_struct import jit_struct
 
 
 #: Minorants are scaled by this: an interpolated TF alpha may round one ulp

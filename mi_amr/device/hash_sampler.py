@@ -23,8 +23,8 @@ from ..data.blocks import BlockVolume
 from ..reconstruction import Reconstruction
 from ..structures.level_hash import SLOT_BYTES, LevelHash, hash_u32, pack_key
 from .ray import in_unit_cube
-from .structs import jit_struct
-from .values import CellValues, device_values, shares_host_values
+from ..core.jit_struct import jit_struct
+from ..data.device_values import CellValues, device_values, shares_host_values
 
 
 class BlockHash(LevelHash):

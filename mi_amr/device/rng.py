@@ -18,7 +18,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .structs import jit_struct
+from ..core.jit_struct import jit_struct
 
 _MULT = 0x5851F42D4C957F2D       # PCG32's LCG multiplier
 _INC = 0x14057B7EF767814F        # one fixed (odd) stream increment

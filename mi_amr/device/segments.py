@@ -27,7 +27,7 @@ import mitsuba as mi
 import numpy as np
 from .grid import SKIP_BITS
 from .ray import safe_rcp
-from .structs import jit_struct
+from ..core.jit_struct import jit_struct
 from .tree import DeviceTree
 
 

@@ -84,7 +84,7 @@ import mitsuba as mi
 
 from .rng import Rng
 from .segments import Segment
-from .structs import jit_struct
+from ..core.jit_struct import jit_struct
 
 #: Ratio tracking plays Russian roulette once its transmittance falls below
 #: this: a shadow ray that is mostly blocked stops early, unbiased (it goes

@@ -7,7 +7,7 @@ import mitsuba as mi
 import numpy as np
 
 from .grid import MINORANT_SHRINK
-from .structs import jit_struct
+from ..core.jit_struct import jit_struct
 
 
 @jit_struct(axis="UInt32", split="Float", child="UInt32", leaf_lo="Vector3f", leaf_hi="Vector3f",

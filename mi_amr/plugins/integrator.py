@@ -29,7 +29,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..device.rng import Rng
-from ..device.structs import jit_struct
+from ..core.jit_struct import jit_struct
 from ..device.tracking import TrackingCounts
 from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
 from .medium import AMRMedium, require_jit_rgb_variant, scene_media

@@ -20,7 +20,7 @@ from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
 from ..device.tracking import (GRADIENT_FLOOR, GRADIENT_MARGIN, DecompositionTracking, DeltaTracking,
                                FreeFlight, LocalRay, MajorantMargin, RatioTracking, Replay, ResidualRatioTracking,
                                SpanMajorant, Transmittance, walk_segments)
-from ..device.values import device_values
+from ..data.device_values import device_values
 from ..params import ParameterError
 from ..pipeline import Structures
 from ..transfer.classification import Classification

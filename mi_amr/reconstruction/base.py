@@ -30,7 +30,7 @@ Parts of a method, by the layer that asks:
 * **Device, bricks** (`mi_amr.device.bricks.BrickSampler.eval_at`): the loop
   state, one brick's contribution (`brick_step`) and the result.
 * **References**: ``grid_filter`` and ``dense_exact``
-  (`mi_amr.tools.reference`, the ``dense16`` benchmark).
+  (`mi_amr.reference`, the ``dense16`` benchmark).
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ class Reconstruction:
     #: the device copy of the values; measured with tracemalloc.
     hash_bytes_per_block: float = 0.0
     #: ``filter_type`` of Mitsuba's ``gridvolume`` that gives this field from
-    #: a dense resampling at voxel centres (`mi_amr.tools.reference`).
+    #: a dense resampling at voxel centres (`mi_amr.reference`).
     grid_filter: str = ""
     #: Whether that resampling at the finest resolution is this field
     #: exactly, for any data and TF.
@@ -123,7 +123,7 @@ class Reconstruction:
     def hash_state(self, cells):
         """The loop state this method adds to the hash look-up loop (a
         tuple of Dr.Jit arrays, each changed by every iteration).
-        ``cells`` (`mi_amr.device.values.CellValues`) gathers the values:
+        ``cells`` (`mi_amr.data.device_values.CellValues`) gathers the values:
         a ``Float``, or a ``Vector2f`` when a second field is carried."""
         raise NotImplementedError
 

@@ -25,7 +25,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..data.block_keys import UPPER_OFFSETS
+from ..core.block_keys import UPPER_OFFSETS
 from .base import WEIGHT_EPS, Reconstruction
 
 #: Stencil corner c = dx + 2 dy + 4 dz.

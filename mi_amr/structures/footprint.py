@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..data.block_keys import ghost_blocks
+from ..core.block_keys import ghost_blocks
 from ..memory import hash_bytes
 from ..reconstruction import DEFAULT_METHOD, Reconstruction
 from .cost_model import _candidates, thinning_candidate

@@ -18,7 +18,7 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
-from ..device.values import device_values
+from ..data.device_values import device_values
 from ..memory import BYTES_PER_TREE_ITEM, BYTES_PER_TREE_NODE, BYTES_PER_TREE_PAIR, require
 from ..progress import progress
 from ..reconstruction import DEFAULT_METHOD, Reconstruction

@@ -27,7 +27,7 @@ from ..images import compare_images, read_exr, write_exr
 from ..progress import progress
 from ..render import scene_params, set_variant, write_frame
 from ..scene_xml import integrator_elements, parse_scene, with_amr_parameters
-from .reference import reference_scene
+from ..reference import reference_scene
 
 
 #: After a failed load, how long ``mi-amr view`` waits for a page to show the

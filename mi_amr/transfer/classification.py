@@ -28,7 +28,7 @@ classification (the medium's structures) is told through the listener given
 to the constructor, after the new state is in place.
 
 All Dr.Jit variables are opaque and the tables live in memory of their own
-(`mi_amr.device.structs.owned`), so no change recompiles a kernel or
+(`mi_amr.core.jit_struct.owned`), so no change recompiles a kernel or
 records a frozen function again.
 
 Gradients (docs/design.md section 13): ``density_scale``, ``tf_rgba``,
@@ -49,7 +49,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..device.structs import jit_struct, owned
+from ..core.jit_struct import jit_struct, owned
 from ..params import ParameterError
 from .device import DeviceTransferFunction
 from .function import TransferFunction, range_majorants_host

@@ -10,7 +10,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..device.structs import jit_struct, owned
+from ..core.jit_struct import jit_struct, owned
 from .function import TransferFunction
 
 

@@ -63,7 +63,7 @@ def owned(array_type, host):
     recorded again after most TF changes: 10 recordings after 12 changes),
     and a kernel that loads the table contiguously compiles once per
     alignment. The cell values are shared with the host on purpose
-    (`mi_amr.device.values`) and uploaded once."""
+    (`mi_amr.data.device_values`) and uploaded once."""
     dtype = {dr.VarType.Float32: np.float32, dr.VarType.UInt32: np.uint32}[dr.type_v(array_type)]
     host = np.asarray(host, dtype=dtype).ravel()
     buf = np.empty(host.size + ALIGN // host.itemsize, dtype=dtype)

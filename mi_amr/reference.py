@@ -21,15 +21,15 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
-from ..data.cells import AMRCells
-from ..data.volume import as_method, as_volume
-from ..device.hash_sampler import DeviceReconstruction
-from ..plugins.medium import AMRMedium
-from ..plugins.options import as_transform4f
-from ..reconstruction import Reconstruction
-from ..scene_xml import PASS_THROUGH, amr_elements, load_root, parse_scene
-from ..structures.host_reconstruction import HostReconstruction
-from ..transfer.function import TransferFunction
+from .data.cells import AMRCells
+from .data.volume import as_method, as_volume
+from .device.hash_sampler import DeviceReconstruction
+from .plugins.medium import AMRMedium
+from .plugins.options import as_transform4f
+from .reconstruction import Reconstruction
+from .scene_xml import PASS_THROUGH, amr_elements, load_root, parse_scene
+from .structures.host_reconstruction import HostReconstruction
+from .transfer.function import TransferFunction
 
 #: Default memory limit of the dense reference (sigma_t + albedo), bytes.
 DEFAULT_MEMORY_LIMIT = 4 << 30
