@@ -12,7 +12,7 @@ ensure_llvm_path()
 
 import mitsuba as mi  # noqa: E402
 
-from .autoscene import scene_for as _scene_for  # noqa: E402
+from .scene_writer import scene_for as _scene_for  # noqa: E402
 from .data import datasets  # noqa: E402,F401
 from .data.cells import AMRCells  # noqa: E402
 from .data.convert import dense_to_amr  # noqa: E402
@@ -79,7 +79,7 @@ def world_transform(ds):
 def scene_for(data, field=None, **options) -> dict:
     """A scene dictionary for ``mi.load_dict`` made from AMR data alone:
     camera framing the domain at its true aspect, sun and sky, a TF over
-    the values' distribution (see `mi_amr.autoscene.scene_for`)."""
+    the values' distribution (see `mi_amr.scene_writer.scene_for`)."""
     return _scene_for(data, field, **options)
 
 

@@ -1,13 +1,14 @@
-"""A scene made from AMR data alone, as ``yt.create_scene`` makes one: what
-``mi-amr render DATA --field NAME`` renders.
+"""A scene planned from AMR data alone, as ``yt.create_scene`` plans one:
+what ``mi-amr render DATA --field NAME`` renders.
 
-`plan_scene` looks at the data once: the physical domain (the box the
-medium fills, at its true aspect), the volume-weighted distribution of the
-values (linear or log10 chosen from its dynamic range), a TF preset placed
-over its percentiles and a density scale that makes the volume
-semi-transparent. `scene_for` turns the plan into a dictionary for
-``mi.load_dict``; `write_scene_xml` into an XML scene that references the
-data file, to edit and re-render.
+`plan_scene` looks at the data once (their statistics:
+`mi_amr.data.statistics`): the physical domain (the box the medium fills,
+at its true aspect), log10 or linear from where the volume and the mass of
+the values lie, a TF preset over the range they span and a density scale
+that makes the volume semi-transparent, then checks the predicted picture
+(`mi_amr.visibility`) and plans again where it would show nothing or a flat
+opaque block (docs/manual/data.md "Default pictures"). `mi_amr.scene_writer`
+turns a plan into a scene dictionary or an XML scene.
 
 World space: the domain is centred at the origin, its longest side 1 unit,
 and +z is up (simulation codes' convention, and Mitsuba's ``sunsky``: its
@@ -19,14 +20,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 from types import SimpleNamespace
-from xml.sax.saxutils import quoteattr
 
-import mitsuba as mi
 import numpy as np
 
 from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .data.opening import open_data, yt_field
+from .data.statistics import (STATS_VERSION, ValueStats, cells_and_weights, fine_histogram, histogram_name,
+                              stored_stats, value_stats, weighted_histogram, weighted_percentiles)
 from .data.transform import apply_value_transform
 from .data.yt_import import field_key
 from .transfer.function import PRESETS, TransferFunction
@@ -60,12 +61,6 @@ DEFAULT_TF = "spiky"
 #: albedo would tint the glow, which is emitted in proportion to 1 - albedo)
 #: and opacity rising with the value.
 GLOW_TF = "dust"
-#: Towards the sun: 50 degrees above the horizon, behind the camera's right.
-SUN_DIRECTION = [0.5, 0.6, 0.9]
-HISTOGRAM_BINS = 4096
-#: Bins of the viewer's fine histogram of the stored values (the medium's:
-#: log10 or linear), which its TF editor re-bins (`mi_amr.view.tf_spec.Histogram`).
-VIEW_HISTOGRAM_BINS = 1 << 14
 
 
 @dataclass
@@ -117,197 +112,6 @@ class ScenePlan:
         return m
 
 
-def cells_and_weights(data, field=None):
-    """Chunks of ``(values float64, volume weights)`` of the present cells
-    (weights in finest-cell volumes: 8^level); ``field``: a further field
-    of the data (None: the main values). ``data`` may be a list (or any
-    iterable) of data sets: the chunks of all of them."""
-    if hasattr(data, "weighted_values"):          # one data set (`AMRCells` or `BlockVolume`)
-        yield from data.weighted_values(field)
-        return
-    for d in data:
-        yield from cells_and_weights(d, field)
-
-
-@dataclass
-class ValueStats:
-    """What the values of a field are, counted per cell and weighted by cell
-    volume (in finest-cell volumes, 8^level): extremes, and how many are 0 or
-    negative (those have no log10)."""
-    cells: int = 0
-    volume: float = 0.0
-    zero_cells: int = 0
-    zero_volume: float = 0.0
-    negative_cells: int = 0
-    negative_volume: float = 0.0
-    min: float = np.inf
-    max: float = -np.inf
-    positive_min: float = np.inf      # smallest value above 0 (inf: none)
-    positive_max: float = -np.inf
-
-    @property
-    def positive_volume_share(self) -> float:
-        """Share of the volume whose values are above 0."""
-        return 1.0 - (self.zero_volume + self.negative_volume) / self.volume if self.volume else 0.0
-
-    @property
-    def has_positive(self) -> bool:
-        return bool(np.isfinite(self.positive_min))
-
-    def span(self, log: bool) -> tuple[float, float]:
-        """``(lo, hi)`` of the values, or of the log10 of the positive ones."""
-        if log:
-            return float(np.log10(self.positive_min)), float(np.log10(self.positive_max))
-        return float(self.min), float(self.max)
-
-    def shares(self, what: str = "values") -> str | None:
-        """A note naming the shares of zeros and negatives (None: all positive)."""
-        if not self.zero_cells and not self.negative_cells:
-            return None
-        parts = [f"{100 * v / self.volume:.3g}% of the volume ({100 * n / self.cells:.3g}% of the cells) {name}"
-                 for v, n, name in ((self.zero_volume, self.zero_cells, "is 0"),
-                                    (self.negative_volume, self.negative_cells, "is negative")) if n]
-        return f"{what}: {' and '.join(parts)}"
-
-
-def stored_stats(data, field=None) -> dict | None:
-    """What an ``.amrb`` file stored of ``data``'s main values when it was
-    written (`file_stats`; `mi_amr.data.amrb` reads it into
-    ``BlockVolume.stored_stats``), or None: other data, a further field, an
-    older file, or values changed since (their range or count differs)."""
-    st = getattr(data, "stored_stats", None)
-    if field is not None or not st or st.get("version") != STATS_VERSION:
-        return None
-    if st.get("n_cells") != int(data.n_cells) or st.get("value_range") != [float(x) for x in data.value_range]:
-        return None
-    return st
-
-
-def value_stats(data, field=None) -> ValueStats:
-    """`ValueStats` of ``field`` (None: the main values) of one data set or
-    several (see `cells_and_weights`), in one pass (none for an ``.amrb``
-    file's stored ones: `stored_stats`)."""
-    st = stored_stats(data, field)
-    if st is not None:
-        return ValueStats(**{k: (np.inf if v == "inf" else -np.inf if v == "-inf" else v)
-                             for k, v in st["value_stats"].items()})
-    s = ValueStats()
-    for v, w in cells_and_weights(data, field):
-        if not v.size:
-            continue
-        zero, neg = v == 0, v < 0
-        s.cells += v.size
-        s.volume += float(w.sum())
-        s.zero_cells += int(zero.sum())
-        s.zero_volume += float(w[zero].sum())
-        s.negative_cells += int(neg.sum())
-        s.negative_volume += float(w[neg].sum())
-        s.min, s.max = min(s.min, float(v.min())), max(s.max, float(v.max()))
-        pos = v[v > 0]
-        if pos.size:
-            s.positive_min = min(s.positive_min, float(pos.min()))
-            s.positive_max = max(s.positive_max, float(pos.max()))
-    return s
-
-
-def positive_share(data, field=None) -> float:
-    """Share of the volume whose values are above 0."""
-    return value_stats(data, field).positive_volume_share
-
-
-def weighted_percentiles(data, qs, log: bool = False, field=None, mass: bool = False) -> list[float]:
-    """Volume-weighted percentiles ``qs`` (0-100) of the values (of their
-    log10 with ``log``, values <= 0 left out), from a histogram of
-    `HISTOGRAM_BINS` bins: within one bin width. ``mass``: weighted by
-    volume times the value's magnitude instead (where the mass of a density
-    lies). ``data``: one data set or several (a time series: one histogram
-    over all of them)."""
-    st = stored_stats(data, field)
-    if st is None:
-        lo, hi, hist = _weighted_histogram(data, log, field, mass)
-    else:                                          # as `file_stats` stored them
-        name = _histogram_name(log, mass)
-        lo, hi = st.get(name + "_span") or (np.inf, -np.inf)
-        hist = st.get(name)
-    if not np.isfinite(lo):
-        raise ValueError("no values to place a transfer function over")
-    if hi <= lo or hist is None or not np.sum(hist) > 0:
-        return [lo for _ in qs]
-    edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
-    cdf = np.cumsum(hist) / hist.sum()
-    return [float(edges[min(int(np.searchsorted(cdf, q / 100.0)) + (q > 0), HISTOGRAM_BINS)]) for q in qs]
-
-
-def _histogram_name(log: bool, mass: bool) -> str:
-    """The key of a histogram in `file_stats`."""
-    return f"hist_{'log' if log else 'linear'}{'_mass' if mass else ''}"
-
-
-def _weighted_histogram(data, log: bool, field=None, mass: bool = False) -> tuple:
-    """``(lo, hi, counts)``: the volume-weighted histogram of
-    `HISTOGRAM_BINS` bins over [lo, hi], the extremes of the values (of
-    their log10, values <= 0 left out); ``mass``: weighted by volume times
-    the value's magnitude. ``(inf, -inf, None)`` without values, ``(lo, hi,
-    None)`` when all are one value."""
-    lo, hi = (np.inf, -np.inf)
-    for v, _ in cells_and_weights(data, field):
-        if log:
-            v = v[v > 0]
-            if not v.size:
-                continue
-            v = np.log10(v)
-        if v.size:
-            lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
-    if not np.isfinite(lo) or hi <= lo:
-        return lo, hi, None
-    edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
-    hist = np.zeros(HISTOGRAM_BINS)
-    for v, w in cells_and_weights(data, field):
-        if mass:
-            w = w * np.abs(v)
-        if log:
-            keep = v > 0
-            v, w = np.log10(v[keep]), w[keep]
-        hist += np.histogram(v, bins=edges, weights=w)[0]
-    return lo, hi, hist
-
-
-def fine_histogram(volume, bins: int = VIEW_HISTOGRAM_BINS) -> tuple:
-    """``(edges, cdf)``: the volume-weighted cumulative distribution of
-    ``volume``'s values at the edges of ``bins`` bins over its value range
-    (widened by 0.5 either side when it is one value): what the viewer's TF
-    editor re-bins (`mi_amr.view.tf_spec.Histogram`)."""
-    lo, hi = volume.value_range
-    if not hi > lo:
-        lo, hi = lo - 0.5, hi + 0.5
-    counts, total = np.zeros(bins), 0.0
-    for v, w in cells_and_weights(volume):
-        counts += np.histogram(v, bins=bins, range=(lo, hi), weights=w)[0]
-        total += float(w.sum())
-    return np.linspace(lo, hi, bins + 1), np.concatenate([[0.0], np.cumsum(counts)]) / (total or 1.0)
-
-
-def stored_fine_histogram(data, medium_volume, bins: int = VIEW_HISTOGRAM_BINS) -> tuple | None:
-    """``(edges, cdf)`` of `fine_histogram` of ``medium_volume`` (the medium's
-    values: ``data``'s, or their log10) as ``data``'s ``.amrb`` file stored it
-    (`file_stats`), or None (not stored, another transform, range or bin count)."""
-    st = stored_stats(data)
-    transform = medium_volume.meta.get("value_transform", "none") if medium_volume is not data else "none"
-    entry = None if st is None else st.get(f"view_{transform}")
-    if entry is None or st.get(f"view_{transform}_span") != [float(x) for x in medium_volume.value_range] \
-            or len(entry) != bins + 1 or int(medium_volume.n_cells) != st["n_cells"]:
-        return None
-    lo, hi = medium_volume.value_range
-    if not hi > lo:
-        lo, hi = lo - 0.5, hi + 0.5
-    return np.linspace(lo, hi, bins + 1), np.asarray(entry, np.float64)
-
-
-#: Bumped whenever `file_stats` computes anything differently: files with
-#: another version are planned from their values again.
-STATS_VERSION = 2
-
-
 def file_stats(volume: BlockVolume) -> dict:
     """What `plan_scene` and the viewer read from the values, computed when
     an ``.amrb`` file is written (`mi_amr.data.amrb.save_amrb` stores it,
@@ -329,8 +133,8 @@ def file_stats(volume: BlockVolume) -> dict:
         return out
     for log in (False, True):
         for mass in (False, True):
-            name = _histogram_name(log, mass)
-            lo, hi, hist = _weighted_histogram(volume, log, mass=mass)
+            name = histogram_name(log, mass)
+            lo, hi, hist = weighted_histogram(volume, log, mass=mass)
             out[name + "_span"] = [float(lo), float(hi)] if np.isfinite(lo) else None
             if hist is not None:
                 out[name] = hist
@@ -664,155 +468,3 @@ def _mean_alpha(volume, tf, value_range, log) -> float:
         total += float((fn(v)[:, 3] * w).sum())
         weight += float(w.sum())
     return total / weight if weight else 0.0
-
-
-def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: str = "amrvolpath",
-              mode: str | None = None, **options) -> dict:
-    """A scene dictionary for ``mi.load_dict`` that shows ``data`` (see
-    `open_data`) with no scene written by hand; ``options`` go to
-    `plan_scene` (``tf``, ``log``, ``value_range``, ``density_scale``);
-    ``mode``: the ``amrvolpath`` lighting mode (None: its default)."""
-    plan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **options)
-    T = mi.ScalarTransform4f
-
-    def matrix(m):       # the numbers `write_scene_xml` writes, so that both render the same image
-        return T(mi.ScalarMatrix4f(_as_written(m).reshape(4, 4).astype(np.float32)))
-    T4d = getattr(mi, "ScalarTransform4d", T)            # the XML's look-at is computed in double precision
-    camera = T4d().look_at(*(_as_written(v).tolist() for v in (plan.origin, plan.target, plan.up)))
-    medium = {"type": "amr", "data": plan.data, "transfer_function": plan.tf,
-              "tf_min": plan.tf_range[0], "tf_max": plan.tf_range[1], "value_transform": plan.transform,
-              "density_scale": plan.density_scale, "to_world": matrix(plan.to_world_matrix())}
-    medium.update(emission_parameters(plan))
-    scene = {
-        "type": "scene",
-        "integrator": dict({"type": integrator, "max_depth": 64}, **({} if mode is None else {"mode": mode})),
-        "sensor": {"type": "perspective", "fov": plan.fov,
-                   "to_world": T(mi.ScalarMatrix4f(np.array(camera.matrix, dtype=np.float64).astype(np.float32))),
-                   "sampler": {"type": "independent", "sample_count": spp},
-                   "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
-        "volume": {"type": "cube", "to_world": matrix(_cube_matrix(plan)),
-                   "bsdf": {"type": "null"}, "interior": medium},
-    }
-    if plan.lit:
-        scene["sky"] = {"type": "sunsky", "sun_direction": SUN_DIRECTION, "turbidity": 3.0,
-                        "sun_scale": 2.5, "sky_scale": 6.0}
-        scene["floor"] = {"type": "rectangle",
-                          "to_world": T().translate([0, 0, float(f"{plan.floor_height():.6g}")]) @ T().scale(1000),
-                          "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.45}}}
-    return scene
-
-
-def _as_written(values) -> np.ndarray:
-    """``values`` as `write_scene_xml` writes them (9 significant digits)."""
-    return np.array([float(f"{float(x):.9g}") for x in np.ravel(values)])
-
-
-def _cube_matrix(plan: ScenePlan) -> np.ndarray:
-    """``to_world`` of the cube that bounds the medium (Mitsuba's cube
-    spans -1..1)."""
-    return plan.to_world_matrix() @ np.array([[0.5, 0, 0, 0.5], [0, 0.5, 0, 0.5], [0, 0, 0.5, 0.5], [0, 0, 0, 1.0]])
-
-
-def emission_parameters(plan: ScenePlan) -> dict:
-    """The ``amr`` medium's ``emission*`` parameters of a plan ({} for gas
-    that does not glow)."""
-    e = plan.emission
-    if e is None:
-        return {}
-    out = {"emission": e.tf, "emission_transform": e.transform, "emission_min": e.tf_range[0],
-           "emission_max": e.tf_range[1], "emission_scale": e.scale}
-    if e.field is not None:
-        out["emission_field"] = e.field
-    return out
-
-
-def _tf_reference(tf: str) -> str:
-    """How a scene file names a TF: a preset or colormap by its name, a TF
-    file by its absolute path (the scene renders from any folder)."""
-    return str(Path(tf).resolve()) if tf not in PRESETS and Path(tf).is_file() else str(tf)
-
-
-def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int = 64,
-                    mode: str | None = None) -> Path:
-    """Write ``plan`` as an XML scene that loads ``data_file`` (``res`` and
-    ``spp`` are its defaults, ``-D res=...`` overrides them; ``mode``: the
-    ``amrvolpath`` lighting mode, written unless None)."""
-    path = Path(path)
-    mode_line = "" if mode is None else f"\n        <string name=\"mode\" value={quoteattr(str(mode))}/>"
-    m = plan.to_world_matrix()
-    matrix = " ".join(f"{x:.9g}" for x in m.ravel())
-    cube_matrix = " ".join(f"{x:.9g}" for x in _cube_matrix(plan).ravel())
-    o, t, u = (", ".join(f"{float(x):.9g}" for x in v) for v in (plan.origin, plan.target, plan.up))
-    # an XML comment may not hold "--" (the notes name flags such as --log)
-    notes = "\n         ".join(n.replace("--", "- -") for n in plan.notes)
-    glow_params = {k: _tf_reference(v) if k == "emission" else v for k, v in emission_parameters(plan).items()}
-    glow = "".join(f"\n        <{'float' if isinstance(v, float) else 'string'} name=\"{k}\" value="
-                   f"{quoteattr(format(v, '.9g') if isinstance(v, float) else str(v))}/>"
-                   for k, v in glow_params.items())
-    lights = "" if not plan.lit else f"""
-    <emitter type="sunsky">
-        <vector name="sun_direction" value="{', '.join(str(x) for x in SUN_DIRECTION)}"/>
-        <float name="turbidity" value="3"/>
-        <float name="sun_scale" value="2.5"/>
-        <float name="sky_scale" value="6"/>
-    </emitter>
-
-    <shape type="rectangle">  <!-- the ground, just below the domain -->
-        <transform name="to_world">
-            <scale value="1000"/>
-            <translate z="{plan.floor_height():.6g}"/>
-        </transform>
-        <bsdf type="diffuse">
-            <rgb name="reflectance" value="0.45"/>
-        </bsdf>
-    </shape>
-"""
-    text = f"""<scene version="3.0.0">
-    <!-- made by mi-amr from the data alone; edit and re-render with
-         mi-amr render {path.name} -o OUT.exr
-         {notes} -->
-    <default name="spp" value="{spp}"/>
-    <default name="res" value="{res}"/>
-
-    <integrator type="amrvolpath">
-        <integer name="max_depth" value="64"/>{mode_line}
-    </integrator>
-
-    <sensor type="perspective">
-        <float name="fov" value="{plan.fov}"/>
-        <transform name="to_world">
-            <lookat origin="{o}" target="{t}" up="{u}"/>
-        </transform>
-        <sampler type="independent">
-            <integer name="sample_count" value="$spp"/>
-        </sampler>
-        <film type="hdrfilm">
-            <integer name="width" value="$res"/>
-            <integer name="height" value="$res"/>
-            <rfilter type="box"/>
-        </film>
-    </sensor>
-{lights}
-    <medium type="amr" id="volume">
-        <string name="filename" value={quoteattr(str(data_file))}/>
-        <string name="transfer_function" value={quoteattr(_tf_reference(plan.tf))}/>
-        <float name="tf_min" value="{plan.tf_range[0]:.9g}"/>
-        <float name="tf_max" value="{plan.tf_range[1]:.9g}"/>
-        <string name="value_transform" value="{plan.transform}"/>
-        <float name="density_scale" value="{plan.density_scale:.9g}"/>{glow}
-        <transform name="to_world">
-            <matrix value="{matrix}"/>
-        </transform>
-    </medium>
-
-    <shape type="cube">
-        <transform name="to_world">
-            <matrix value="{cube_matrix}"/>
-        </transform>
-        <bsdf type="null"/>
-        <ref name="interior" id="volume"/>
-    </shape>
-</scene>
-"""
-    path.write_text(text)
-    return path

@@ -22,7 +22,8 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
-from .autoscene import ScenePlan, plan_scene, scene_for, write_scene_xml
+from .autoscene import ScenePlan, plan_scene
+from .scene_writer import scene_for, write_scene_xml
 from .data.opening import is_native
 from .distributed import render_local
 from .images import png_bytes, write_exr, write_png

@@ -26,7 +26,8 @@ import drjit as dr
 import mitsuba as mi
 
 from . import distributed, series
-from .autoscene import GLOW_TF, plan_scene, write_scene_xml
+from .autoscene import GLOW_TF, plan_scene
+from .scene_writer import write_scene_xml
 from .data.opening import field_scalars, is_native
 from .native_file import save_data
 from .images import write_exr, write_png

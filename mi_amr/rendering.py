@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from . import distributed
-from .autoscene import ScenePlan, plan_scene, scene_for
+from .autoscene import ScenePlan, plan_scene
+from .scene_writer import scene_for
 from .plugins.integrator import MODES
 
 #: Samples per pixel when neither the job nor its XML scene says.

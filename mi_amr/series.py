@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .autoscene import plan_scene, write_scene_xml
+from .autoscene import plan_scene
+from .scene_writer import write_scene_xml
 from .data.opening import open_data
 from .data.amrb import read_amrb
 from .native_file import save_native

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.autoscene import plan_scene, scene_for, weighted_percentiles
+from mi_amr.autoscene import plan_scene
+from mi_amr.scene_writer import scene_for
+from mi_amr.data.statistics import weighted_percentiles
 from mi_amr.data.io import write_exabricks
 
 from conftest import random_amr
@@ -379,7 +381,7 @@ def test15_the_written_scene_parses_whatever_the_notes_say(llvm, tmp_path):
     (Mitsuba's parser let it pass, Python's, on a cluster's workers, did
     not: --workers failed on every planned scene whose notes named a flag), and
     renders the image of the plan's own dictionary (same seed)."""
-    from mi_amr.autoscene import write_scene_xml
+    from mi_amr.scene_writer import write_scene_xml
     from mi_amr.data.io import write_exabricks
     cells = random_amr(0, 8, 2)
     data = tmp_path / "d.cells"

@@ -5,10 +5,11 @@ domain, an embedded boundary, a uniform background with a small dense
 core), its predicted picture (the plan's check, `mi_amr.autoscene._checked`) and the rendered one (`rendered_visibility`), in all three modes."""
 
 import mitsuba as mi
-import numpy as np
 import pytest
 
-from mi_amr.autoscene import MAX_OPAQUE, MIN_SHOWN, _checked, plan_scene, scene_for, value_stats
+from mi_amr.autoscene import MAX_OPAQUE, MIN_SHOWN, _checked, plan_scene
+from mi_amr.scene_writer import scene_for
+from mi_amr.data.statistics import value_stats
 from mi_amr.visibility import rendered_visibility
 
 from conftest import FORCED_VARIANT

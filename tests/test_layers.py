@@ -32,8 +32,9 @@ FLOORS = [
     ["mi_amr.plugins"],
     # images, what a picture shows, scene files, Mitsuba's own medium on the same data, test helpers
     ["mi_amr.images", "mi_amr.visibility", "mi_amr.scene_xml", "mi_amr.reference", "mi_amr.testing"],
-    # scenes planned from data, the native file written with what they and a medium read first, a run's outputs
-    ["mi_amr.autoscene", "mi_amr.native_file", "mi_amr.series"],
+    # scenes planned from data and written for Mitsuba, the native file written with what they and a medium
+    # read first, a run's outputs
+    ["mi_amr.autoscene", "mi_amr.scene_writer", "mi_amr.native_file", "mi_amr.series"],
     # services: rendering on a cluster, rendering as a library, the Python API from data
     # to picture, the viewer, render jobs and their frames
     ["mi_amr.distributed", "mi_amr.rendering", "mi_amr.data_scene", "mi_amr.view", "mi_amr.render"],

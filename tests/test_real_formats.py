@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.autoscene import plan_scene, scene_for
+from mi_amr.autoscene import plan_scene
+from mi_amr.scene_writer import scene_for
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.reference import reference_medium
 

@@ -394,7 +394,7 @@ def test11_the_editor_histogram_is_the_volume_weighted_one():
     """Re-binned from the fine histogram, the editor's bins hold the
     volume-weighted shares of direct counting (within one fine bin's mass
     at each edge), in linear and log10 display over log-stored values."""
-    from mi_amr.autoscene import cells_and_weights
+    from mi_amr.data.statistics import cells_and_weights
     from mi_amr.data.blocks import BlockVolume
     from mi_amr.data.datasets import make_dataset
     from mi_amr.data.transform import apply_value_transform

@@ -10,8 +10,9 @@ import struct
 import numpy as np
 import pytest
 
-from mi_amr.autoscene import (DEFAULT_TF, _mean_alpha, _value_scale, file_stats, fine_histogram, plan_scene,
-                              stored_fine_histogram, stored_stats, value_stats, weighted_percentiles)
+from mi_amr.autoscene import DEFAULT_TF, _mean_alpha, _value_scale, file_stats, plan_scene
+from mi_amr.data.statistics import (fine_histogram, stored_fine_histogram, stored_stats, value_stats,
+                                    weighted_percentiles)
 from mi_amr.data.amrb import PREAMBLE, read_amrb, read_header, write_amrb
 from mi_amr.data.blocks import BlockVolume
 from mi_amr.data.datasets import make_dataset

@@ -200,7 +200,8 @@ def test10_octree_renders_from_a_plan(llvm):
     """An ``amr`` medium planned from octree data (open_data/plan_scene)
     renders: a tiny image, finite and not flat."""
     import mitsuba as mi
-    from mi_amr.autoscene import plan_scene, scene_for
+    from mi_amr.autoscene import plan_scene
+    from mi_amr.scene_writer import scene_for
     ds, _, _, _ = random_octree(seed=3)
     plan = plan_scene(ds, "gas,density")
     np.testing.assert_allclose(plan.extent, [1.0, 0.5, 0.25])

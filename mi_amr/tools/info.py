@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..autoscene import plan_scene, value_stats
+from ..autoscene import plan_scene
+from ..data.statistics import value_stats
 from ..data.opening import is_native, open_data, open_dataset, yt_field
 from ..data.io import load_volume
 from ..data.metadata import cell_size

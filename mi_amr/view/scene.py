@@ -30,7 +30,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, planned_display, positive_share, scene_for
+from ..autoscene import MIN_POSITIVE_SHARE, plan_scene, planned_display
+from ..data.statistics import positive_share
+from ..scene_writer import scene_for
 from ..data.opening import is_native
 from ..data.yt_import import load_dataset
 from ..plugins.integrator import MODES, AMRVolpathIntegrator

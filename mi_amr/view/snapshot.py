@@ -2,7 +2,7 @@
 ``NAME.png`` (what the page shows), ``NAME.tf.json`` (the medium's TF) and
 ``NAME.xml``, the scene with the view's camera, TF and lighting mode, which
 ``mi-amr render`` renders to the same picture: for data the planned scene
-(`mi_amr.autoscene.write_scene_xml`), for an XML scene the source rewritten
+(`mi_amr.scene_writer.write_scene_xml`), for an XML scene the source rewritten
 (`mi_amr.scene_xml`). An XML scene's TF left as it was is written with
 the scene's own table values (`LoadedScene.table`).
 
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..autoscene import write_scene_xml
+from ..scene_writer import write_scene_xml
 from ..data.opening import field_scalars, is_native
 from ..images import write_exr, write_png
 from ..native_file import save_native

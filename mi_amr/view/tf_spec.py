@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..autoscene import VIEW_HISTOGRAM_BINS, fine_histogram, stored_fine_histogram
+from ..data.statistics import VIEW_HISTOGRAM_BINS, fine_histogram, stored_fine_histogram
 from ..transfer.function import TransferFunction
 from .protocol import TFChange, parse_message
 
@@ -253,7 +253,7 @@ class Histogram:
     def __init__(self, volume, data=None):
         """``volume``: the medium's; ``data``: the data it was made from,
         whose ``.amrb`` file may hold this histogram already
-        (`mi_amr.autoscene.stored_fine_histogram`): then nothing is counted."""
+        (`mi_amr.data.statistics.stored_fine_histogram`): then nothing is counted."""
         stored = None if data is None else stored_fine_histogram(data, volume, FINE_BINS)
         self.edges, self.cdf = stored if stored is not None else fine_histogram(volume, FINE_BINS)
 
