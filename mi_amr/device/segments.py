@@ -106,23 +106,15 @@ def progress_guard(t, guard):
     return dr.maximum(dr.abs(t) * 5e-7, guard)
 
 
-class TwoLevelGridSegments:
+class TwoLevelGridSegments(GridSegments):
     """Front-to-back macrocells of a `DeviceTwoLevelGrid`: at each step the
     fine macrocell just past the current point is located; where its coarse
     macrocell is refined, the segment is the fine macrocell, otherwise the
     whole coarse one, or, where that is empty, the cube of empty coarse
     macrocells that stretches from it along the ray's octant
     (``coarse_skip``). The exit is measured from the
-    located point, so every step moves forward."""
-
-    def __init__(self, grid):
-        self.grid = grid
-
-    def leaf_bounds(self):
-        """``(minorant, majorant, volume)`` per leaf on the host (numpy):
-        the fine macrocells, all of one volume."""
-        hi = self.grid.majorant.numpy()
-        return self.grid.minorant.numpy(), hi, np.ones(len(hi))
+    located point, so every step moves forward. Its leaves are the fine
+    macrocells, as `GridSegments`' (``leaf_bounds``)."""
 
     def max_steps(self):
         g = self.grid
