@@ -9,7 +9,8 @@ options ask for) and that study's ``main_args``: the protocol
 against Mitsuba's homogeneous medium), ``--modes-bound``
 (`mi_amr.bench.modes_bound`: what bounds the emission-absorption frame) or
 ``--grad`` (`mi_amr.bench.gradients`: what a gradient step costs against the
-primal frame and a dense grid).
+primal frame and a dense grid) or ``--vs-yt`` (`mi_amr.bench.vs_yt`: yt's
+volume renderer against ``emission_absorption``, time to equal error).
 """
 
 import argparse
@@ -27,7 +28,9 @@ def main(argv=None) -> int:
 
 def dispatch(args) -> int:
     """Run the study the options ask for; its exit status."""
-    if args.view:
+    if args.vs_yt:
+        from .vs_yt import main_args
+    elif args.view:
         from .view import main_args
     elif args.distributed:
         from .distributed import main_args
@@ -54,7 +57,7 @@ def parse(argv=None) -> argparse.Namespace:
                                        "  python -m mi_amr.bench --datasets cloud --tfs spiky "
                                        "--configs reference amrvolpath/default --out out/b")
     for options in (protocol_options, scale_options, resample_options, view_options, distributed_options,
-                    modes_options, grad_options):
+                    modes_options, grad_options, vs_yt_options):
         options(p)
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)      # the command, for the tables
@@ -203,6 +206,23 @@ def grad_options(p):
                    help="--grad: steps timed per pass, their median kept (default 3)")
     p.add_argument("--grad-memory", action=argparse.BooleanOptionalAction, default=True,
                    help="--grad: one untimed step per pass for the peak memory (default)")
+
+
+def vs_yt_options(p):
+    p.add_argument("--vs-yt", action="store_true",
+                   help="yt's volume renderer against amrvolpath's emission_absorption on the same AMR data "
+                        "and camera: each one's RMSE against a dense ray march, our time to yt's error "
+                        "(docs/performance/vs-yt.md)")
+    p.add_argument("--vs-yt-res", type=int, nargs="+", default=[128, 256], help="--vs-yt: image sizes")
+    p.add_argument("--vs-yt-kinds", nargs="+", default=["blocks", "cells"], choices=["blocks", "cells"],
+                   help="--vs-yt: one value per yt grid (yt's model matches ours), one per cell (yt "
+                        "interpolates; at the first size only)")
+    p.add_argument("--vs-yt-n0", type=int, default=32, help="--vs-yt: level-0 cells per side (32)")
+    p.add_argument("--vs-yt-cap", type=int, default=1024, help="--vs-yt: our highest spp (1024)")
+    p.add_argument("--vs-yt-rounds", type=int, default=3, help="--vs-yt: alternated rounds (3)")
+    p.add_argument("--vs-yt-steps", type=int, default=1024, help="--vs-yt: steps of the reference march")
+    p.add_argument("--vs-yt-samples", type=int, default=None,
+                   help="--vs-yt: yt's num_samples per cell (default: yt's, 10)")
 
 
 def distributed_options(p):
