@@ -643,3 +643,21 @@ def test16_the_log10_toggle_plans_range_and_density_again(tmp_path):
         assert view.spec.density == 7.0 and view.spec.range == (0.0, 1.0)
     finally:
         engine.stop()
+
+
+def test17_the_field_selector_shows_the_field_the_user_named(tmp_path):
+    """``mi-amr view DD0003 --field density`` where yt's on-disk name is
+    ``enzo,Density``: the editor's field is that entry of the selector (it
+    was blank: the names differ in case), and the picture is planned."""
+    pytest.importorskip("yt")
+    from amr_formats import write_enzo
+    from mi_amr.view.engine import ViewEngine
+    x, y, z = np.meshgrid(*[np.arange(8)] * 3, indexing="ij")
+    path = write_enzo(tmp_path / "DD0003", "DD0003", 1.0 + np.exp(-((x - 4) ** 2 + (y - 3) ** 2 + z ** 2) / 9.0), [])
+    engine = ViewEngine(path, "density", res=16, max_spp=2).start()
+    try:
+        assert engine.ready.wait(120) and engine.error is None, engine.error
+        extras = engine._editor_extras()
+        assert extras["field"] == "enzo,Density" and extras["field"] in extras["fields"]
+    finally:
+        engine.stop()

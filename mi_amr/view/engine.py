@@ -379,8 +379,10 @@ class ViewEngine:
         the camera's clamps (the page orbits as `OrbitCamera.moved` does)."""
         s = self.loaded
         current = s.field
-        if s.fields and current is not None:
-            current = next((f for f in s.fields if f == current or f.split(",")[-1] == current), current)
+        if s.fields and current is not None:       # as the user named it: density -> enzo,Density
+            named = current.lower()
+            current = next((f for f in s.fields if f.lower() == named), None) or \
+                next((f for f in s.fields if f.split(",")[-1].lower() == named.split(",")[-1]), current)
         presets = {k: {"colormap": c, "points": [list(q) for q in pts]} for k, (c, pts) in PRESET_POINTS.items()}
         return {"fields": list(s.fields), "field": current, "field_note": s.field_note, "units": s.units,
                 "log_note": s.log_note, "presets": presets, "home": s.initial_camera.to_json(),
