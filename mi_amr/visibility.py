@@ -111,10 +111,17 @@ def opacity_grid(data, opacity, grid: int = GRID) -> np.ndarray:
         flat = np.ravel_multi_index(i0[one].T, shape)
         num += np.bincount(flat, weights=a[one] * w[one], minlength=num.size)
         den += np.bincount(flat, weights=w[one], minlength=den.size)
-        for k in np.flatnonzero(~one):          # cells larger than a voxel (coarse levels: few)
-            idx = np.ravel_multi_index(np.indices(span[k]).reshape(3, -1) + i0[k][:, None], shape)
-            num[idx] += a[k] * w[k] / cover[k]
-            den[idx] += w[k] / cover[k]
+        big = np.flatnonzero(~one)              # cells larger than a voxel: spread over the ones they cover
+        if big.size:
+            counts = cover[big]
+            owner = np.repeat(np.arange(big.size), counts)
+            rank = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+            sx, sy = span[big][owner, 0], span[big][owner, 1]
+            offset = np.stack([rank % sx, (rank // sx) % sy, rank // (sx * sy)], axis=1)
+            flat = np.ravel_multi_index((i0[big][owner] + offset).T, shape)
+            share = (w[big] / counts)[owner]
+            num += np.bincount(flat, weights=a[big][owner] * share, minlength=num.size)
+            den += np.bincount(flat, weights=share, minlength=den.size)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0).reshape(shape)
 

@@ -137,3 +137,20 @@ def test06_render_and_info_print_the_plan_and_its_check(llvm, outputs, plans, tm
     out = capsys.readouterr().out
     assert "predicted picture:" in out and "TF 'ramp' instead" in out
     assert 'name="transfer_function" value="ramp"' in (tmp_path / "sheet.xml").read_text()
+
+
+def test07_the_opacity_grid_is_the_cells_volume_mean(llvm):
+    """`opacity_grid` (what the check marches through): over 32^3 cells, a
+    64-voxel grid gives each voxel the value of the cell that holds it
+    (cells larger than a voxel are spread over the voxels they cover), a
+    16-voxel grid the mean of the 8 cells in each voxel, exactly."""
+    import numpy as np
+    from mi_amr.data.blocks import BlockVolume
+    from mi_amr.visibility import opacity_grid
+    v = np.random.default_rng(0).random((32, 32, 32)).astype(np.float32)
+    vol = BlockVolume.from_dense(v, block=8)
+    xyz = v.transpose(2, 1, 0).astype(np.float64)                      # [x, y, z], as the grid
+    fine = np.repeat(np.repeat(np.repeat(xyz, 2, 0), 2, 1), 2, 2)
+    np.testing.assert_allclose(opacity_grid(vol, lambda x: x, grid=64), fine, rtol=1e-12)
+    coarse = xyz.reshape(16, 2, 16, 2, 16, 2).mean(axis=(1, 3, 5))
+    np.testing.assert_allclose(opacity_grid(vol, lambda x: x, grid=16), coarse, rtol=1e-6)
