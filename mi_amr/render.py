@@ -141,8 +141,7 @@ def render_cli_jobs(args, jobs, desc: str | None = None) -> list:
     the images."""
     spp, workers = args.spp, args.workers
     chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
-    plans = [None if job.is_xml else job.source for job in jobs]
-    options = dict(plans=plans, chunk_spp=chunk_spp, progress=not args.quiet, desc=desc)
+    options = dict(chunk_spp=chunk_spp, progress=not args.quiet, desc=desc)
     if not (workers or args.scheduler):
         return [r.image for r in render_jobs(jobs, **options)]
     if args.scheduler:

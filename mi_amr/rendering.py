@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 import time
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field as dc_field, replace
+from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 
 import numpy as np
@@ -130,19 +130,19 @@ def job_spp(job: RenderJob) -> int:
     return int(job.defines.get("spp", DEFAULT_SPP))
 
 
-def render_jobs(jobs, cluster=None, *, plans=None, chunk_spp: int | None = None, progress: bool = False,
+def render_jobs(jobs, cluster=None, *, chunk_spp: int | None = None, progress: bool = False,
                 desc: str | None = None, drjit_threads: int | None = None) -> list[RenderResult]:
     """Render ``jobs`` (`RenderJob`s) and return their `RenderResult`s in
     order. ``cluster``: a ``dask.distributed.Client`` (frames in parallel;
     a data job goes as its scene dictionary) or None (here, one after the
-    other); ``plans``: the plans of data jobs made before (one per job,
-    None for XML), else planned here; ``chunk_spp``: samples per chunk
+    other); data jobs are planned here unless their ``source`` is a
+    `ScenePlan` already; ``chunk_spp``: samples per chunk
     (the image is the same for any placement of the chunks); ``desc``: the
     progress bar's label. The Mitsuba variant must be set."""
     jobs = list(jobs)
     for job in jobs:
         job.check()
-    plans = list(plans) if plans is not None else [None if j.is_xml else plan_job(j) for j in jobs]
+    plans = [None if j.is_xml else plan_job(j) for j in jobs]
     frames, spps = [], []
     for job, plan in zip(jobs, plans):
         spp = job_spp(job)
@@ -180,11 +180,6 @@ def render_jobs(jobs, cluster=None, *, plans=None, chunk_spp: int | None = None,
 def render_job(job: RenderJob, **options) -> RenderResult:
     """One `RenderJob` (see `render_jobs`)."""
     return render_jobs([job], **options)[0]
-
-
-def with_options(job: RenderJob, **changes) -> RenderJob:
-    """A copy of ``job`` with ``changes`` (dataclass fields)."""
-    return replace(job, **changes)
 
 
 def _integrator(job: RenderJob) -> dict | None:
