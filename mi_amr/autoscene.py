@@ -27,7 +27,7 @@ from .data.blocks import BlockVolume
 from .data.cells import AMRCells
 from .data.opening import open_data, yt_field
 from .data.statistics import (STATS_VERSION, ValueStats, cells_and_weights, fine_histogram, histogram_name,
-                              stored_stats, value_stats, weighted_histogram, weighted_percentiles)
+                              stored_stats, value_stats, volume_and_mass_percentiles, weighted_histograms)
 from .data.transform import apply_value_transform
 from .data.yt_import import field_key
 from .transfer.function import PRESETS, TransferFunction
@@ -132,9 +132,9 @@ def file_stats(volume: BlockVolume) -> dict:
     if not vs.cells:
         return out
     for log in (False, True):
-        for mass in (False, True):
+        lo, hi, *hists = weighted_histograms(volume, log)
+        for mass, hist in zip((False, True), hists):
             name = histogram_name(log, mass)
-            lo, hi, hist = weighted_histogram(volume, log, mass=mass)
             out[name + "_span"] = [float(lo), float(hi)] if np.isfinite(lo) else None
             if hist is not None:
                 out[name] = hist
@@ -182,8 +182,7 @@ def _value_scale(stats, field, log, value_range, what="values", source="the data
     if log is None:
         share = vs.positive_volume_share
         if vs.has_positive:
-            vol = weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True, field=field)
-            mass = weighted_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], log=True, field=field, mass=True)
+            vol, mass = volume_and_mass_percentiles(stats, [LOW_PERCENTILE, HIGH_PERCENTILE], True, field)
         decades = max(vol[1], mass[1]) - min(vol[0], mass[0]) if vol else 0.0
         log = bool(share >= MIN_POSITIVE_SHARE and decades >= LOG_DECADES)
         if log:
@@ -218,13 +217,12 @@ def _planned_range(stats, field, vs: ValueStats, log: bool, vol=None, mass=None,
     chosen space (``vol``, ``mass``: the log10 percentiles when known)."""
     qs = [LOW_PERCENTILE, HIGH_PERCENTILE]
     if log:
-        vol = vol or weighted_percentiles(stats, qs, log=True, field=field)
-        mass = mass or weighted_percentiles(stats, qs, log=True, field=field, mass=True)
+        if vol is None:
+            vol, mass = volume_and_mass_percentiles(stats, qs, True, field)
         lo, hi = vol[0], max(vol[1], mass[1])
         note = None
     else:
-        vol = weighted_percentiles(stats, qs, field=field)
-        mass = weighted_percentiles(stats, qs, field=field, mass=True)
+        vol, mass = volume_and_mass_percentiles(stats, qs, False, field)
         floor = vs.min == 0 and vs.zero_volume >= FLOOR_SHARE * vs.volume
         if floor:                                 # zeros fill a share of the volume: the TF's bottom
             lo, hi = (mass[0], mass[1]) if mass[1] > mass[0] else (0.0, mass[1])

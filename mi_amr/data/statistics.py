@@ -127,15 +127,25 @@ def weighted_percentiles(data, qs, log: bool = False, field=None, mass: bool = F
     volume times the value's magnitude instead (where the mass of a density
     lies). ``data``: one data set or several (a time series: one histogram
     over all of them)."""
+    return volume_and_mass_percentiles(data, qs, log, field)[1 if mass else 0]
+
+
+def volume_and_mass_percentiles(data, qs, log: bool = False, field=None) -> tuple[list[float], list[float]]:
+    """``(volume-weighted, mass-weighted)`` percentiles ``qs`` of the values
+    (see `weighted_percentiles`), both from one pass over them
+    (`weighted_histograms`) or from an ``.amrb`` file's stored histograms."""
     st = stored_stats(data, field)
     if st is None:
-        lo, hi, hist = weighted_histogram(data, log, field, mass)
+        lo, hi, *hists = weighted_histograms(data, log, field)
     else:                                          # as `mi_amr.autoscene.file_stats` stored them
-        name = histogram_name(log, mass)
-        lo, hi = st.get(name + "_span") or (np.inf, -np.inf)
-        hist = st.get(name)
+        lo, hi = st.get(histogram_name(log, False) + "_span") or (np.inf, -np.inf)
+        hists = [st.get(histogram_name(log, mass)) for mass in (False, True)]
     if not np.isfinite(lo):
         raise ValueError("no values to place a transfer function over")
+    return tuple(_percentiles(lo, hi, hist, qs) for hist in hists)
+
+
+def _percentiles(lo, hi, hist, qs) -> list[float]:
     if hi <= lo or hist is None or not np.sum(hist) > 0:
         return [lo for _ in qs]
     edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
@@ -148,33 +158,30 @@ def histogram_name(log: bool, mass: bool) -> str:
     return f"hist_{'log' if log else 'linear'}{'_mass' if mass else ''}"
 
 
-def weighted_histogram(data, log: bool, field=None, mass: bool = False) -> tuple:
-    """``(lo, hi, counts)``: the volume-weighted histogram of
-    `HISTOGRAM_BINS` bins over [lo, hi], the extremes of the values (of
-    their log10, values <= 0 left out); ``mass``: weighted by volume times
-    the value's magnitude. ``(inf, -inf, None)`` without values, ``(lo, hi,
-    None)`` when all are one value."""
-    lo, hi = (np.inf, -np.inf)
-    for v, _ in cells_and_weights(data, field):
-        if log:
-            v = v[v > 0]
-            if not v.size:
-                continue
-            v = np.log10(v)
-        if v.size:
-            lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
-    if not np.isfinite(lo) or hi <= lo:
-        return lo, hi, None
-    edges = np.linspace(lo, hi, HISTOGRAM_BINS + 1)
-    hist = np.zeros(HISTOGRAM_BINS)
+def weighted_histograms(data, log: bool, field=None) -> tuple:
+    """``(lo, hi, volume counts, mass counts)``: histograms of
+    `HISTOGRAM_BINS` equal bins over [lo, hi], the extremes of the values
+    (of their log10, values <= 0 left out; from `value_stats`), weighted by
+    cell volume and by volume times the value's magnitude, in one pass
+    over the values. ``(inf, -inf, None, None)`` without values, ``(lo,
+    hi, None, None)`` when all are one value."""
+    vs = value_stats(data, field)
+    if not vs.cells or (log and not vs.has_positive):
+        return np.inf, -np.inf, None, None
+    lo, hi = vs.span(log)
+    if not hi > lo:
+        return lo, hi, None, None
+    volume, mass = np.zeros(HISTOGRAM_BINS), np.zeros(HISTOGRAM_BINS)
+    scale = HISTOGRAM_BINS / (hi - lo)
     for v, w in cells_and_weights(data, field):
-        if mass:
-            w = w * np.abs(v)
+        m = w * np.abs(v)
         if log:
             keep = v > 0
-            v, w = np.log10(v[keep]), w[keep]
-        hist += np.histogram(v, bins=edges, weights=w)[0]
-    return lo, hi, hist
+            v, w, m = np.log10(v[keep]), w[keep], m[keep]
+        index = np.clip(((v - lo) * scale).astype(np.int64), 0, HISTOGRAM_BINS - 1)
+        volume += np.bincount(index, weights=w, minlength=HISTOGRAM_BINS)
+        mass += np.bincount(index, weights=m, minlength=HISTOGRAM_BINS)
+    return lo, hi, volume, mass
 
 
 def fine_histogram(volume, bins: int = VIEW_HISTOGRAM_BINS) -> tuple:
