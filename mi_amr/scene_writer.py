@@ -89,11 +89,16 @@ def _tf_reference(tf: str) -> str:
 
 
 def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int = 64,
-                    mode: str | None = None) -> Path:
+                    mode: str | None = None, field: str | None = None, checksum: str | None = None) -> Path:
     """Write ``plan`` as an XML scene that loads ``data_file`` (``res`` and
     ``spp`` are its defaults, ``-D res=...`` overrides them; ``mode``: the
-    ``amrvolpath`` lighting mode, written unless None)."""
+    ``amrvolpath`` lighting mode, written unless None). ``field`` and
+    ``checksum``: for data yt loads, the field the medium reads from
+    ``data_file`` and the checksum of the data it must find there
+    (`mi_amr.data.opening.volume_checksum`)."""
     path = Path(path)
+    source = "".join(f"\n        <string name=\"{k}\" value={quoteattr(str(v))}/>"
+                     for k, v in (("field", field), ("data_checksum", checksum)) if v is not None)
     mode_line = "" if mode is None else f"\n        <string name=\"mode\" value={quoteattr(str(mode))}/>"
     m = plan.to_world_matrix()
     matrix = " ".join(f"{x:.9g}" for x in m.ravel())
@@ -150,7 +155,7 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
     </sensor>
 {lights}
     <medium type="amr" id="volume">
-        <string name="filename" value={quoteattr(str(data_file))}/>
+        <string name="filename" value={quoteattr(str(data_file))}/>{source}
         <string name="transfer_function" value={quoteattr(_tf_reference(plan.tf))}/>
         <float name="tf_min" value="{plan.tf_range[0]:.9g}"/>
         <float name="tf_max" value="{plan.tf_range[1]:.9g}"/>

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mi_amr.params import plugin_error
 from mi_amr.view.camera import OrbitCamera
 from mi_amr.view.protocol import safe_name
 from mi_amr.view.tf_spec import TABLE_SIZE, TFSpec, spiky_points
@@ -303,8 +304,8 @@ def test07_two_tabs_keep_their_own_views(served, browser):
 @pytest.mark.slow
 def test08_a_yt_data_set_in_the_viewer(tmp_path):
     """An Enzo output through yt (``mi-amr view DIR --field Density``): the
-    view renders, and its snapshot writes the data once as .amrb beside an
-    XML that renders to the same picture."""
+    view renders, and its snapshot with ``embed_data`` writes the data once
+    as .amrb beside an XML that renders to the same picture."""
     pytest.importorskip("yt")
     from amr_formats import write_enzo
     from mi_amr.view.engine import ViewEngine
@@ -312,7 +313,7 @@ def test08_a_yt_data_set_in_the_viewer(tmp_path):
     x, y, z = np.meshgrid(*[np.arange(16)] * 3, indexing="ij")
     top = 1.0 + 4.0 * np.exp(-((x - 9) ** 2 + (y - 7) ** 2 + (z - 8) ** 2) / 30.0) + 0.1 * rng.random((16, 16, 16))
     path = write_enzo(tmp_path / "DD0003", "DD0003", top, [((8, 8, 8), 3.0 + 2.0 * rng.random((8, 8, 8)))])
-    engine = ViewEngine(path, "Density", res=32, max_spp=16).start()
+    engine = ViewEngine(path, "Density", res=32, max_spp=16, embed_data=True).start()
     try:
         assert engine.ready.wait(120) and engine.error is None, engine.error
         frames = []
@@ -661,3 +662,38 @@ def test17_the_field_selector_shows_the_field_the_user_named(tmp_path):
         assert extras["field"] == "enzo,Density" and extras["field"] in extras["fields"]
     finally:
         engine.stop()
+
+
+def test18_a_snapshot_of_yt_data_names_them_and_checks_them(tmp_path):
+    """By default a snapshot of data yt loads copies nothing: its XML names
+    the output, the field and the data's checksum, renders to the snapshot's
+    picture, and once the output is written again with other values the
+    XML is refused in one line naming data_checksum (not rendered from the
+    wrong data)."""
+    pytest.importorskip("yt")
+    import mitsuba as mi
+    from amr_formats import write_enzo
+    from mi_amr.view.engine import ViewEngine
+    x, y, z = np.meshgrid(*[np.arange(8)] * 3, indexing="ij")
+    top = 1.0 + 4.0 * np.exp(-((x - 4) ** 2 + (y - 3) ** 2 + (z - 4) ** 2) / 6.0)
+    path = write_enzo(tmp_path / "DD0003", "DD0003", top, [])
+    engine = ViewEngine(path, "density", res=16, max_spp=4).start()
+    try:
+        assert engine.ready.wait(120) and engine.error is None, engine.error
+        frames = []
+        view = engine.open_view(lambda header, jpeg: frames.append(header))
+        deadline = time.monotonic() + 60
+        while not (frames and frames[-1]["spp"] >= 4) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        files = engine.snapshot(view, tmp_path / "out", "enzo")
+    finally:
+        engine.stop()
+    assert not list((tmp_path / "out").glob("*.amrb")) and not list((tmp_path / "out").glob("*.cells"))
+    text = files[2].read_text()
+    assert str(path.resolve()) in text and 'name="field"' in text and 'name="data_checksum"' in text
+    _same_picture(files[0], files[2], 4, block=8)
+    write_enzo(tmp_path / "DD0003", "DD0003", 2.0 * top, [])           # the output written again
+    with pytest.raises(Exception) as e:
+        mi.load_file(str(files[2]))
+    line = plugin_error(str(e.value))
+    assert "\n" not in line and "data_checksum" in line and "DD0003" in line, line

@@ -10,6 +10,7 @@ handed to yt (`mi_amr.data.yt_import`).
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -83,6 +84,20 @@ def open_data(data, field=None, fields=()):
         volume = load_volume(path, None if scalars is None else str(scalars))
         return volume, _extent(volume), str(path)
     return _from_yt(open_dataset(path), field, fields)
+
+
+def volume_checksum(volume: BlockVolume) -> str:
+    """A checksum of what a `BlockVolume` holds (blake2b, 128 bits, hex):
+    its block size, origin, block levels and coordinates and every value
+    slot (empty ones included). A snapshot of data it does not copy records
+    it, and a medium loading those data again checks it (``data_checksum``):
+    one pass over the values, about 1 GB/s."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(np.asarray([volume.block], np.int64).tobytes())
+    h.update(np.asarray(volume.origin, np.int64).tobytes())
+    for a in (volume.level, volume.coord, volume.values):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 def _extent(data) -> np.ndarray:

@@ -206,8 +206,17 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
 
      * - filename
        - |string|
-       - ExaBricks ``.cells`` file (or ``.npz``); the scalars are the
-         sibling ``.scalars`` file unless ``scalars`` names another.
+       - ExaBricks ``.cells`` file (or ``.npz``, ``.amrb``); the scalars are
+         the sibling ``.scalars`` file unless ``scalars`` names another. Or
+         any output yt loads, with ``field``.
+     * - field
+       - |string|
+       - The field yt reads from ``filename``; for a ``.cells`` file, its
+         ``NAME-FIELD.scalars``.
+     * - data_checksum
+       - |string|
+       - The checksum the data of ``filename`` and ``field`` must have
+         (`mi_amr.data.opening.volume_checksum`); other data are refused.
      * - scalars
        - |string|
        - Scalars file for ``filename`` (optional).

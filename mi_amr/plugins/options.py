@@ -17,6 +17,7 @@ from ..data.blocks import BlockVolume
 from ..data.cells import AMRCells
 from ..data.io import load_volume
 from ..data.metadata import physical_box
+from ..data.opening import field_scalars, is_native, open_data, volume_checksum
 from ..data.reconstruction import METHODS
 from ..data.transform import VALUE_TRANSFORMS, apply_value_transform, positive_floor
 from ..data.volume import as_volume
@@ -36,7 +37,7 @@ MAX_CONDITION = 1e7
 #: The parameters ``amr`` accepts, besides a nested phase function (the
 #: docs/manual/medium.md's table and the plugin docstring's are tested against this set:
 #: tests/test_docs.py).
-KNOWN = {"filename", "scalars", "data", "transfer_function", "tf_min", "tf_max", "tf_keep_range",
+KNOWN = {"filename", "field", "data_checksum", "scalars", "data", "transfer_function", "tf_min", "tf_max", "tf_keep_range",
          "density_scale", "reconstruction", "majorant", "grid_resolution", "grid_refinement", "thinning_resolution",
          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
          "kdtree_leaves", "max_iterations", "memory_limit", "value_masks", "value_transform",
@@ -151,6 +152,10 @@ def _load_data(props, method: str) -> AMRCells | BlockVolume:
     if has_file == has_data:
         raise ValueError("amr: give exactly one of 'filename' (a .cells, .npz or .amrb file) "
                          "or 'data' (an AMRCells object)")
+    for name in ("field", "data_checksum"):
+        if has_data and name in props.keys():
+            raise ParameterError(f"amr: '{name}' is for a 'filename' of data yt loads, not for 'data' "
+                                 "(the cells carry their values)")
     if has_data:
         if "scalars" in props.keys():
             raise ParameterError("amr: 'scalars' names the scalars file of a 'filename', not of 'data' "
@@ -162,7 +167,27 @@ def _load_data(props, method: str) -> AMRCells | BlockVolume:
         return data
     resolver = mi.file_resolver()
     path = Path(str(resolver.resolve(get_string(props, "amr", "filename", None))))
+    field = get_string(props, "amr", "field", None)
+    checksum = get_string(props, "amr", "data_checksum", None)
+    if not is_native(path):                  # anything yt loads (docs/manual/medium.md)
+        if field is None:
+            raise ParameterError(f"amr: filename {path} is not a .cells, .npz or .amrb file: name the 'field' "
+                                 "yt reads from it")
+        emission_field = get_string(props, "amr", "emission_field", None)
+        volume, _, _ = open_data(path, field, (emission_field,) if emission_field else ())
+        volume = as_volume(volume)
+        if checksum is not None and volume_checksum(volume) != checksum:
+            raise ParameterError(f"amr: the data of {path} field {field} are not those this scene was written "
+                                 f"for (data_checksum {checksum}, now {volume_checksum(volume)})")
+        return volume
+    if checksum is not None:
+        raise ParameterError(f"amr: data_checksum is for data yt loads, not for {path.suffix} files")
     scalars = get_string(props, "amr", "scalars", None)
+    if field is not None:
+        if scalars is not None or field_scalars(path, field) is None:
+            raise ParameterError(f"amr: field {field!r} of {path.name}: a .cells file's field is its "
+                                 f"{path.stem}-{field}.scalars (not there, or 'scalars' given too)")
+        scalars = str(field_scalars(path, field))
     if scalars is not None:
         scalars = str(resolver.resolve(scalars))
     return load_volume(path, scalars, overlap=overlap, method=method)

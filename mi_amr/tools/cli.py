@@ -238,6 +238,9 @@ def build_parser():
     v.add_argument("--allow-remote", action="store_true",
                    help="allow a --host other machines reach (the traffic is not encrypted)")
     v.add_argument("--out", default=".", help="folder for snapshots (default: the current one)")
+    v.add_argument("--embed-data", action="store_true",
+                   help="snapshots of data yt loads copy them (once, as .amrb beside the snapshots); by "
+                        "default a snapshot's XML names them by path, field and checksum")
     v.add_argument("--no-browser", action="store_true", help="print the URL, do not open a browser")
     v.add_argument("--res", type=_positive, default=256, help="image width (default 256)")
     v.add_argument("--max-spp", type=_positive, default=1024, help="stop refining at this many spp (default 1024)")

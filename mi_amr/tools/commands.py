@@ -71,7 +71,8 @@ def view(args):
     except SystemExit as e:
         raise ValueError(str(e.code).removeprefix("mi-amr: ")) from None
     engine = ViewEngine(args.scene, args.field, res=args.res, max_spp=args.max_spp,
-                        preview_scale=args.preview_scale, variant=args.variant, mode=args.mode)
+                        preview_scale=args.preview_scale, variant=args.variant, mode=args.mode,
+                        embed_data=args.embed_data)
     try:
         server = ViewServer(engine, host, port, out_dir=out)
     except (OSError, OverflowError) as e:

@@ -167,7 +167,7 @@ class ViewEngine:
 
     def __init__(self, source, field: str | None = None, *, res: int = 256, max_spp: int = DEFAULT_MAX_SPP,
                  preview_scale: float = 0.5, variant: str = "llvm_ad_rgb", mode: str | None = None,
-                 fast_ladder=FAST_LADDER):
+                 fast_ladder=FAST_LADDER, embed_data: bool = False):
         if not 16 <= res <= 4096:
             raise ValueError(f"res must lie in [16, 4096], got {res}")
         if not 1 <= max_spp <= 1_000_000:
@@ -183,6 +183,7 @@ class ViewEngine:
         self.fast_ladder = tuple(float(f) for f in fast_ladder)
         self.source, self.field, self.res, self.max_spp = source, field, int(res), int(max_spp)
         self.preview_scale, self.variant = float(preview_scale), variant
+        self.embed_data = bool(embed_data)       # snapshots of yt data: copy them (else name them)
         self.status = Status("loading", "starting", 0, None)
         self.error: str | None = None
         self.ready = threading.Event()
@@ -741,7 +742,8 @@ class ViewEngine:
             shown = view.denoised if denoise and view.denoised_spp == spp else None
         if shown is None:
             shown = self._denoised(image) if denoise else image
-        return write_snapshot(self.loaded, out_dir, name, image, shown, camera, spec, spp, budget, mode=mode)
+        return write_snapshot(self.loaded, out_dir, name, image, shown, camera, spec, spp, budget, mode=mode,
+                              embed_data=self.embed_data)
 
     def snapshot(self, view: View, out_dir, name: str) -> list[Path]:
         """`take_snapshot`'s four files: [exr, png, xml, tf.json]."""

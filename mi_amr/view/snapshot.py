@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from ..scene_writer import write_scene_xml
-from ..data.opening import field_scalars, is_native
+from ..data.opening import field_scalars, is_native, volume_checksum
+from ..data.volume import as_volume
 from ..images import write_exr, write_png
 from ..native_file import save_native
 from ..scene_xml import amr_elements, integrator_elements, parse_scene, set_parameters
@@ -108,12 +109,14 @@ def place(written: Path, target: Path):
 
 def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, shown: np.ndarray,
                    camera: OrbitCamera, spec: TFSpec, spp: int, budget: SnapshotBudget | None = None,
-                   mode: str | None = None) -> Snapshot:
+                   mode: str | None = None, embed_data: bool = False) -> Snapshot:
     """The files of a view (module docstring) in ``out_dir``: ``image`` the
     accumulation's mean (linear RGB, ``spp`` samples per pixel, rendered in
     the lighting ``mode``; None: the scene's integrator as it is), ``shown``
-    what the page shows (from the same samples). Nothing is overwritten;
-    what was placed is removed again when a later file fails."""
+    what the page shows (from the same samples). Data yt loads are named by
+    path, field and checksum in the XML, not copied, unless ``embed_data``
+    (then written once as ``.amrb`` beside the snapshots). Nothing is
+    overwritten; what was placed is removed again when a later file fails."""
     out_dir = Path(out_dir).resolve()
     safe_name(name)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -131,11 +134,14 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
         tf.to_json(private[3])
         side = []
         if loaded.plan is not None:
-            data = _data_file(loaded, out_dir, Path(tmp))
-            if data.parent == Path(tmp):              # written now: placed beside the snapshot
-                side = [(data, out_dir / data.name)]
-                data = out_dir / data.name
-            _data_xml(loaded, private[2], paths[3], data, camera, spec, tf, spp, mode)
+            source = None if embed_data else _source_reference(loaded)
+            if source is None:
+                data = _data_file(loaded, out_dir, Path(tmp))
+                if data.parent == Path(tmp):          # written now: placed beside the snapshot
+                    side = [(data, out_dir / data.name)]
+                    data = out_dir / data.name
+                source = (data, None, None)
+            _data_xml(loaded, private[2], paths[3], source, camera, spec, tf, spp, mode)
         else:
             _scene_xml(loaded, private[2], paths[3], camera, spec, spp, mode)
         try:
@@ -155,6 +161,16 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
     return Snapshot(placed, spp, notes)
 
 
+def _source_reference(loaded: LoadedScene):
+    """``(path, field, checksum)`` by which the XML names data yt loads
+    (the medium reads them again and checks the checksum), or None: native
+    files and data given as objects go through `_data_file`."""
+    src = loaded.source
+    if not isinstance(src, (str, Path)) or is_native(src) or loaded.field is None:
+        return None
+    return Path(str(src)).resolve(), loaded.field, volume_checksum(as_volume(loaded.plan.data))
+
+
 def _data_file(loaded: LoadedScene, out_dir: Path, tmp: Path) -> Path:
     """A file the XML can load: the source itself, the data written before
     into ``out_dir``, or (yt data, a field's own .scalars) the data written
@@ -171,7 +187,7 @@ def _data_file(loaded: LoadedScene, out_dir: Path, tmp: Path) -> Path:
     return save_native(loaded.plan.data, tmp / name)
 
 
-def _data_xml(loaded: LoadedScene, path: Path, tf_path: Path, data: Path, camera: OrbitCamera, spec: TFSpec, tf,
+def _data_xml(loaded: LoadedScene, path: Path, tf_path: Path, source, camera: OrbitCamera, spec: TFSpec, tf,
               spp: int, mode: str | None = None):
     """The planned scene of data with the view's camera, TF, density scale and lighting mode."""
     plan = replace(loaded.plan, tf=str(tf_path), tf_range=tf.domain, density_scale=spec.density,
@@ -180,7 +196,8 @@ def _data_xml(loaded: LoadedScene, path: Path, tf_path: Path, data: Path, camera
                           f"{tf_path.name} ({'log10' if spec.log else 'linear'} display over "
                           f"[{spec.range[0]:.4g}, {spec.range[1]:.4g}], colormap {spec.colormap}), "
                           f"density_scale {spec.density:.4g}" + (f", lighting mode {mode}" if mode else "")])
-    write_scene_xml(plan, data, path, res=loaded.size[0], spp=spp, mode=mode)
+    data, field, checksum = source
+    write_scene_xml(plan, data, path, res=loaded.size[0], spp=spp, mode=mode, field=field, checksum=checksum)
 
 
 def _scene_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCamera, spec: TFSpec, spp: int,
