@@ -301,6 +301,18 @@ def test07_two_tabs_keep_their_own_views(served, browser):
     _same_picture(root / "snapshots" / "tab-b.exr", root / "snapshots" / "tab-b.xml", spp)
 
 
+def _refined_snapshot(engine, spp: int, out, name: str):
+    """``(files, frame headers)``: a view of ``engine`` (loaded) refined to
+    ``spp`` (60 s at most), then its snapshot's four files."""
+    assert engine.ready.wait(120) and engine.error is None, engine.error
+    frames = []
+    view = engine.open_view(lambda header, jpeg: frames.append(header))
+    deadline = time.monotonic() + 60
+    while not (frames and frames[-1]["spp"] >= spp) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return engine.snapshot(view, out, name), frames
+
+
 @pytest.mark.slow
 def test08_a_yt_data_set_in_the_viewer(tmp_path):
     """An Enzo output through yt (``mi-amr view DIR --field Density``): the
@@ -315,14 +327,8 @@ def test08_a_yt_data_set_in_the_viewer(tmp_path):
     path = write_enzo(tmp_path / "DD0003", "DD0003", top, [((8, 8, 8), 3.0 + 2.0 * rng.random((8, 8, 8)))])
     engine = ViewEngine(path, "Density", res=32, max_spp=16, embed_data=True).start()
     try:
-        assert engine.ready.wait(120) and engine.error is None, engine.error
-        frames = []
-        view = engine.open_view(lambda header, jpeg: frames.append(header))
-        deadline = time.monotonic() + 60
-        while not (frames and frames[-1]["spp"] >= 16) and time.monotonic() < deadline:
-            time.sleep(0.05)
+        files, frames = _refined_snapshot(engine, 16, tmp_path / "out", "enzo")
         assert frames[-1]["spp"] == 16 and frames[-1]["width"] == 32
-        files = engine.snapshot(view, tmp_path / "out", "enzo")
     finally:
         engine.stop()
     assert [f.name for f in files] == ["enzo.exr", "enzo.png", "enzo.xml", "enzo.tf.json"]
@@ -679,13 +685,7 @@ def test18_a_snapshot_of_yt_data_names_them_and_checks_them(tmp_path):
     path = write_enzo(tmp_path / "DD0003", "DD0003", top, [])
     engine = ViewEngine(path, "density", res=16, max_spp=4).start()
     try:
-        assert engine.ready.wait(120) and engine.error is None, engine.error
-        frames = []
-        view = engine.open_view(lambda header, jpeg: frames.append(header))
-        deadline = time.monotonic() + 60
-        while not (frames and frames[-1]["spp"] >= 4) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        files = engine.snapshot(view, tmp_path / "out", "enzo")
+        files, _ = _refined_snapshot(engine, 4, tmp_path / "out", "enzo")
     finally:
         engine.stop()
     assert not list((tmp_path / "out").glob("*.amrb")) and not list((tmp_path / "out").glob("*.cells"))
