@@ -49,6 +49,18 @@ def intersect_unit_cube(o: mi.Vector3f, inv_d: mi.Vector3f):
     return (t0 <= t1) & dr.isfinite(t0) & dr.isfinite(t1), t0, t1
 
 
+def clip_to_half_space(o: mi.Vector3f, d: mi.Vector3f, t_lo, t_hi, normal: mi.Vector3f, offset):
+    """``(t_lo, t_hi)`` of the ray ``o + t d`` kept where ``normal . x <=
+    offset`` (a half-space, local coordinates): the interval narrowed to
+    the plane's side, empty (``t_hi < t_lo``) where the ray lies wholly
+    outside. ``normal = 0``, ``offset >= 0`` keeps everything."""
+    nd, no = dr.dot(normal, d), dr.dot(normal, o)
+    t_plane = (offset - no) * dr.rcp(dr.select(nd == 0.0, 1.0, nd))
+    t_lo = dr.select(nd < 0.0, dr.maximum(t_lo, t_plane), t_lo)
+    t_hi = dr.select(nd > 0.0, dr.minimum(t_hi, t_plane), t_hi)
+    return t_lo, dr.select((nd == 0.0) & (no > offset), -dr.inf, t_hi)
+
+
 def in_unit_cube(u: mi.Vector3f) -> mi.Bool:
     """Whether local points ``u`` lie in the closed unit cube (the data bounds)."""
     return dr.all((u >= 0.0) & (u <= 1.0))

@@ -16,7 +16,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..device.grid import DeviceTwoLevelGrid
-from ..device.ray import flush_tiny, intersect_unit_cube, safe_rcp
+from ..device.ray import clip_to_half_space, flush_tiny, intersect_unit_cube, safe_rcp
 from ..device.tracking import (GRADIENT_FLOOR, GRADIENT_MARGIN, DecompositionTracking, DeltaTracking,
                                FreeFlight, LocalRay, MajorantMargin, RatioTracking, Replay, ResidualRatioTracking,
                                SpanMajorant, Transmittance, walk_segments)
@@ -217,6 +217,14 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
        - |string|
        - The checksum the data of ``filename`` and ``field`` must have
          (`mi_amr.data.opening.volume_checksum`); other data are refused.
+     * - clip_normal
+       - |vector|
+       - A clip plane's normal (world space): the medium is kept where
+         ``clip_normal . x <= clip_offset``, empty beyond, in every
+         integrator and mode (`set_clip_plane` moves it).
+     * - clip_offset
+       - |float|
+       - The clip plane's offset, world units. Default: 0.
      * - scalars
        - |string|
        - Scalars file for ``filename`` (optional).
@@ -373,6 +381,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self._to_local = mi.Transform4f(options.to_world.inverse())
         self._max_iterations = mi.UInt32(options.max_iterations)
         dr.make_opaque(self._to_local, self._max_iterations)
+        self.set_clip_plane(*(options.clip or (None,)))
         # the one owner of the TF and the density scale: every change goes
         # through it and then reclassifies the structures
         emission = options.emission
@@ -627,12 +636,39 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         the walk's factors scale, summed over channels."""
         return Replay(mode, self.value_local, weight)
 
+    def set_clip_plane(self, normal=None, offset: float = 0.0):
+        """Keep the medium where ``normal . x <= offset`` (world space; the
+        rest is empty in every integrator and mode, shadow rays included);
+        ``normal`` None keeps all of it. Opaque: another plane compiles
+        nothing; the walks only narrow, so a clipped frame never costs more.
+        A plane and offset that are not finite are a `ParameterError`."""
+        if normal is None:
+            n_local, c_local = np.zeros(3), 1.0
+        else:
+            n = np.asarray(normal, np.float64).reshape(3)
+            if not (np.isfinite(n).all() and np.any(n) and np.isfinite(float(offset))):
+                raise ParameterError(f"amr: clip plane: a nonzero finite normal and a finite offset, got "
+                                     f"{n.tolist()} and {offset}")
+            m = np.array(self.options.to_world.matrix, np.float64)       # x_world = A x_local + b
+            n_local, c_local = m[:3, :3].T @ n, float(offset) - float(n @ m[:3, 3])
+            scale = np.abs(n_local).max()                                 # well-scaled in float32
+            n_local, c_local = n_local / scale, c_local / scale
+        self.clip = None if normal is None else (np.asarray(normal, np.float64).reshape(3), float(offset))
+        self._clip_normal = dr.opaque(mi.Vector3f, [float(x) for x in n_local])
+        self._clip_offset = dr.opaque(mi.Float, float(c_local))
+
+    def _clipped(self, o, d, t_lo, t_hi):
+        """``(t_lo, t_hi)`` narrowed to the clip plane's kept side (local units)."""
+        return clip_to_half_space(o, d, t_lo, t_hi, self._clip_normal, self._clip_offset)
+
     def _track(self, ray, t_max, active, tracking):
         """The result of the estimator ``tracking`` walked along ``ray`` in
-        the unit cube up to ``t_max`` (`walk_segments`)."""
+        the unit cube up to ``t_max`` (`walk_segments`), on the clip plane's
+        kept side."""
         o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
-        local = LocalRay(o=o, d=d, t_lo=dr.maximum(t0, 0.0), t_hi=dr.minimum(t1, t_max * s), scale=s)
+        t_lo, t_hi = self._clipped(o, d, dr.maximum(t0, 0.0), dr.minimum(t1, t_max * s))
+        local = LocalRay(o=o, d=d, t_lo=t_lo, t_hi=t_hi, scale=s)
         active = (mi.Bool(active) & hit & (s > 0.0) & (local.t_lo < local.t_hi)
                   & (self.structures.global_majorant > 0.0))
         return walk_segments(self.structures.segments(), local, active, tracking, self._max_iterations)
@@ -646,7 +682,8 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         key = self._ray_majorant.key_of(ray)
         o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
-        hit &= s > 0.0
+        t0, t1 = self._clipped(o, d, t0, t1)
+        hit &= (s > 0.0) & (t0 <= t1)
         global_mu = self.structures.global_majorant
         local = LocalRay(o=o, d=d, t_lo=dr.maximum(t0, 0.0), t_hi=dr.minimum(t1, ray.maxt * s), scale=s)
         if self.majorant_mode == "global":

@@ -41,7 +41,8 @@ KNOWN = {"filename", "field", "data_checksum", "scalars", "data", "transfer_func
          "density_scale", "reconstruction", "majorant", "grid_resolution", "grid_refinement", "thinning_resolution",
          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
          "kdtree_leaves", "max_iterations", "memory_limit", "value_masks", "value_transform",
-         "emission", "emission_field", "emission_scale", "emission_min", "emission_max", "emission_transform"}
+         "emission", "emission_field", "emission_scale", "emission_min", "emission_max", "emission_transform",
+         "clip_normal", "clip_offset"}
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,7 @@ class MediumOptions:
     to_world: "mi.ScalarTransform4f"
     structures: StructureOptions
     emission: "Emission | None" = None
+    clip: "tuple | None" = None            # (normal (3,), offset): keep world points with normal . x <= offset
 
     @property
     def world_scale(self) -> float:
@@ -111,7 +113,24 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
                                minimum=1, maximum=2**31),
         to_world=_to_world(props, volume),
         structures=structures,
-        emission=emission)
+        emission=emission,
+        clip=_clip(props))
+
+
+def _clip(props) -> "tuple | None":
+    """``clip_normal`` (a world-space vector) and ``clip_offset`` (world
+    units): the medium is kept where ``normal . x <= offset`` (None: all)."""
+    if "clip_normal" not in props.keys():
+        if "clip_offset" in props.keys():
+            raise ParameterError("amr: clip_offset needs clip_normal (the clip plane's normal)")
+        return None
+    try:
+        normal = np.array([float(x) for x in props["clip_normal"]], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError(f"amr: clip_normal must be a vector of 3 numbers, got {props['clip_normal']!r}") from None
+    if normal.shape != (3,) or not np.isfinite(normal).all() or not np.any(normal):
+        raise ParameterError(f"amr: clip_normal must be a nonzero finite vector of 3 numbers, got {normal.tolist()}")
+    return normal, get_float(props, "amr", "clip_offset", 0.0)
 
 
 def as_transform4f(t) -> "mi.ScalarTransform4f":
