@@ -75,7 +75,11 @@ class DataScene:
         self.source = data
         self.plan: ScenePlan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **plan)
         self.mode, self.res, self.spp = mode, int(res), int(spp)
-        self._loaded = None           # (key, mi.Scene)
+        #: A clip plane ``(normal, offset)`` in world space (the domain
+        #: centred at 0, its longest side 1): the medium is kept where
+        #: ``normal . x <= offset``; None: none (`AMRMedium.set_clip_plane`).
+        self.clip = None
+        self._loaded = None           # (key, mi.Scene, the state put into it)
 
     # ---- the plan's choices, to edit ---------------------------------------------
     tf = property(lambda self: self.plan.tf, lambda self, v: setattr(self.plan, "tf", str(v)),
@@ -127,11 +131,9 @@ class DataScene:
             d = scene_for(self.plan, res=self.res, spp=self.spp)
             if self.mode:
                 d = dict_with_integrator_parameters(d, {"mode": self.mode})
-            self._loaded = (key, mi.load_dict(d, parallel=False), dict(self._state()))
-            return self._loaded[1]
+            self._loaded = (key, mi.load_dict(d, parallel=False), {})
         self._apply()
         return self._loaded[1]
-
     @property
     def params(self) -> mi.SceneParameters:
         """``mi.traverse`` of `mitsuba_scene` (for scripting and gradients:
@@ -146,12 +148,18 @@ class DataScene:
     def _state(self) -> dict:
         return {"tf": (self.plan.tf, tuple(self.plan.tf_range), self.plan.density_scale),
                 "camera": (tuple(self.origin), tuple(self.target), tuple(self.up), self.plan.fov),
-                "res": self.res}
+                "res": self.res,
+                "clip": None if self.clip is None else (tuple(float(x) for x in self.clip[0]), float(self.clip[1]))}
 
     def _apply(self):
         """Put what changed since the last render into the loaded scene."""
         _, scene, before = self._loaded
         now = self._state()
+        if not before:                              # just loaded: everything but the clip is in it
+            before = dict(now, clip=None)
+        if now["clip"] != before["clip"]:
+            medium = next(m for m in scene_media(scene) if isinstance(m, AMRMedium))
+            medium.set_clip_plane(*(now["clip"] or (None,)))
         if now["tf"] != before["tf"]:
             tf, tf_range, density = now["tf"]
             medium = next(m for m in scene_media(scene) if isinstance(m, AMRMedium))

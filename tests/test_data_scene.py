@@ -70,3 +70,22 @@ def test03_inline_png_and_a_saved_scene(llvm, data, tmp_path):
     assert main(["render", str(paths["xml"]), "--seed", "2", "-o", str(tmp_path / "again.exr"), "-q"]) == 0
     np.testing.assert_array_equal(read_exr(paths["exr"]), read_exr(tmp_path / "again.exr"))
     assert isinstance(image.to_bitmap(), mi.Bitmap)
+
+
+def test04_a_clip_plane_from_python(llvm, data):
+    """``sc.clip = (normal, offset)`` (world space) clips the loaded
+    medium: the picture equals one with the plane given to the medium
+    directly (same seed), and ``sc.clip = None`` gives the first picture
+    back, all in the same loaded scene."""
+    sc = mi_amr.scene(str(data), res=12, spp=4)
+    first = sc.render(seed=1)
+    loaded = sc.mitsuba_scene
+    sc.clip = ([1.0, 0.0, 0.0], 0.0)
+    clipped = sc.render(seed=1)
+    assert sc.mitsuba_scene is loaded and np.abs(clipped - first).mean() > 1e-3
+    fresh = mi_amr.DataScene(copy.copy(sc.plan), res=12, spp=4)
+    fresh.mitsuba_scene.shapes()                                   # loaded, then clipped by hand
+    fresh.medium.set_clip_plane([1.0, 0.0, 0.0], 0.0)
+    np.testing.assert_allclose(clipped, fresh.render(seed=1), rtol=1e-5, atol=1e-6)
+    sc.clip = None
+    np.testing.assert_array_equal(sc.render(seed=1), first)
