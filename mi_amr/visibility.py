@@ -71,7 +71,9 @@ def sampled_cells(data, max_cells: int = MAX_SAMPLES):
         b, b3 = data.block, data.block ** 3
         n_blocks = len(data.level)
         per_block = max(1, min(b3, max_cells // max(n_blocks, 1)))
-        cell_step = max(1, b3 // per_block)
+        cell_step = b3 // per_block
+        if cell_step > 1:                    # odd in x and in y (the block's sides are powers of two): the
+            cell_step |= 1 | b               # lattice spreads over x, y and z of each block, not one column
         block_step = max(1, int(np.ceil(n_blocks / max_cells)))
         local = block_offsets(b)[::cell_step]
         chunk = max(1, (1 << 20) // len(local))

@@ -143,7 +143,8 @@ def test07_the_opacity_grid_is_the_cells_volume_mean(llvm):
     """`opacity_grid` (what the check marches through): over 32^3 cells, a
     64-voxel grid gives each voxel the value of the cell that holds it
     (cells larger than a voxel are spread over the voxels they cover), a
-    16-voxel grid the mean of the 8 cells in each voxel, exactly."""
+    16-voxel grid the mean of the 8 cells in each voxel, exactly; a
+    sample of a few cells a block spreads over the block."""
     import numpy as np
     from mi_amr.data.blocks import BlockVolume
     from mi_amr.visibility import opacity_grid
@@ -154,3 +155,9 @@ def test07_the_opacity_grid_is_the_cells_volume_mean(llvm):
     np.testing.assert_allclose(opacity_grid(vol, lambda x: x, grid=64), fine, rtol=1e-12)
     coarse = xyz.reshape(16, 2, 16, 2, 16, 2).mean(axis=(1, 3, 5))
     np.testing.assert_allclose(opacity_grid(vol, lambda x: x, grid=16), coarse, rtol=1e-6)
+    # a sample of 8 cells a block (of 16^3) spreads over x, y and z, not down one column of the block
+    from mi_amr.visibility import sampled_cells
+    big = BlockVolume.from_dense(v, block=16)
+    pos = np.concatenate([p for p, _, _, _ in sampled_cells(big, max_cells=64)])
+    first = pos[(pos < 16).all(axis=1)]
+    assert len(first) == 8 and all(len(np.unique(first[:, k])) == 8 for k in range(3)), first
