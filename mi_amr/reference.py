@@ -30,6 +30,7 @@ from .reconstruction import Reconstruction
 from .scene_xml import PASS_THROUGH, amr_elements, load_root, parse_scene
 from .structures.host_reconstruction import HostReconstruction
 from .transfer.function import TransferFunction
+from .visibility import box_chords
 
 #: Default memory limit of the dense reference (sigma_t + albedo), bytes.
 DEFAULT_MEMORY_LIMIT = 4 << 30
@@ -206,10 +207,7 @@ def emission_absorption_march(cells: AMRCells, tf: TransferFunction, density_sca
     sigma = (density_scale * rgba[..., 3] * found).transpose(2, 1, 0)          # [x, y, z]
     colour = (brightness * rgba[..., :3]).transpose(2, 1, 0, 3)
     o, d = np.asarray(origins, np.float64), np.asarray(dirs, np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_a, t_b = -o / d, (1.0 - o) / d
-    t0 = np.nanmax(np.minimum(t_a, t_b), axis=1).clip(min=0.0)
-    t1 = np.nanmin(np.maximum(t_a, t_b), axis=1)
+    t0, t1 = box_chords(o, d, 0.0, 1.0)
     t1 = np.maximum(t1, t0)
     dt = (t1 - t0) / steps
     L = np.zeros((len(o), 3))

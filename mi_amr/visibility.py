@@ -146,6 +146,16 @@ def camera_rays(origin, target, up, fov: float, res: int) -> tuple[np.ndarray, n
     return np.broadcast_to(origin, dirs.shape), dirs
 
 
+def box_chords(origins, dirs, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """``(t0, t1)`` per ray (numpy, (n, 3) origins and directions): where
+    ``origins + t dirs`` (``t >= 0``) enters and leaves the box ``[lo,
+    hi]``; the ray meets it where ``t1 > t0`` (slab test; axis-parallel
+    directions as the slabs they lie in)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_a, t_b = (np.asarray(lo) - origins) / dirs, (np.asarray(hi) - origins) / dirs
+    return np.nanmax(np.minimum(t_a, t_b), axis=1).clip(min=0.0), np.nanmin(np.maximum(t_a, t_b), axis=1)
+
+
 def projected_depth(alpha_grid, extent, origins, dirs, steps: int | None = None) -> tuple:
     """``(optical depth (n,), hits (n,) bool)`` of rays through the domain box
     (world space: centred at the origin, sides ``extent``) at unit density
@@ -153,11 +163,7 @@ def projected_depth(alpha_grid, extent, origins, dirs, steps: int | None = None)
     chord of the box; ``hits``: the rays that meet the box."""
     extent = np.asarray(extent, np.float64)
     half = 0.5 * extent
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / dirs
-        t_a, t_b = (-half - origins) * inv, (half - origins) * inv
-    t0 = np.nanmax(np.minimum(t_a, t_b), axis=1).clip(min=0.0)
-    t1 = np.nanmin(np.maximum(t_a, t_b), axis=1)
+    t0, t1 = box_chords(origins, dirs, -half, half)
     hits = t1 > t0
     shape = np.asarray(alpha_grid.shape)
     steps = steps or int(2 * shape.max())
@@ -242,10 +248,7 @@ def footprint_mask(scene, extent) -> np.ndarray:
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
     origins, dirs = (np.stack([np.asarray(c, np.float64) for c in (v.x, v.y, v.z)], axis=1) for v in (ray.o, ray.d))
     half = 0.5 * np.asarray(extent, np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_a, t_b = (-half - origins) / dirs, (half - origins) / dirs
-    t0 = np.nanmax(np.minimum(t_a, t_b), axis=1).clip(min=0.0)
-    t1 = np.nanmin(np.maximum(t_a, t_b), axis=1)
+    t0, t1 = box_chords(origins, dirs, -half, half)
     return (t1 > t0).reshape(h, w)
 
 

@@ -139,16 +139,21 @@ def waves(directory):
     return path, "rho"
 
 
+def _centre_refined_plotfile(path, f, field):
+    """An AMReX plotfile at ``path`` of ``f(x, y, z)`` on 16^3 root cells over
+    the unit cube, the central 8^3 refined once (16^3 level-1 cells)."""
+    levels = [[((0, 0, 0), f(*_centres(16)))],
+              [((8, 8, 8), f(*_centres(32, start=(8, 8, 8), shape=(16, 16, 16))))]]
+    write_amrex_plotfile(path, levels, [0, 0, 0], [1, 1, 1], field=field)
+    return path, field
+
+
 def velocity(directory):
     """An AMReX plotfile of a velocity component: a pair of counter-rotating
     vortices, negative in half the volume (km/s-like scale, up to 30)."""
     def v(x, y, z):
         return 30.0 * (np.sin(2 * np.pi * y) * np.cos(np.pi * (x - 0.5)) * np.exp(-((z - 0.5) / 0.3) ** 2))
-    levels = [[((0, 0, 0), v(*_centres(16)))],
-              [((8, 8, 8), v(*_centres(32, start=(8, 8, 8), shape=(16, 16, 16))))]]
-    path = Path(directory) / "plt_vel"
-    write_amrex_plotfile(path, levels, [0, 0, 0], [1, 1, 1], field="x_velocity")
-    return path, "x_velocity"
+    return _centre_refined_plotfile(Path(directory) / "plt_vel", v, "x_velocity")
 
 
 def sheet(directory):
@@ -184,11 +189,7 @@ def embedded(directory):
         r = np.sqrt((x - 0.5) ** 2 + (y - 0.5) ** 2 + (z - 0.5) ** 2)
         fluid = 1e5 * (1 + 0.01 * np.cos(3 * np.pi * x) * np.cos(2 * np.pi * z))
         return np.where(r < 0.2, 0.0, fluid)
-    levels = [[((0, 0, 0), p(*_centres(16)))],
-              [((8, 8, 8), p(*_centres(32, start=(8, 8, 8), shape=(16, 16, 16))))]]
-    path = Path(directory) / "plt_eb"
-    write_amrex_plotfile(path, levels, [0, 0, 0], [1, 1, 1], field="pressure")
-    return path, "pressure"
+    return _centre_refined_plotfile(Path(directory) / "plt_eb", p, "pressure")
 
 
 def core(directory):
