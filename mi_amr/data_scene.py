@@ -30,7 +30,7 @@ from .images import png_bytes, write_exr, write_png
 from .native_file import save_data
 from .plugins.integrator import MODES
 from .plugins.medium import AMRMedium, scene_media
-from .rendering import DEFAULT_SPP
+from .rendering import DEFAULT_SPP, chunk_for
 from .scene_xml import dict_with_integrator_parameters
 from .transfer.function import TransferFunction
 
@@ -186,7 +186,7 @@ class DataScene:
                 raise ValueError(f"res: at least 1, got {res}")
             self.res = int(res)
         scene = self.mitsuba_scene
-        image = render_local(scene, spp, -(-spp // 8), seed, progress=progress, desc="mi_amr.scene")
+        image = render_local(scene, spp, chunk_for(spp, None), seed, progress=progress, desc="mi_amr.scene")
         image = np.array(image, dtype=np.float32)
         if not np.all(np.isfinite(image)):
             raise ValueError(f"the rendered image holds {int((~np.isfinite(image)).sum())} non-finite values")

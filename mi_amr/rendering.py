@@ -136,9 +136,9 @@ def render_jobs(jobs, cluster=None, *, chunk_spp: int | None = None, progress: b
     order. ``cluster``: a ``dask.distributed.Client`` (frames in parallel;
     a data job goes as its scene dictionary) or None (here, one after the
     other); data jobs are planned here unless their ``source`` is a
-    `ScenePlan` already; ``chunk_spp``: samples per chunk
-    (the image is the same for any placement of the chunks); ``desc``: the
-    progress bar's label. The Mitsuba variant must be set."""
+    `ScenePlan` already; ``chunk_spp``: samples per chunk (default an
+    eighth of the job's spp; the image depends on the chunks, not on where
+    they run); ``desc``: the progress bar's label. The Mitsuba variant must be set."""
     jobs = list(jobs)
     for job in jobs:
         job.check()
@@ -156,21 +156,20 @@ def render_jobs(jobs, cluster=None, *, chunk_spp: int | None = None, progress: b
     same = len({(s, j.seed, j.mode) for s, j in zip(spps, jobs)}) == 1
     if cluster is not None and same and jobs:
         spp, job = spps[0], jobs[0]
-        chunk = chunk_spp or -(-spp // max(8, 2 * (len(cluster.scheduler_info().get("workers", {})) or 1)))
         t0 = time.perf_counter()
-        images = distributed.render_frames(frames, spp, cluster, chunk, job.seed, progress=progress,
-                                           desc=desc or _label(job), drjit_threads=drjit_threads,
+        images = distributed.render_frames(frames, spp, cluster, chunk_for(spp, chunk_spp), job.seed,
+                                           progress=progress, desc=desc or _label(job), drjit_threads=drjit_threads,
                                            integrator=_integrator(job))
         seconds = time.perf_counter() - t0
         return [RenderResult(j, _image(im), p, spp, seconds) for j, p, im in zip(jobs, plans, images)]
     for job, plan, spp, (scene, params) in zip(jobs, plans, spps, frames):
         t0 = time.perf_counter()
         if cluster is not None:
-            image = distributed.render_frames([(scene, params)], spp, cluster, chunk_spp or -(-spp // 8), job.seed,
+            image = distributed.render_frames([(scene, params)], spp, cluster, chunk_for(spp, chunk_spp), job.seed,
                                               progress=progress, desc=desc or _label(job),
                                               drjit_threads=drjit_threads, integrator=_integrator(job))[0]
         else:
-            image = distributed.render_local(scene, spp, chunk_spp or -(-spp // 8), job.seed, params=params,
+            image = distributed.render_local(scene, spp, chunk_for(spp, chunk_spp), job.seed, params=params,
                                              progress=progress, desc=desc or _label(job),
                                              integrator=_integrator(job))
         results.append(RenderResult(job, _image(image), plan, spp, time.perf_counter() - t0))
@@ -180,6 +179,12 @@ def render_jobs(jobs, cluster=None, *, chunk_spp: int | None = None, progress: b
 def render_job(job: RenderJob, **options) -> RenderResult:
     """One `RenderJob` (see `render_jobs`)."""
     return render_jobs([job], **options)[0]
+
+
+def chunk_for(spp: int, chunk_spp: int | None) -> int:
+    """Samples per chunk: ``chunk_spp``, else an eighth of ``spp`` (the
+    same here and on a cluster, so the same image)."""
+    return chunk_spp or -(-spp // 8)
 
 
 def _integrator(job: RenderJob) -> dict | None:
