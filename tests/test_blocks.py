@@ -195,7 +195,7 @@ def test08_a_medium_from_a_file_keeps_only_blocks(llvm, tmp_path):
                                        "density_scale": 20.0}, res=8, integrator="amrvolpath"))
     assert np.isfinite(mi.render(scene, spp=2).numpy()).all()
     med = mi_amr.amr_media(scene)[0]
-    assert isinstance(med.volume, BlockVolume) and med.structures._given_cells is None
+    assert isinstance(med.volume, BlockVolume) and med._given_cells is None
     # brick structures build from the blocks, level by level, and keep no per-cell records
     bricked = mi.load_dict({"type": "amr", "filename": str(path), "traversal": "brick", "sampling": "brick"})
     from mi_amr.structures.cache import HOST_CACHE

@@ -27,11 +27,13 @@ FLOORS = [
     # their device halves: traversal, sampling, tracking
     ["mi_amr.device"],
     # building the structures a medium asks for
-    ["mi_amr.builds", "mi_amr.strategies", "mi_amr.pipeline"],
+    ["mi_amr.building"],
     # the Mitsuba plugins
     ["mi_amr.plugins"],
-    # images, what a picture shows, scene files, Mitsuba's own medium on the same data, test helpers
-    ["mi_amr.images", "mi_amr.visibility", "mi_amr.scene_xml", "mi_amr.reference", "mi_amr.testing"],
+    # images, what a picture shows, scene files, Mitsuba's own medium on the same data, test helpers,
+    # the annotations and slices that tell what a picture shows (outline, levels, legend)
+    ["mi_amr.images", "mi_amr.visibility", "mi_amr.scene_xml", "mi_amr.reference", "mi_amr.testing",
+     "mi_amr.annotations", "mi_amr.slicing"],
     # scenes planned from data and written for Mitsuba, the native file written with what they and a medium
     # read first, a run's outputs
     ["mi_amr.autoscene", "mi_amr.scene_writer", "mi_amr.native_file", "mi_amr.series"],

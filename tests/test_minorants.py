@@ -107,7 +107,7 @@ def test04_residual_ratio_tracking_matches_the_exact_optical_depth(llvm, travers
     look-ups than plain ratio tracking and a smaller variance."""
     from stress_oracles import assert_transmittance, face_rays, optical_depth_nearest, ratio_tracking
     med = dense_medium("nearest", traversal, grid_refinement=refinement)
-    cells = med.structures.cells
+    cells = med.cells
     o, d = face_rays(32, np.random.default_rng(5), 300)
     sigma = 4.0 * med.tf(cells.value)[:, 3].astype(np.float64)
     expected = np.exp(-optical_depth_nearest(cells, sigma, o, np.where(np.abs(d) < 1e-12, 0.0, d)))

@@ -208,7 +208,7 @@ def test01_the_parsers_name_every_axis_and_refuse_in_one_line(matrix, cells):
         assert len(matrix.medium.get(axis, ())) >= 2, (axis, matrix.medium)
     for plugin in ("amrvolpath", "amrprbvolpath"):
         assert set(matrix.integrator[plugin]["mode"]) == set(amrvolpath_module.MODES)
-    from mi_amr.pipeline import SAMPLINGS, TRAVERSALS
+    from mi_amr.building import SAMPLINGS, TRAVERSALS
     assert set(matrix.medium["traversal"]) == set(TRAVERSALS)
     assert set(matrix.medium["sampling"]) == set(SAMPLINGS)
     for name, values in matrix.medium.items():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.builds import thinning_resolution
+from mi_amr.building.components import thinning_resolution
 from mi_amr.structures.cost_model import THINNING_CELLS_PER_MACROCELL, thinning_candidate
 
 from test_emission import mean_and_error, two_level_cells
@@ -26,7 +26,7 @@ def test01_ratio_tracking_through_thinned_collisions_matches_the_optical_depth(l
     from stress_oracles import assert_transmittance, face_rays, optical_depth_nearest, ratio_tracking
     thinned = dense_medium("nearest", grid_resolution=2, grid_refinement=1, thinning_resolution=32)
     assert thinned.structures.device["thinning"].host_res == (32, 32, 32)
-    cells = thinned.structures.cells
+    cells = thinned.cells
     o, d = face_rays(32, np.random.default_rng(7), 200)
     sigma = 4.0 * thinned.tf(cells.value)[:, 3].astype(np.float64)
     expected = np.exp(-optical_depth_nearest(cells, sigma, o, np.where(np.abs(d) < 1e-12, 0.0, d)))

@@ -195,7 +195,7 @@ def test04_transmittance_equals_the_exact_optical_depth(llvm):
     from stress_oracles import assert_transmittance, face_rays, optical_depth_nearest, ratio_tracking
     med = two_level_medium(tf="ramp", f=2, res=8)
     checkerboard_refinement(med)
-    cells = med.structures.cells
+    cells = med.cells
     o, d = face_rays(32, np.random.default_rng(5), 300)
     sigma = 20.0 * med.tf(cells.value)[:, 3].astype(np.float64)
     expected = np.exp(-optical_depth_nearest(cells, sigma, o, np.where(np.abs(d) < 1e-12, 0.0, d)))
@@ -280,7 +280,7 @@ def test08_stock_volpath_stops_its_span_walk_near_the_global_majorant(llvm):
     np.testing.assert_array_equal(t1a[fb & ~stopped], t1b[fb & ~stopped])
     np.testing.assert_allclose(t0a[fb], t0b[fb], atol=1e-5)
     med._span_stop = SPAN_STOP_SHARE
-    cells = med.structures.cells
+    cells = med.cells
     d = {"type": "amr", "data": cells, "transfer_function": "foggy", "density_scale": 20.0,
          "reconstruction": "nearest", "grid_resolution": 16, "grid_refinement": 2}
     del med

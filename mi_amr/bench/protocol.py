@@ -55,7 +55,7 @@ from ..data.io import load_cells
 from ..data.transform import apply_value_transform
 from ..data.volume import as_method, as_volume
 from ..device.grid import DeviceMacrocellGrid
-from ..strategies import SAMPLINGS, TRAVERSALS
+from ..building import SAMPLINGS, TRAVERSALS
 from ..structures.cost_model import REFINEMENTS, auto_grid
 from ..structures.value_masks import ValueBins
 from ..reference import dense_bytes, reference_medium, resample_dense

@@ -1,26 +1,38 @@
-"""The one device copy of a volume's cell values."""
+"""The one device copy of a volume's cell values.
+
+A volume is committed to the device once per variant: its values (and any
+further field a medium reads, under a transform) become opaque device
+arrays that every structure and every medium on the same volume read. The
+copies are kept in `DEVICE_COPIES`, keyed by the volume's identity (they go
+with the volume; `mi_amr.core.identity_cache`), not on the volume: a
+medium that takes new values commits them for its new volume
+(`commit_values`), and a caller's data object carries nothing of ours. On
+the CPU backend a device array is host memory: the volume's ``values`` (and
+an untransformed field) become a view of it, so they are kept once in all.
+"""
 
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+from ..core.identity_cache import IdentityCache
 from ..data.transform import log10_values, positive_floor
+
+#: Device arrays per volume (by identity) and (field, transform, variant).
+DEVICE_COPIES = IdentityCache()
 
 
 def device_values(volume) -> mi.Float:
     """The cell values of ``volume`` (a `BlockVolume`) as one opaque device
-    array, made once per volume and variant, so that every structure and
-    every medium on the same data reads the same copy. On the CPU backend
-    the device array is host memory: the volume's ``values`` become a view
-    of it, so the values are kept once in all."""
-    values = volume.__dict__.get("_device_values")
-    if not isinstance(values, mi.Float):        # none yet, or made for another variant
-        values = mi.Float(volume.values)
-        dr.make_opaque(values)
-        volume._device_values = values
-        if dr.backend_v(values) == dr.JitBackend.LLVM:
-            volume.values = values.numpy()
-    return values
+    array, made once per volume and variant (`DEVICE_COPIES`)."""
+    return device_field(volume, None)
+
+
+def commit_values(volume, values: mi.Float) -> None:
+    """Make ``values`` (an opaque device array in ``volume``'s layout, such
+    as a medium's ``values`` parameter) the device copy of ``volume``'s
+    values, so that the structures built on ``volume`` read it."""
+    DEVICE_COPIES.put(volume, (None, "none", mi.variant()), values)
 
 
 def shares_host_values(values: mi.Float) -> bool:
@@ -30,27 +42,25 @@ def shares_host_values(values: mi.Float) -> bool:
 
 def device_field(volume, name: str | None, transform: str = "none") -> mi.Float:
     """A field of ``volume`` as an opaque device array laid out as its values
-    (`BlockVolume.field`; None: the values themselves, `device_values`),
-    with ``transform`` (``none`` or ``log10``, `mi_amr.data.transform`)
-    applied; made once per (field, transform) and variant. On the CPU
-    backend an untransformed field becomes a view of the device array, as
-    the values do, so it is kept once."""
-    if name is None and transform == "none":
-        return device_values(volume)
-    cache = volume.__dict__.setdefault("_device_fields", {})
-    values = cache.get((name, transform))
-    if not isinstance(values, mi.Float):
-        host = volume.field(name)
+    (`BlockVolume.field`; None: the values themselves), with ``transform``
+    (``none`` or ``log10``, `mi_amr.data.transform`) applied; made once per
+    (field, transform) and variant."""
+    if transform not in ("none", "log10"):
+        raise ValueError(f"unknown field transform {transform!r}")
+
+    def make():
+        host = volume.values if name is None else volume.field(name)
         if transform == "log10":
             host = log10_values(host, positive_floor(host, f"{volume.source} field {name or 'value'}"))
-        elif transform != "none":
-            raise ValueError(f"unknown field transform {transform!r}")
         values = mi.Float(host)
         dr.make_opaque(values)
-        cache[(name, transform)] = values
-        if transform == "none" and dr.backend_v(values) == dr.JitBackend.LLVM:
-            volume.fields[name] = values.numpy()
-    return values
+        if transform == "none" and shares_host_values(values):     # one copy in all (CPU backend)
+            if name is None:
+                volume.values = values.numpy()
+            else:
+                volume.fields[name] = values.numpy()
+        return values
+    return DEVICE_COPIES.get(volume, (name, transform, mi.variant()), make)
 
 
 class CellValues:

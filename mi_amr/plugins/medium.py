@@ -20,9 +20,9 @@ from ..device.ray import clip_to_half_space, flush_tiny, intersect_unit_cube, sa
 from ..device.tracking import (GRADIENT_FLOOR, GRADIENT_MARGIN, DecompositionTracking, DeltaTracking,
                                FreeFlight, LocalRay, MajorantMargin, RatioTracking, Replay, ResidualRatioTracking,
                                SpanMajorant, Transmittance, walk_segments)
-from ..data.device_values import device_values
+from ..data.device_values import commit_values, device_values
 from ..params import ParameterError
-from ..pipeline import Structures
+from ..building import Structures
 from ..transfer.classification import Classification
 from ..transfer.function import TransferFunction
 from .options import parse_medium_options
@@ -388,7 +388,10 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self.classification = Classification(options.tf, options.density_scale,
                                              emission=None if emission is None else emission.tf,
                                              emission_scale=1.0 if emission is None else emission.scale)
-        self._build_structures(options.volume, options.cells)
+        # the `AMRCells` a user gave (``data``), kept for `cells`; the
+        # structures read the blocks only
+        self._given_cells = options.cells
+        self._build_structures(options.volume)
         # the cell values as the scene parameter ``values``: a variable of
         # this medium's own (the same device array until it changes), so
         # that a gradient or an update through it never reaches another
@@ -401,12 +404,12 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self.minorant_fraction = self.structures.minorant_fraction()
         self.minorants_pay = self.minorant_fraction >= MINORANTS_PAY_FRACTION
 
-    def _build_structures(self, volume, cells=None):
+    def _build_structures(self, volume):
         """Build the structures the traversal and sampling need on
         ``volume``, listen to the classification and compute every majorant."""
         options, emission = self.options, self.options.emission
         self.structures = Structures(volume, options.structures, self.classification,
-                                     options.world_scale, cells=cells).build()
+                                     options.world_scale).build()
         # a medium that glows from a field of its own (or the values under a
         # transform): the flight's one look-up reconstructs that field too
         self._carried = None
@@ -427,8 +430,9 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
     @property
     def cells(self):
         """The data as per-cell records (`AMRCells`): the object given as
-        ``data``, or made from the blocks on first use (small data only)."""
-        return self.structures.cells
+        ``data``, or made from the blocks for the caller, not kept (the
+        blocks stay the only resident copy; small data only)."""
+        return self._given_cells if self._given_cells is not None else self.volume.to_cells()
 
     @property
     def tf(self) -> TransferFunction:
@@ -784,7 +788,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
                     struct.values = var
             return
         volume = self.volume.with_values(host)
-        volume._device_values = var          # `device_values`: the structures read the parameter itself
+        commit_values(volume, var)           # the structures read the parameter itself
         with dr.suspend_grad():              # host builds: no gradient graph
             if not self.structures.revalue(volume, var):
                 self._build_structures(volume)

@@ -23,7 +23,7 @@ from ..data.transform import VALUE_TRANSFORMS, apply_value_transform, positive_f
 from ..data.volume import as_volume
 from ..memory import default_memory_limit
 from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
-from ..pipeline import SAMPLINGS, StructureOptions, TRAVERSALS
+from ..building import SAMPLINGS, StructureOptions, TRAVERSALS
 from ..structures.cache import HOST_CACHE
 from ..transfer.classification import MAX_DENSITY_SCALE, check_emission_scale
 from ..transfer.function import TransferFunction

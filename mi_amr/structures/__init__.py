@@ -1,2 +1,2 @@
 """Host-side acceleration structures (numpy): macrocell grid, bricks, region
-trees, SAH kd-tree, per-level hash tables; `mi_amr.pipeline` builds them for a medium."""
+trees, SAH kd-tree, per-level hash tables; `mi_amr.building` builds them for a medium."""

@@ -3,7 +3,7 @@
 A *traversal* turns a ray into segments with a majorant each (what tracking
 walks); a *sampling* locates a point and reconstructs the value there (what
 a density look-up runs). Each entry names the components it needs
-(`mi_amr.builds.COMPONENTS`: host build, device upload, memory estimate,
+(`mi_amr.building.components.COMPONENTS`: host build, device upload, memory estimate,
 majorant and minorant update) and makes its device view from them: the
 segment walker (`mi_amr.device.segments`) or the point sampler.
 
@@ -16,16 +16,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from .device.bricks import BrickSampler
-from .device.grid import DeviceTwoLevelGrid
-from .device.hash_sampler import HashSampler
-from .device.segments import GridSegments, TreeSegments, TwoLevelGridSegments
+from ..device.bricks import BrickSampler
+from ..device.grid import DeviceTwoLevelGrid
+from ..device.hash_sampler import HashSampler
+from ..device.segments import GridSegments, TreeSegments, TwoLevelGridSegments
 
 
 @dataclass(frozen=True)
 class Traversal:
     """``structure(s)``: the name of the component whose leaves are the
-    segments (for `mi_amr.pipeline.Structures` ``s``); ``walker(device)``:
+    segments (for `mi_amr.building.pipeline.Structures` ``s``); ``walker(device)``:
     the segment walker over its device struct."""
     structure: Callable
     walker: Callable

@@ -3,8 +3,8 @@
 The data are kept in their compact form, a `BlockVolume` (docs/design.md
 section 9). `Structures` is the glue between a medium and its structures:
 it resolves the chosen traversal and sampling in their registries
-(`mi_amr.strategies`), builds the components they need on an explicit
-`build` call (`mi_amr.builds`; host structures come from a cache keyed by
+(`mi_amr.building.strategies`), builds the components they need on an explicit
+`build` call (`mi_amr.building.components`; host structures come from a cache keyed by
 data identity and options, `mi_amr.structures.cache`, so media sharing data
 build them once), checks each build against the memory budget, and
 recomputes every majorant when the classification (the TF and the density
@@ -24,25 +24,16 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .builds import COMPONENTS, thinning_resolution
-from .data.blocks import BlockVolume
-from .data.cells import AMRCells
-from .data.volume import as_method
-from .device.grid import DeviceTwoLevelGrid
-from .core.jit_struct import jit_struct
-from .data.device_values import device_field
-from .memory import MemoryLimitError, require
-from .reconstruction import Reconstruction
+from .components import COMPONENTS, thinning_resolution
+from ..data.blocks import BlockVolume
+from ..data.volume import as_method
+from ..core.jit_struct import jit_struct
+from ..data.device_values import device_field
+from ..memory import require
+from ..reconstruction import Reconstruction
 from .strategies import SAMPLINGS, TRAVERSALS
-from .structures.cache import HOST_CACHE, StructureCache
-from .structures.value_masks import N_BINS, ValueBins
-from .transfer.classification import Classification
-
-
-#: `Structures.revalue` keeps at most this many (cell, macrocell) pairs per
-#: cell (a cell's support overlaps 1-8 macrocells where macrocells are at
-#: least as wide as the cells); beyond, new values rebuild the structures.
-REVALUE_PAIRS_PER_CELL = 64
+from ..structures.cache import HOST_CACHE, StructureCache
+from ..transfer.classification import Classification
 
 
 @dataclass(frozen=True)
@@ -85,17 +76,13 @@ class Structures:
     """
 
     def __init__(self, volume: BlockVolume, options: StructureOptions,
-                 classification: Classification, world_scale: float, cache: StructureCache = HOST_CACHE,
-                 cells: AMRCells | None = None):
+                 classification: Classification, world_scale: float, cache: StructureCache = HOST_CACHE):
         self.cache = cache
         self.options = options
         self.classification = classification
         self.world_scale = world_scale
         self.traversal = TRAVERSALS[options.traversal]
         self.sampling = SAMPLINGS[options.sampling]
-        # ``cells``: the `AMRCells` the volume was made from, when a user
-        # gave cells (`mi_amr.plugins.options.medium_volume`), else None
-        self._given_cells = cells
         self.volume = data = volume
         self.device = {}                # device structs (seen by dr.freeze)
         self.carried_fields = {}          # further fields' device values (`field_values`)
@@ -106,7 +93,7 @@ class Structures:
         self.offset = mi.Vector3f(*[float(c) for c in lo - self.origin])
         self.extent = mi.Vector3f(*[float(c) for c in hi - lo])
         self.global_majorant = mi.Float(0.0)
-        self._incidence = None           # `revalue`'s index pairs, made on first use (False: too many)
+        self.revaluers = {}              # components' updates on new values that keep state (`revalue`)
         self.finest_grid = None          # the cost model's finest grid, kept while building (`build_thinning`)
         dr.make_opaque(self.offset, self.extent)
 
@@ -128,7 +115,7 @@ class Structures:
         return self
 
     def require(self, name: str):
-        """Component ``name`` (`mi_amr.builds.COMPONENTS`), built now if it was
+        """Component ``name`` (`mi_amr.building.components.COMPONENTS`), built now if it was
         not: its estimated peak bytes are checked against the memory budget
         first. Building inside a kernel recording is an error."""
         component = COMPONENTS[name]
@@ -142,15 +129,6 @@ class Structures:
             store[name] = component.build(self)
             self.build_seconds[name] = time.perf_counter() - t0
         return store[name]
-
-    @property
-    def cells(self) -> AMRCells:
-        """Per-cell records (for tools and tests; no build needs them): the
-        `AMRCells` given, or made from the blocks for the caller, not kept
-        (the blocks stay the only resident copy)."""
-        if self._given_cells is not None:
-            return self._given_cells
-        return self.volume.to_cells()
 
     @property
     def grid(self):
@@ -214,71 +192,25 @@ class Structures:
     def revalue(self, volume: BlockVolume, values: mi.Float) -> bool:
         """New values of the same cells, in place (docs/design.md section
         13): ``volume`` from `BlockVolume.with_values`, ``values`` its device
-        array (the medium's ``values`` parameter). The macrocell grid's
-        ranges come from two scatter-reductions over its incidence pairs
-        (`MacrocellGrid.incidence`, made on the first call), its value masks
-        (``nearest``: a cell's own bin, the bins over the new values' range
-        as a build makes them) from two more, then every majorant,
-        as after a TF change: milliseconds, no build. Only a grid traversal
-        with hash sampling and no carried field holds nothing else that
-        depends on the values; False elsewhere (the caller rebuilds)."""
-        if "grid" not in self.device or set(self.device) - {"grid", "hash", "thinning"} or self.host \
-                or self.carried_fields:
-            return False
-        grid = self.device["grid"]
-        two_level = isinstance(grid, DeviceTwoLevelGrid)
-        fine = grid.fine if two_level else grid
-        host = fine.host
-        if self._incidence is False or (fine.has_masks and self.options.method.name != "nearest"):
+        array (the medium's ``values`` parameter). Each built component
+        takes them by its own update (`Component.revalue`: the macrocell
+        grid's ranges by scatter-reductions, the hash reads the new array,
+        the thinning grid is dropped), then every majorant is recomputed as
+        after a TF change: milliseconds, no build. False where a component
+        cannot (no update of its own, host structures or a carried field
+        built on the old values): the caller rebuilds."""
+        components = [COMPONENTS[name] for name in self.device]
+        if self.host or self.carried_fields or any(c.revalue is None for c in components):
             return False
         t0 = time.perf_counter()
-        if self._incidence is None:
-            try:
-                pairs = host.incidence(self.volume, self.options.method,
-                                       REVALUE_PAIRS_PER_CELL * max(len(self.volume), 1), self.options.memory_limit)
-            except MemoryLimitError:          # the rebuild checks its own peak
-                pairs = None
-            if pairs is None:
-                self._incidence = False
+        old = self.volume
+        for component in components:
+            if not component.revalue(self, old, volume, values):
                 return False
-            order = mi.Int32(grid.blocked(np.arange(host.vmin.size, dtype=np.int32), -1)) if two_level else None
-            self._incidence = (mi.UInt32(pairs[0]), mi.UInt32(pairs[1]), order)
-        slots, macrocells, order = self._incidence
-        v = dr.gather(mi.Float, dr.detach(values), slots)
-        n = host.vmin.size
-        reduced = {"vmin": (dr.ReduceOp.Min, dr.full(mi.Float, float("inf"), n), v),
-                   "vmax": (dr.ReduceOp.Max, dr.full(mi.Float, -float("inf"), n), v)}
-        if fine.has_masks:                # nearest: each cell sets its value's bin, the bins
-            bins = ValueBins.of(volume)   # over the new values' range (as a build makes them)
-            b = mi.UInt32(dr.clip(dr.floor((mi.Float64(v) - bins.lo) / bins.width), 0, N_BINS - 1))
-            one = mi.UInt32(1)
-            reduced["mask_lo"] = (dr.ReduceOp.Or, dr.zeros(mi.UInt32, n), dr.select(b < 32, one << (b & 31), 0))
-            reduced["mask_hi"] = (dr.ReduceOp.Or, dr.zeros(mi.UInt32, n), dr.select(b >= 32, one << (b & 31), 0))
-        for name, (op, target, value) in reduced.items():
-            dr.scatter_reduce(op, target, value, macrocells)
-        dr.eval(*[t for _, t, _ in reduced.values()])
-        host.vmin, host.vmax = reduced["vmin"][1].numpy(), reduced["vmax"][1].numpy()
-        if fine.has_masks:
-            host.masks = (reduced["mask_hi"][1].numpy().astype(np.uint64) << np.uint64(32)) \
-                | reduced["mask_lo"][1].numpy().astype(np.uint64)
-            host.bins = bins
-            fine.bin_lo, fine.bin_hi = (mi.Float(e) for e in bins.edges())
-            dr.make_opaque(fine.bin_lo, fine.bin_hi)
-        fill = {"vmin": float("inf"), "vmax": -float("inf"), "mask_lo": 0, "mask_hi": 0}
-        for name, (_, target, _) in reduced.items():
-            if two_level:                 # the device keeps the fine level in block order
-                target = dr.select(order < 0, fill[name],
-                                   dr.gather(type(target), target, mi.UInt32(dr.maximum(order, 0))))
-            setattr(fine, name, target)
-            dr.make_opaque(getattr(fine, name))
         self.volume = volume
         for struct in self.device.values():
             if "values" in getattr(struct, "JIT_FIELDS", {}):
                 struct.values = values
-        # the finer majorants hold the old values' ranges: the walks go on
-        # without thinning (differentiable walks never thin: docs/design.md
-        # section 5d)
-        self.device.pop("thinning", None)
         self.update_majorants()
         self.build_seconds["revalue"] = time.perf_counter() - t0
         return True

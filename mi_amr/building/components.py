@@ -3,7 +3,7 @@
 A *component* is one structure a traversal or a sampling needs: the
 macrocell grid, the bricks, the region trees over them, the SAH kd-tree,
 the block hash, the bricks' device copy and the brick lists. Each entry of
-`COMPONENTS` says how to build it from a `mi_amr.pipeline.Structures`
+`COMPONENTS` says how to build it from a `mi_amr.building.pipeline.Structures`
 (which gives the data, the build options, the classification and the
 host-structure cache), what it needs first, its estimated peak bytes
 (checked against the memory budget before the build), whether its leaves
@@ -21,18 +21,19 @@ from typing import Callable
 
 import numpy as np
 
-from .device.bricks import DeviceBrickLists, DeviceBricks
-from .device.grid import DeviceMacrocellGrid, DeviceThinningGrid, DeviceTwoLevelGrid
-from .device.hash_sampler import DeviceReconstruction
-from .device.tree import DeviceTree
-from .memory import bricks_bytes, hash_bytes
-from .structures.footprint import GRID_BYTES_PER_MACROCELL, THINNING_BYTES_PER_MACROCELL
-from .structures.brick_lists import BrickLists
-from .structures.bricks import Bricks
-from .structures.cost_model import REFINEMENTS, GridPlan, auto_grid, thinning_candidate
-from .structures.kdtree_sah import build_sah_kdtree
-from .structures.macrocell_grid import MacrocellGrid, axis_resolution, default_resolution
-from .structures.region_tree import brick_region_tree, exact_value_ranges
+from ..device.bricks import DeviceBrickLists, DeviceBricks
+from ..device.grid import DeviceMacrocellGrid, DeviceThinningGrid, DeviceTwoLevelGrid
+from ..device.hash_sampler import DeviceReconstruction
+from ..device.grid_revalue import GridRevaluer
+from ..device.tree import DeviceTree
+from ..memory import bricks_bytes, hash_bytes
+from ..structures.footprint import GRID_BYTES_PER_MACROCELL, THINNING_BYTES_PER_MACROCELL
+from ..structures.brick_lists import BrickLists
+from ..structures.bricks import Bricks
+from ..structures.cost_model import REFINEMENTS, GridPlan, auto_grid, thinning_candidate
+from ..structures.kdtree_sah import build_sah_kdtree
+from ..structures.macrocell_grid import MacrocellGrid, axis_resolution, default_resolution
+from ..structures.region_tree import brick_region_tree, exact_value_ranges
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,11 @@ class Component:
     density_scale, minorants)``; ``minorants``: its minorants are used
     (else they stay 0 and cost nothing on a TF change); ``classified``:
     built for the current TF and scale, so rebuilt when they change;
-    ``shares``: its memory is another component's (not counted again)."""
+    ``shares``: its memory is another component's (not counted again);
+    ``revalue(s, old_volume, volume, values)``: its own update on new values
+    of the same cells (docs/design.md section 13), True when done in place,
+    False (having changed nothing) where it cannot; None: it depends on
+    the values in a way it cannot update, so the medium rebuilds."""
     build: Callable
     need: Callable = lambda s: 0.0
     device: bool = True
@@ -54,6 +59,7 @@ class Component:
     minorants: bool = True
     classified: bool = False
     shares: str | None = None
+    revalue: Callable | None = None
 
 
 # ---- The components ------------------------------------------------------------
@@ -192,14 +198,38 @@ def _list_grid_resolution(volume):
 
 
 #: Every component by name; the order is the order majorants are updated in.
+# ---- Updates on new values of the same cells (`Structures.revalue`) --------------
+def _revalue_grid(s, old_volume, volume, values) -> bool:
+    """The macrocell grid's ranges and masks from the new values (its
+    `GridRevaluer`, kept with the structures for the next call)."""
+    revaluer = s.revaluers.get("grid")
+    if revaluer is None:
+        revaluer = s.revaluers["grid"] = GridRevaluer(s.device["grid"], s.options.method, s.options.memory_limit)
+    return revaluer(old_volume, volume, values)
+
+
+def _reads_values_only(s, old_volume, volume, values) -> bool:
+    """Nothing but the ``values`` array, which `Structures.revalue` swaps."""
+    return True
+
+
+def _drop_thinning(s, old_volume, volume, values) -> bool:
+    """The finer majorants hold the old values' ranges: the walks go on
+    without thinning (differentiable walks never thin: docs/design.md
+    section 5d)."""
+    s.device.pop("thinning", None)
+    return True
+
+
 COMPONENTS = {
-    "grid": Component(build_grid, majorants=True),
-    "thinning": Component(build_thinning, need=_need_thinning, majorants=True, minorants=False),
+    "grid": Component(build_grid, majorants=True, revalue=_revalue_grid),
+    "thinning": Component(build_thinning, need=_need_thinning, majorants=True, minorants=False,
+                          revalue=_drop_thinning),
     "abr_tree": Component(_region_tree(True, "abr_tree"), majorants=True),
     "brick_tree": Component(_region_tree(False, "brick_tree"), majorants=True),
     "kdtree": Component(build_kdtree, majorants=True, classified=True),
     "bricks": Component(build_bricks, need=_need_bricks, device=False),
-    "hash": Component(build_hash, need=_need_hash),
+    "hash": Component(build_hash, need=_need_hash, revalue=_reads_values_only),
     "device_bricks": Component(build_device_bricks, shares="bricks"),
     "brick_lists": Component(build_brick_lists),
 }
