@@ -16,7 +16,10 @@ from .scene_writer import scene_for as _scene_for  # noqa: E402
 from .data import datasets  # noqa: E402,F401
 from .data.cells import AMRCells  # noqa: E402
 from .data.convert import dense_to_amr  # noqa: E402
+from .autoscene import plan_scene  # noqa: E402
+from .data.opening import open_data  # noqa: E402
 from .data_scene import DataScene, scene  # noqa: E402
+from .rendering import RenderJob, render_jobs  # noqa: E402
 from .data.io import load_cells, read_exabricks, read_npz, write_exabricks, write_npz  # noqa: E402
 from .native_file import save_data as save_cells  # noqa: E402  (.amrb with its grids and statistics)
 from .data.yt_import import from_yt as _from_yt, world_transform as _world_transform  # noqa: E402
@@ -29,7 +32,8 @@ from .transfer.function import TransferFunction  # noqa: E402
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",
            "read_exabricks", "write_exabricks", "read_npz", "write_npz", "register",
-           "set_transfer_function", "amr_media", "from_yt", "world_transform", "scene_for", "scene", "DataScene"]
+           "set_transfer_function", "amr_media", "from_yt", "world_transform", "scene_for", "scene", "DataScene",
+           "open_data", "plan_scene", "RenderJob", "render_jobs"]
 
 
 def register(variant: str | None = None):

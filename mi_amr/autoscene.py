@@ -252,9 +252,10 @@ def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = No
                emission_scale: float | None = None, stats=None) -> ScenePlan:
     """Look at the data once and plan a scene (see the module docstring).
 
-    ``log``: None chooses log10 when at least 90% of the volume holds
-    positive values and their 1st and 99.9th volume-weighted percentiles
-    are more than 1000x apart;
+    ``log``: None chooses log10 when at least `MIN_POSITIVE_SHARE` of the
+    volume holds positive values and they span at least `LOG_DECADES`
+    decades, from the volume-weighted 1st percentile to the mass-weighted
+    (volume times value) 99.9th;
     ``value_range``: the TF domain (in transformed units), else those
     volume's and the mass's percentiles (`_value_scale`); ``tf``: a preset
     name or a TF .json file (None: `DEFAULT_TF`, which the check below may
