@@ -10,6 +10,8 @@
 from __future__ import annotations
 
 import contextlib
+from dataclasses import dataclass
+from typing import Callable
 import json
 import os
 import zipfile
@@ -23,9 +25,6 @@ from . import metadata
 from .amrb import read_amrb, save_amrb
 from .blocks import BlockVolume, DeferredChunk, sample_runs
 from .cells import AMRCells
-#: The AMR file types read and written by extension.
-FILE_TYPES = ".cells, .npz or .amrb"
-
 CELL_DTYPE = np.dtype([("x", "<i4"), ("y", "<i4"), ("z", "<i4"), ("level", "<i4")])
 
 
@@ -271,29 +270,65 @@ def write_npz(cells: AMRCells, path) -> Path:
     return path
 
 
-def load_cells(path, scalars=None, *, overlap: str = "error") -> AMRCells:
-    """Load AMR cells from ``.cells`` (+ ``.scalars``) or ``.npz`` by extension."""
+@dataclass(frozen=True)
+class NativeFormat:
+    """A format mi-amr reads and writes itself: what it is (for messages and
+    the manual), and its readers and writer (``scalars``: the values file
+    of an ExaBricks pair; ``overlap``: what to do with overlapping cells;
+    ``method``: the reconstruction the blocks are made for)."""
+    description: str
+    read_cells: Callable        # (path, scalars, overlap) -> AMRCells
+    read_volume: Callable       # (path, scalars, overlap, method) -> BlockVolume
+    write: Callable             # (AMRCells | BlockVolume, path) -> Path
+
+
+def _as_cells(data) -> AMRCells:
+    return data.to_cells() if isinstance(data, BlockVolume) else data
+
+
+#: The formats mi-amr reads and writes itself, by suffix: the one table of
+#: them (`mi_amr.data.opening` asks it what a path is; docs/manual/data.md).
+NATIVE_FORMATS = {
+    ".cells": NativeFormat(
+        "ExaBricks cells (+ NAME.scalars or NAME-FIELD.scalars)",
+        lambda path, scalars, overlap: read_exabricks(path, scalars, overlap=overlap),
+        lambda path, scalars, overlap, method: read_exabricks_blocks(path, scalars, overlap=overlap,
+                                                                      method=method),
+        lambda data, path: write_exabricks(_as_cells(data), path)[0]),
+    ".npz": NativeFormat(
+        "numpy archive of cells (pos, level, value)",
+        lambda path, scalars, overlap: read_npz(path, overlap=overlap),
+        lambda path, scalars, overlap, method: read_npz_blocks(path, overlap=overlap, method=method),
+        lambda data, path: write_npz(_as_cells(data), path)),
+    ".amrb": NativeFormat(                      # the resident form itself (`mi_amr.data.amrb`)
+        "mi-amr's native blocks (opens at disk speed)",
+        lambda path, scalars, overlap: read_amrb(path).to_cells(),
+        lambda path, scalars, overlap, method: read_amrb(path),
+        lambda data, path: save_amrb(data, path)),
+}
+
+
+def native_format(path) -> NativeFormat:
+    """The `NativeFormat` of ``path`` by its suffix; a ValueError naming
+    the suffixes mi-amr reads where it is none of them."""
     path = Path(path)
-    if path.suffix == ".npz":
-        return read_npz(path, overlap=overlap)
-    if path.suffix == ".cells":
-        return read_exabricks(path, scalars, overlap=overlap)
-    if path.suffix == ".amrb":
-        return read_amrb(path).to_cells()
-    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected {FILE_TYPES})")
+    fmt = NATIVE_FORMATS.get(path.suffix)
+    if fmt is None:
+        names = [*NATIVE_FORMATS]
+        raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' "
+                         f"(expected {', '.join(names[:-1])} or {names[-1]})")
+    return fmt
+
+
+def load_cells(path, scalars=None, *, overlap: str = "error") -> AMRCells:
+    """Load AMR cells from any native format (`NATIVE_FORMATS`) by its suffix."""
+    return native_format(path).read_cells(Path(path), scalars, overlap)
 
 
 def load_volume(path, scalars=None, *, overlap: str = "error", method: str = "tent") -> BlockVolume:
-    """Load AMR data into its compact resident form: ``.cells`` files are
-    streamed (`read_exabricks_blocks`, `read_npz_blocks`)."""
-    path = Path(path)
-    if path.suffix == ".cells":
-        return read_exabricks_blocks(path, scalars, overlap=overlap, method=method)
-    if path.suffix == ".npz":
-        return read_npz_blocks(path, overlap=overlap, method=method)
-    if path.suffix == ".amrb":                # the resident form itself (`mi_amr.data.amrb`)
-        return read_amrb(path)
-    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected {FILE_TYPES})")
+    """Load AMR data into its compact resident form (``.cells`` and
+    ``.npz`` files are streamed: `read_exabricks_blocks`, `read_npz_blocks`)."""
+    return native_format(path).read_volume(Path(path), scalars, overlap, method)
 
 
 def save_cells(cells: AMRCells | BlockVolume, path) -> Path:
@@ -301,14 +336,5 @@ def save_cells(cells: AMRCells | BlockVolume, path) -> Path:
     (the resident blocks alone: `mi_amr.data.amrb.save_amrb`; with the
     macrocell grids and planning statistics that a medium and a plan read
     first: `mi_amr.native_file.save_data`, which ``mi_amr.save_cells`` is)
-    by extension."""
-    path = Path(path)
-    if path.suffix == ".amrb":
-        return save_amrb(cells, path)
-    if isinstance(cells, BlockVolume):
-        cells = cells.to_cells()
-    if path.suffix == ".npz":
-        return write_npz(cells, path)
-    if path.suffix == ".cells":
-        return write_exabricks(cells, path)[0]
-    raise ValueError(f"{path}: unknown AMR file type '{path.suffix}' (expected {FILE_TYPES})")
+    by its suffix; returns the path (of the ``.cells`` file for a pair)."""
+    return native_format(path).write(cells, Path(path))

@@ -3,9 +3,9 @@ mi-amr reads itself and the one function that turns a path, a yt data set,
 an `AMRCells` or a `BlockVolume` into volume data with its physical extent.
 
 Every entry point (``mi-amr render``, ``info``, ``convert``, ``view``, a run's
-outputs, the Python API) asks this module what a path is; nowhere else is a
-suffix tested. Native formats are read by `mi_amr.data.io`; anything else is
-handed to yt (`mi_amr.data.yt_import`).
+outputs, the Python API) asks this module what a path is. The native formats
+are one table, `mi_amr.data.io.NATIVE_FORMATS` (suffix -> description,
+readers, writer); anything else is handed to yt (`mi_amr.data.yt_import`).
 """
 
 from __future__ import annotations
@@ -17,16 +17,10 @@ import numpy as np
 
 from .blocks import BlockVolume
 from .cells import AMRCells
-from .io import load_volume
+from .io import NATIVE_FORMATS, load_volume
 from .metadata import physical_box
 from .yt_import import from_yt_blocks, load_dataset
 
-#: The formats mi-amr reads and writes itself, by suffix (docs/manual/data.md).
-NATIVE_FORMATS = {
-    ".cells": "ExaBricks cells (+ NAME.scalars or NAME-FIELD.scalars)",
-    ".npz": "numpy archive of cells (pos, level, value)",
-    ".amrb": "mi-amr's native blocks (opens at disk speed)",
-}
 #: The suffixes of `NATIVE_FORMATS`, for ``str.endswith`` and ``in``.
 NATIVE_SUFFIXES = tuple(NATIVE_FORMATS)
 
