@@ -31,6 +31,7 @@ from .data.statistics import (STATS_VERSION, ValueStats, cells_and_weights, fine
 from .data.transform import apply_value_transform
 from .data.yt_import import field_key
 from .transfer.function import PRESETS, TransferFunction
+from .transfer.spectra import blackbody_luminance
 from .visibility import (OPAQUE_OPACITY, PREDICT_RES, Visibility, camera_rays, opacity_grid, projected_depth,
                          scale_for_opacity, visibility_of_depths)
 
@@ -57,6 +58,10 @@ FOV = 35.0
 #: Opacity peaks at a few values, like the layered Gaussians of yt's volume
 #: renderings: shells of structure rather than a fog over the whole domain.
 DEFAULT_TF = "spiky"
+#: ``--emission blackbody``: Planck's law at the emission field in kelvin
+#: (the medium's ``emission_model="blackbody"``), not the TF preset of that
+#: name (docs/manual/glowing-gas.md).
+BLACKBODY = "blackbody"
 #: The extinction TF of glowing gas unless told otherwise: grey (its
 #: albedo would tint the glow, which is emitted in proportion to 1 - albedo)
 #: and opacity rising with the value.
@@ -67,12 +72,15 @@ GLOW_TF = "dust"
 class EmissionPlan:
     """The emission of a glowing medium (the ``amr`` medium's ``emission*``
     parameters): TF preset or .json file over ``field`` (None: the
-    extinction field), its transform, domain and radiance scale."""
+    extinction field), its transform, domain and radiance scale; or, with
+    ``model`` ``blackbody``, Planck's law at the field in kelvin (``tf``
+    then names it, the range is the field's, for the notes)."""
     tf: str
     field: str | None
     transform: str
     tf_range: tuple[float, float]
     scale: float
+    model: str = "tf"
 
 
 @dataclass
@@ -267,8 +275,9 @@ def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = No
     nothing of the data shows or the footprint is a flat opaque block, the
     TF (if not given) and the density scale (if not given) are planned
     again, each change with a note (`_checked`).
-    ``emission``: an emission TF (preset such as ``blackbody``, colormap
-    or .json file) makes the gas glow, from ``emission_field`` (a further
+    ``emission``: an emission TF (a preset, colormap or .json file), or
+    ``blackbody`` (`BLACKBODY`: Planck's law at the field in kelvin, no TF
+    and no log10), makes the gas glow, from ``emission_field`` (a further
     field, e.g. ``temperature``; None: the extinction field), with its own
     ``emission_log``/``emission_range`` chosen by the same rule and a
     radiance scale (``emission_scale``, default: one that makes the mean
@@ -299,21 +308,29 @@ def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = No
                  f"TF's highest opacity over the values ({peak:.3g}){depth_note}")
     glow = None
     if emission is not None:
-        _check_tf_name(emission, "--emission")
+        if emission != BLACKBODY:
+            _check_tf_name(emission, "--emission")
         key = None
         if emission_field:
             key = field_key(yt_field(emission_field))
             if key not in volume.fields:
                 have = ", ".join(repr(n) for n in sorted(volume.fields)) or "none besides the main one"
                 raise ValueError(f"{what}: no field {key!r} for the emission (further fields: {have})")
-        e_log, e_range, more, _ = _value_scale(stats, key, emission_log, emission_range,
-                                               f"{key or 'extinction'} values", source=what)
+        if emission == BLACKBODY and key is None and log:
+            raise ValueError(f"{what}: --emission blackbody reads the emission field in kelvin, and the extinction "
+                             f"field is drawn in log10 units: name the temperature with --emission-field, or pass "
+                             f"--linear")
+        e_log, e_range, more, _ = _value_scale(stats, key, False if emission == BLACKBODY else emission_log,
+                                               emission_range, f"{key or 'extinction'} values", source=what)
         notes += more
         if key is None and log:               # the extinction field is log10 already in the medium
             e_log = False
+        model = "blackbody" if emission == BLACKBODY else "tf"
         if emission_scale is None:
-            emission_scale = 1.0 / max(_mean_glow(stats, key, emission, e_range, e_log, tf, value_range, log), 1e-12)
-        glow = EmissionPlan(emission, key, "log10" if e_log else "none", e_range, float(emission_scale))
+            mean = (_mean_blackbody_glow(stats, key, tf, value_range, log) if model == "blackbody"
+                    else _mean_glow(stats, key, emission, e_range, e_log, tf, value_range, log))
+            emission_scale = 1.0 / max(mean, 1e-12)
+        glow = EmissionPlan(emission, key, "log10" if e_log else "none", e_range, float(emission_scale), model)
         notes.append(f"emission '{emission}' over {key or 'the extinction field'} in [{e_range[0]:.4g}, "
                      f"{e_range[1]:.4g}]{' (log10 units)' if e_log else ''}, emission_scale {emission_scale:.3g}")
     radius = 0.5 * float(np.linalg.norm(world))
@@ -448,6 +465,19 @@ def _mean_glow(stats, key, emission, e_range, e_log, tf, value_range, log) -> fl
             g = _log_or_floor(g)
         e = em(_log_or_floor(g) if e_log else g)
         total += float((e[:, 3] * e[:, :3].max(axis=1) * a).sum())
+        weight += float(a.sum())
+    return total / weight if weight else 0.0
+
+
+def _mean_blackbody_glow(stats, key, tf, value_range, log) -> float:
+    """Mean luminance of the normalised blackbody (`mi_amr.transfer.spectra`)
+    at the cells' temperatures (kelvin), weighted as `_mean_glow` weighs."""
+    fn = TransferFunction.load(tf, value_range)
+    total = weight = 0.0
+    for (v, w), (g, _) in zip(cells_and_weights(stats), cells_and_weights(stats, key)):
+        a = fn(_log_or_floor(v) if log else v)[:, 3] * w
+        y = blackbody_luminance(g)
+        total += float((y * a).sum())
         weight += float(a.sum())
     return total / weight if weight else 0.0
 

@@ -108,6 +108,10 @@ def reference_medium(cells: AMRCells, tf: TransferFunction, density_scale: float
     to_world = as_transform4f(to_world)
 
     def grid(channels):
+        if channels.shape[-1] == 3 and mi.variant().endswith("_spectral"):
+            # gridvolume upsamples colours to spectra only from a VolumeGrid
+            return {"type": "gridvolume", "grid": mi.VolumeGrid(np.ascontiguousarray(channels)),
+                    "filter_type": filter_type, "to_world": to_world}
         return {"type": "gridvolume", "data": mi.TensorXf(np.ascontiguousarray(channels)),
                 "filter_type": filter_type, "to_world": to_world}
 

@@ -75,6 +75,9 @@ def emission_parameters(plan: ScenePlan) -> dict:
     e = plan.emission
     if e is None:
         return {}
+    if e.model == "blackbody":                   # Planck's law at the field in kelvin: no TF
+        out = {"emission_model": "blackbody", "emission_scale": e.scale}
+        return out if e.field is None else {**out, "emission_field": e.field}
     out = {"emission": e.tf, "emission_transform": e.transform, "emission_min": e.tf_range[0],
            "emission_max": e.tf_range[1], "emission_scale": e.scale}
     if e.field is not None:

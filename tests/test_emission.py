@@ -408,8 +408,10 @@ def test09_a_runs_outputs_as_a_movie_in_one_command(tmp_path, capsys):
 
     def values(text, name):
         return text.split(f'name="{name}" value="')[1].split('"')[0]
-    for name in ("tf_min", "tf_max", "emission_min", "emission_max", "emission_scale", "density_scale"):
+    # --emission blackbody: Planck's law at the temperature in kelvin (no emission TF, no emission range)
+    for name in ("tf_min", "tf_max", "emission_model", "emission_scale", "density_scale"):
         assert len({values(s, name) for s in scenes}) == 1, name          # one plan: colours do not jump
+    assert values(scenes[0], "emission_model") == "blackbody" and 'name="emission_min"' not in scenes[0]
     assert len({s.split("<lookat origin=")[1].split('"')[1] for s in scenes}) == 3      # the orbit
     # nothing readable: an error naming the pattern's outputs, no movie
     assert main(["render", str(tmp_path / "none_*.npz"), "--movie", str(tmp_path / "x.mp4"),

@@ -51,7 +51,8 @@ AXES = ("traversal", "sampling", "reconstruction", "majorant")
 #: expectation alone. An ``emission*`` option glows: stock volpath has no
 #: medium emission, so those cases are compared in our integrators only.
 PICTURE = {"reconstruction", "value_transform", "mode", "brightness", "hide_emitters", "max_iterations", "density_scale",
-           "tf_min", "tf_max", "emission_min", "emission_max", "emission_scale", "emission_transform"}
+           "tf_min", "tf_max", "emission_min", "emission_max", "emission_scale", "emission_transform",
+           "emission_model"}
 #: Options whose picture also depends on the integrator's own loops (a ray
 #: that meets ``max_iterations`` stops where that integrator's loop is): the
 #: reference renders in the case's integrator.
@@ -70,7 +71,10 @@ Z_MAX = 6.0
 
 def glowing(med: dict) -> dict:
     """``med`` with an emission TF where it sets an ``emission*`` option
-    (they are refused without one)."""
+    (they are refused without one), except for the blackbody model, which
+    glows without one (and refuses one)."""
+    if med.get("emission_model") == "blackbody":
+        return med
     return dict(med, emission="blackbody") if any(k.startswith("emission") for k in med) else med
 
 

@@ -516,8 +516,8 @@ class DeltaState(_Fields):
     changes); ``dlog`` None unless a forward-mode `Replay` sums into it."""
 
 
-@jit_struct(collided="Bool", t="Float", albedo="Color3f", sigma_t="Float", value="Float", carried="Float",
-            looked="Bool", counts=TrackingCounts, dlog="Float")
+@jit_struct(collided="Bool", t="Float", albedo="UnpolarizedSpectrum", sigma_t="Float", value="Float",
+            carried="Float", looked="Bool", counts=TrackingCounts, dlog="Float")
 class FreeFlight(_Fields):
     """Result of a free flight: ``collided`` where a real collision
     happened, at the world ray's ``t`` (`LocalRay.world_t`; where none

@@ -32,6 +32,8 @@ from ..device.rng import Rng
 from ..core.jit_struct import jit_struct
 from ..device.tracking import TrackingCounts
 from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
+from ..transfer.spectra import variant_kind
+from .lighting_modes import LIGHTING_MODES, accumulate
 from .medium import AMRMedium, require_jit_rgb_variant, scene_media
 from .variant_class import VariantPlugin
 
@@ -48,14 +50,16 @@ KNOWN = {"max_depth", "rr_depth", "hide_emitters", "counters",
          "residual_ratio_tracking", "decomposition_tracking", "mode", "brightness"}
 #: The lighting modes (``mode``; docs/design.md section 6d), the default last:
 #: what a real collision in a medium does.
-MODES = ("emission_absorption", "single", "multi")
+MODES = tuple(LIGHTING_MODES)
 
 
 def _mitsuba_helpers():
     """Mitsuba's power-heuristic MIS weight and RGB channel indexing (the
-    ones its own Python volume integrators use), for the active variant."""
-    from mitsuba.ad.integrators.common import mis_weight
-    from mitsuba.ad.integrators.prbvolpath import index_spectrum
+    ones its own Python volume integrators use), for the active variant:
+    imported under ``mitsuba.python.ad``, the modules Mitsuba reloads on a
+    variant change (``mitsuba.ad.*`` keeps the first variant's classes)."""
+    from mitsuba.python.ad.integrators.common import mis_weight
+    from mitsuba.python.ad.integrators.prbvolpath import index_spectrum
     return mis_weight, index_spectrum
 
 
@@ -72,12 +76,13 @@ class ShadowStart:
         self.medium, self.rng, self.active = medium, rng, active
 
 
-def _accumulate(L, where, contribution, adjoint):
-    """``L`` with ``contribution`` added on lanes ``where`` (the primal), or
-    taken away (a replay: ``L`` is the radiance still to come)."""
-    if adjoint is None:
-        return dr.select(where, L + contribution, L)
-    return dr.select(where, L - contribution, L)
+def absorbed_share(albedo):
+    """``1 - albedo``, the share of extinction that absorbs (and emits);
+    clamped at 0 in spectral variants, where Mitsuba's upsampling of a
+    colour (``gridvolume``'s, which the albedo follows) can exceed 1 at
+    some wavelengths."""
+    share = 1.0 - albedo
+    return dr.maximum(share, 0.0) if variant_kind() == "spectral" else share
 
 
 class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
@@ -245,6 +250,9 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         derivative on (backward mode) or adds its tangent to ``dL``
         (forward mode; None otherwise)."""
         mis_weight, index_spectrum = _mitsuba_helpers()
+        # what a real collision does: the mode consumes the walk's events
+        # at three places (`mi_amr.plugins.lighting_modes`)
+        lighting = LIGHTING_MODES[self.mode]
         amr_media, has_other = self._media(scene)
         amr_ptrs = [mi.MediumPtr(m) for m in amr_media]
 
@@ -263,7 +271,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         last_event = dr.zeros(mi.Interaction3f)
         last_pdf = mi.Float(1.0)
         medium = dr.zeros(mi.MediumPtr) if medium is None else mi.MediumPtr(medium)
-        channel = mi.UInt32(dr.minimum(3.0 * sampler.next_1d(active), 2.0))
+        n_channels = dr.size_v(mi.UnpolarizedSpectrum)          # 3 in rgb, 4 in spectral, 1 in mono
+        channel = mi.UInt32(dr.minimum(float(n_channels) * sampler.next_1d(active), n_channels - 1.0))
         # Random numbers of the path: with Mitsuba's independent sampler, a
         # stream of our own with the same distribution (PCG32, seeded from
         # the sampler), so that no loop state holds an unchanged variable
@@ -279,7 +288,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         # and its unchanged stream increment makes Dr.Jit record the loop twice
         while dr.hint(active, label="amrvolpath",
                       exclude=[self, scene, sampler, amr_media, amr_ptrs, has_other, channel, mis_weight,
-                               index_spectrum, adjoint]):
+                               index_spectrum, adjoint, lighting]):
             # ---- Russian roulette (as in volpath) ----
             q = dr.minimum(dr.max(throughput) * dr.square(eta), 0.95)
             perform_rr = depth > self.rr_depth
@@ -318,10 +327,10 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                     # t with density T(t) sigma_t(t), so adding sigma_a/sigma_t
                     # L_e = (1 - albedo) L_e there estimates the integral of
                     # T sigma_a L_e along the segment (docs/design.md section 12)
-                    L = _accumulate(L, real, throughput * (1.0 - flight.albedo)
-                                    * amr_media[k].emitted_radiance_at(flight, mei.p, real), adjoint)
+                    L = accumulate(L, real, throughput * absorbed_share(flight.albedo)
+                                   * amr_media[k].emitted_radiance_at(flight, mei.p, real, ray.wavelengths), adjoint)
                 if dr.hint(adjoint is not None, mode="scalar"):
-                    tangent = adjoint.collision(amr_media[k], mei.p, real, flight, throughput, L)
+                    tangent = adjoint.collision(amr_media[k], mei.p, real, flight, throughput, L, ray.wavelengths)
                     if dr.hint(dL is not None, mode="scalar"):
                         dL += tangent
                 throughput[real] *= flight.albedo        # sigma_s / sigma_t
@@ -356,13 +365,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             active &= depth < self.max_depth
             act_scatter &= active
 
-            # ---- Lighting mode (docs/design.md section 6d) ----
-            if dr.hint(self.mode == "emission_absorption", mode="scalar"):
-                # the collision's albedo (the TF colour, already in the
-                # throughput) times the brightness, whatever the lights; the
-                # path stops there (docs/design.md section 6d)
-                L = _accumulate(L, act_scatter, throughput * self.brightness, adjoint)
-                act_scatter &= False
+            # ---- Lighting mode, at the collisions (docs/design.md section 6d) ----
+            L, act_scatter = lighting.collided(L, act_scatter, throughput, self.brightness, adjoint)
 
             # ---- Medium scattering: the phase function (NEE below) ----
             phase_ctx = mi.PhaseFunctionContext(sampler)
@@ -383,7 +387,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             em_pdf = scene.pdf_emitter_direction(last_event, ds_hit, active_e & ~specular_chain)
             count_direct = (depth == 0) | specular_chain
             mis = dr.select(count_direct, 1.0, mis_weight(last_pdf, em_pdf))
-            L = _accumulate(L, active_e, throughput * emitter.eval(si, active_e) * mis, adjoint)
+            L = accumulate(L, active_e, throughput * emitter.eval(si, active_e) * mis, adjoint)
 
             active_surface &= si.is_valid()
             ctx = mi.BSDFContext()
@@ -400,16 +404,11 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                 if dr.hint(self.counters_enabled, mode="scalar"):
                     shadow_counts = shadow_counts + c
                 phase_val, phase_pdf = phase.eval_pdf(phase_ctx, mei, ds.d, nee_m)
-                if dr.hint(self.mode == "single", mode="scalar"):
-                    # no phase sampling follows: the light sample is the
-                    # estimator's only way to the emitters (no MIS weight)
-                    nee_weight_m = phase_val
-                else:
-                    nee_weight_m = phase_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, phase_pdf))
+                nee_weight_m = lighting.medium_nee_weight(phase_val, phase_pdf, ds, mis_weight)
                 bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), nee_s)
                 nee_weight_s = bsdf_val * mis_weight(ds.pdf, dr.select(ds.delta, 0.0, bsdf_pdf))
-                L = _accumulate(L, nee_m, throughput * nee_weight_m * emitted, adjoint)
-                L = _accumulate(L, nee_s, throughput * nee_weight_s * emitted, adjoint)
+                L = accumulate(L, nee_m, throughput * nee_weight_m * emitted, adjoint)
+                L = accumulate(L, nee_s, throughput * nee_weight_s * emitted, adjoint)
                 if dr.hint(adjoint is not None, mode="scalar"):
                     # the shadow ray's factors scale its own contribution: its
                     # walks again, from the same random numbers
@@ -420,8 +419,8 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
                     if dr.hint(dL is not None, mode="scalar"):
                         dL += nee * dlog
 
-            if dr.hint(self.mode == "single", mode="scalar"):
-                act_scatter &= False                     # single scattering: the path stops
+            if dr.hint(not lighting.continues, mode="scalar"):
+                act_scatter &= False                     # the mode stops the path after the light sample
 
             # ---- Next direction: phase sampling in media, BSDF sampling at surfaces ----
             wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, rng.next_1d(act_scatter),
@@ -465,9 +464,9 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         mei.time = ray.time
         mei.wavelengths = ray.wavelengths
         mei.medium = ptr
-        mei.sigma_t = mi.Color3f(flight.sigma_t)
+        mei.sigma_t = mi.UnpolarizedSpectrum(flight.sigma_t)
         mei.sigma_s = flight.albedo * flight.sigma_t
-        mei.combined_extinction = mi.Color3f(flight.sigma_t)
+        mei.combined_extinction = mi.UnpolarizedSpectrum(flight.sigma_t)
         return mei
 
     @dr.syntax

@@ -25,6 +25,7 @@ from ..params import ParameterError
 from ..building import Structures
 from ..transfer.classification import Classification
 from ..transfer.function import TransferFunction
+from ..transfer.spectra import require_supported_variant
 from .options import parse_medium_options
 from .variant_class import VariantPlugin
 import gc
@@ -51,13 +52,10 @@ def amr_media(scene_or_medium) -> list:
 
 
 def require_jit_rgb_variant(what: str = "mi_amr"):
-    """Raise a clear error unless the active Mitsuba variant is a JIT rgb one."""
-    v = mi.variant()
-    if v is None or not (v.startswith("llvm_") or v.startswith("cuda_")) or not v.endswith("_rgb"):
-        raise RuntimeError(
-            f"{what} needs a JIT rgb Mitsuba variant such as 'llvm_ad_rgb' or "
-            f"'cuda_ad_rgb'; the active variant is {v!r}. Call "
-            "mi.set_variant('llvm_ad_rgb') before loading the scene.")
+    """Raise a one-line error unless the active Mitsuba variant is a JIT
+    rgb, spectral or mono one (`mi_amr.transfer.spectra.refusal` says why
+    the others are refused; the name is kept from when only rgb worked)."""
+    require_supported_variant(what)
 
 
 class _RayMajorant:
@@ -322,6 +320,12 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
      * - emission_scale
        - |float|
        - Radiance of TF colour 1 at intensity 1. Default: 1.
+     * - emission_model
+       - |string|
+       - ``tf`` (default): the emission TF; ``blackbody``: Planck's law at
+         the emission field read in kelvin, ``L_e = emission_scale *
+         B(lambda, T) / Y(B(6500 K))``, exact per wavelength in spectral
+         variants, its linear-sRGB projection in rgb (no ``emission`` TF).
      * - emission_min, emission_max
        - |float|
        - Value domain of a preset emission TF. Default: the emission
@@ -364,6 +368,11 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
 
     def __init__(self, props: mi.Properties):
         require_jit_rgb_variant("the 'amr' medium")
+        # every option is parsed (and refused) before the base constructor
+        # registers this medium with Dr.Jit: a refusal after it left a
+        # half-built instance in the registry of media that every vcall
+        # over media walks (a segfault in a later render, seen in the suite)
+        options = parse_medium_options(props)
         type(self).__base__.__init__(self, props)
         self.m_is_homogeneous = False
         self.m_has_spectral_extinction = False
@@ -371,7 +380,6 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
             raise ParameterError(
                 "amr: microflake phase functions (such as sggx) are not supported: their projected area scales the extinction beyond the majorants; "
                 "use an isotropic, hg, rayleigh, tabphase or blendphase phase function")
-        options = parse_medium_options(props)
         _warn_slow_settings(options)
         _LIVE.add(self)
         self.options = options
@@ -387,7 +395,8 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         emission = options.emission
         self.classification = Classification(options.tf, options.density_scale,
                                              emission=None if emission is None else emission.tf,
-                                             emission_scale=1.0 if emission is None else emission.scale)
+                                             emission_scale=1.0 if emission is None else emission.scale,
+                                             emission_model="tf" if emission is None else emission.model)
         # the `AMRCells` a user gave (``data``), kept for `cells`; the
         # structures read the blocks only
         self._given_cells = options.cells
@@ -499,15 +508,17 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self.structures.update_majorants()
 
     # ---- Density ----------------------------------------------------------------
-    def eval_local(self, u: mi.Vector3f, active=True):
+    def eval_local(self, u: mi.Vector3f, active=True, wavelengths=None):
         """``(albedo, sigma_t)`` at local point ``u`` (unit cube); sigma_t in
-        inverse world units, 0 outside the data or where no value exists."""
+        inverse world units, 0 outside the data or where no value exists;
+        the albedo the variant's spectrum at ``wavelengths`` (spectral
+        variants; `Classification.albedo_and_sigma_t`)."""
         value, found = self.structures.sampler().eval(u, active)
-        return self.classification.albedo_and_sigma_t(value, found)
+        return self.classification.albedo_and_sigma_t(value, found, wavelengths)
 
-    def eval_world(self, p: mi.Point3f, active=True):
+    def eval_world(self, p: mi.Point3f, active=True, wavelengths=None):
         """``(albedo, sigma_t)`` at world points ``p`` (`eval_local`)."""
-        return self.eval_local(self._to_local @ p, active)
+        return self.eval_local(self._to_local @ p, active, wavelengths)
 
     def value_local(self, u: mi.Vector3f, active=True):
         """``(value, sigma_t)`` at local point ``u``: the reconstructed value
@@ -524,9 +535,10 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         both, found = self.structures.sampler(self._carried).eval(u, active)
         return both.x, self.classification.sigma_t(both.x, found), both.y
 
-    def albedo_of(self, value, active=True):
-        """The TF's colour (the albedo) at ``value``."""
-        return self.classification.device.eval_rgb(value, active)
+    def albedo_of(self, value, active=True, wavelengths=None):
+        """The TF's colour (the albedo) at ``value``, the variant's spectrum
+        at ``wavelengths`` (`DeviceTransferFunction.eval_colour`)."""
+        return self.classification.device.eval_colour(value, active, wavelengths)
 
     # ---- Emission ---------------------------------------------------------------
     @property
@@ -539,32 +551,32 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         """The emission TF (host form; `classification` owns it), or None."""
         return self.classification.emission
 
-    def emitted_radiance(self, p: mi.Point3f, active=True):
+    def emitted_radiance(self, p: mi.Point3f, active=True, wavelengths=None):
         """``L_e`` at world points ``p`` (the radiance of the absorbing gas:
-        its emission per unit length is ``sigma_a L_e``); 0 outside the data
-        and for a medium that does not glow."""
+        its emission per unit length is ``sigma_a L_e``) at ``wavelengths``;
+        0 outside the data and for a medium that does not glow."""
         if self.options.emission is None:
-            return mi.Color3f(0.0)
+            return mi.UnpolarizedSpectrum(0.0)
         value, found = self.structures.sampler().eval(self._to_local @ p, active) if self._carried is None \
             else self._carried_at(self._to_local @ p, active)
-        return self.classification.emitted_radiance(value, found)
+        return self.classification.emitted_radiance(value, found, wavelengths)
 
     def _carried_at(self, u, active):
         both, found = self.structures.sampler(self._carried).eval(u, active)
         return both.y, found
 
-    def emitted_radiance_at(self, flight: FreeFlight, p: mi.Point3f, active=True):
+    def emitted_radiance_at(self, flight: FreeFlight, p: mi.Point3f, active=True, wavelengths=None):
         """``L_e`` at the real collisions of ``flight`` (world points ``p``)
         from the flight's own point query (`point_query`): the value found
         there, or the emission field carried with it. Only a control
         collision of decomposition tracking, which looked nothing up, looks
         ``p`` up (`emitted_radiance`): every collision costs one look-up."""
         if self.options.emission is None:
-            return mi.Color3f(0.0)
+            return mi.UnpolarizedSpectrum(0.0)
         found = mi.Bool(active) & flight.looked
         value = flight.value if self._carried is None else flight.carried
-        from_value = self.classification.emitted_radiance(value, found)
-        return dr.select(found, from_value, self.emitted_radiance(p, mi.Bool(active) & ~flight.looked))
+        from_value = self.classification.emitted_radiance(value, found, wavelengths)
+        return dr.select(found, from_value, self.emitted_radiance(p, mi.Bool(active) & ~flight.looked, wavelengths))
 
     def set_emission(self, emission: TransferFunction | None = None, emission_scale: float | None = None):
         """A new emission TF and/or scale (None keeps the current one): the
@@ -599,13 +611,17 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         raised majorants (`majorant_margin`) for a differentiable walk."""
         carries = self._carried is not None
         lookup = self.point_query if carries else self.value_local
+        wavelengths = ray.wavelengths
+
+        def albedo_of(value, active=True):
+            return self.albedo_of(value, active, wavelengths)
         if control:
             if replay is not None or margin is not None:
                 raise ValueError("free_flight: a differentiable walk tracks without a control extinction")
-            tracking = DecompositionTracking(lookup, self.albedo_of, sampler, self.tf_device.rgb_constant, carries,
+            tracking = DecompositionTracking(lookup, albedo_of, sampler, self.tf_device.rgb_constant, carries,
                                              count, thin=self._thinning(replay, margin))
         else:
-            tracking = DeltaTracking(lookup, self.albedo_of, sampler, carries, count, replay, margin,
+            tracking = DeltaTracking(lookup, albedo_of, sampler, carries, count, replay, margin,
                                      self._thinning(replay, margin))
         return self._track(ray, t_max, active, tracking)
 
@@ -730,15 +746,16 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
 
     def get_majorant(self, mei: mi.MediumInteraction3f, active=True):
         mu = self._majorant_for(mei)
-        return mi.Color3f(dr.select(mu > 0.0, mu, 1.0))
+        return mi.UnpolarizedSpectrum(dr.select(mu > 0.0, mu, 1.0))
 
     def get_scattering_coefficients(self, mei: mi.MediumInteraction3f, active=True):
         mu = self._majorant_for(mei)
         self._ray_majorant.clear()       # sample_interaction calls this last
-        rgb, sigma_t = self.eval_local(self._to_local @ mei.p, active)
-        sigma_s = rgb * sigma_t
+        albedo, sigma_t = self.eval_local(self._to_local @ mei.p, active, mei.wavelengths)
+        sigma_s = albedo * sigma_t
         sigma_n = dr.maximum(mu - sigma_t, 0.0)
-        return mi.Color3f(sigma_s), mi.Color3f(sigma_n), mi.Color3f(sigma_t)
+        return (mi.UnpolarizedSpectrum(sigma_s), mi.UnpolarizedSpectrum(sigma_n),
+                mi.UnpolarizedSpectrum(sigma_t))
 
     # ---- Scene parameters (mi.traverse) ------------------------------------------
     def traverse(self, callback):

@@ -25,7 +25,7 @@ from ..memory import default_memory_limit
 from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
 from ..building import SAMPLINGS, StructureOptions, TRAVERSALS
 from ..structures.cache import HOST_CACHE
-from ..transfer.classification import MAX_DENSITY_SCALE, check_emission_scale
+from ..transfer.classification import EMISSION_MODELS, MAX_DENSITY_SCALE, check_emission_scale
 from ..transfer.function import TransferFunction
 
 MAJORANTS = ("ray", "global")
@@ -42,6 +42,7 @@ KNOWN = {"filename", "field", "data_checksum", "scalars", "data", "transfer_func
          "overlap", "to_world", "sample_emitters", "traversal", "sampling", "brick_size",
          "kdtree_leaves", "max_iterations", "memory_limit", "value_masks", "value_transform",
          "emission", "emission_field", "emission_scale", "emission_min", "emission_max", "emission_transform",
+         "emission_model",
          "clip_normal", "clip_offset"}
 
 
@@ -50,11 +51,13 @@ class Emission:
     """What makes a medium glow: the emission TF over its (transformed)
     emission field, the field's name (None: the extinction field, as the
     extinction TF sees it, after ``value_transform``), the transform of its values and the radiance
-    scale (docs/design.md section 12)."""
-    tf: TransferFunction
+    scale (docs/design.md section 12). ``model``: ``tf``, or ``blackbody``
+    (Planck's law at the field in kelvin; ``tf`` is then None)."""
+    tf: "TransferFunction | None"
     field: str | None
     transform: str
     scale: float
+    model: str = "tf"
 
 
 @dataclass(frozen=True)
@@ -256,6 +259,9 @@ def _emission(props, data) -> Emission | None:
     ``emission``): the field exists, the emission TF's domain defaults to
     the (transformed) field's range."""
     given = [k for k in props.keys() if k.startswith("emission")]
+    model = get_string(props, "amr", "emission_model", "tf", EMISSION_MODELS)
+    if model == "blackbody":
+        return _blackbody(props, data, given)
     if "emission" not in props.keys():
         if given:
             raise ParameterError(f"amr: {', '.join(sorted(given))} given without 'emission' (the emission TF)")
@@ -281,6 +287,26 @@ def _emission(props, data) -> Emission | None:
         _load_tf(spec, "emission", domain, (lo, hi), _asked(props, "emission_min", "emission_max"))
     scale = check_emission_scale(get_float(props, "amr", "emission_scale", 1.0))
     return Emission(tf=tf, field=field, transform=transform, scale=scale)
+
+
+def _blackbody(props, data, given) -> Emission:
+    """``emission_model='blackbody'``: the medium glows by Planck's law at
+    its emission field read as kelvin (`mi_amr.transfer.spectra`); an
+    emission TF, its domain and a transform of the field are refused."""
+    extra = sorted(set(given) & {"emission", "emission_min", "emission_max"})
+    if extra:
+        raise ParameterError(f"amr: emission_model='blackbody' takes no emission TF ({', '.join(extra)}): the "
+                             f"emission field is read as kelvin through Planck's law")
+    if get_string(props, "amr", "emission_transform", "none", VALUE_TRANSFORMS) != "none":
+        raise ParameterError("amr: emission_model='blackbody' reads the emission field in kelvin; "
+                             "emission_transform must be 'none'")
+    field = get_string(props, "amr", "emission_field", None)
+    if field is None and get_string(props, "amr", "value_transform", "none", VALUE_TRANSFORMS) != "none":
+        raise ParameterError("amr: emission_model='blackbody' on the extinction field needs its values in kelvin "
+                             "(value_transform 'none'), or an emission_field in kelvin")
+    _field_values(data, field)
+    scale = check_emission_scale(get_float(props, "amr", "emission_scale", 1.0))
+    return Emission(tf=None, field=field, transform="none", scale=scale, model="blackbody")
 
 
 def _field_values(data, field: str | None) -> np.ndarray:

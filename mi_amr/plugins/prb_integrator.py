@@ -36,7 +36,7 @@ import mitsuba as mi
 
 from ..device.tracking import GRADIENT_FLOOR, GRADIENT_MARGIN
 from ..params import ParameterError, check_known, get_float
-from .integrator import AMRVolpathIntegrator, MODES
+from .integrator import AMRVolpathIntegrator, MODES, absorbed_share
 from .medium import require_jit_rgb_variant
 from .variant_class import VariantPlugin
 
@@ -45,8 +45,9 @@ KNOWN = {"max_depth", "rr_depth", "hide_emitters", "mode", "brightness", "majora
 
 
 def _rb_base():
-    """Mitsuba's base class of path-replay integrators, for the active variant."""
-    from mitsuba.ad.integrators.common import RBIntegrator
+    """Mitsuba's base class of path-replay integrators, for the active variant
+    (from ``mitsuba.python.ad``, which Mitsuba reloads on a variant change)."""
+    from mitsuba.python.ad.integrators.common import RBIntegrator
     return RBIntegrator
 
 
@@ -67,14 +68,14 @@ class PathAdjoint:
         channels (backward mode; None in forward mode)."""
         return None if self.forward else dr.sum(self.dL * radiance)
 
-    def collision(self, medium, p, real, flight, throughput, L):
+    def collision(self, medium, p, real, flight, throughput, L, wavelengths=None):
         """The derivative of a real collision at world points ``p`` (lanes
         ``real``) of ``flight`` in ``medium``: ``throughput`` before the
         collision, ``L`` the radiance still to come after its emission.
         Backward mode sends it to the parameters and returns 0; forward mode
         returns the radiance's tangent."""
         with dr.resume_grad():
-            albedo, sigma_t = medium.eval_world(p, real)
+            albedo, sigma_t = medium.eval_world(p, real, wavelengths)
             primal = dr.detach(sigma_t)
             ok = real & (primal > 0.0)
             inv = dr.rcp(dr.select(ok, primal, 1.0))
@@ -84,7 +85,8 @@ class PathAdjoint:
                                                                                 1.0)), 0.0)
             terms = albedo * sigma_t * inv * after
             if medium.glows:
-                terms += throughput * (1.0 - albedo) * sigma_t * inv * medium.emitted_radiance(p, ok)
+                terms += (throughput * absorbed_share(albedo) * sigma_t * inv
+                          * medium.emitted_radiance(p, ok, wavelengths))
             terms = dr.select(ok, terms, 0.0)
             if not dr.grad_enabled(terms):
                 return mi.Spectrum(0.0)

@@ -186,8 +186,9 @@ def build_parser():
                    help="data: TF domain (in log10 units with --log; default: 1st-99.9th volume percentiles)")
     r.add_argument("--tf", help="data: TF preset (spiky, foggy, ramp, constant) or .json file (default spiky)")
     r.add_argument("--emission", metavar="TF",
-                   help="data: make the gas glow with this emission TF (preset blackbody, a matplotlib "
-                        "colormap or .json file); the scene then has no other light")
+                   help="data: make the gas glow: 'blackbody' is Planck's law at the emission field in kelvin "
+                        "(docs/manual/glowing-gas.md), anything else an emission TF (a matplotlib colormap, a "
+                        "preset or .json file); the scene then has no other light")
     r.add_argument("--emission-field", metavar="NAME",
                    help="data: the field the emission reads (e.g. temperature; default: --field)")
     r.add_argument("--emission-range", type=_finite, nargs=2, metavar=("LO", "HI"),

@@ -53,18 +53,25 @@ from ..core.jit_struct import jit_struct, owned
 from ..params import ParameterError
 from .device import DeviceTransferFunction
 from .function import TransferFunction, range_majorants_host
+from .spectra import blackbody_radiance, blackbody_table
 
 #: The scene parameters a classification exposes.
 PARAMETERS = ("density_scale", "tf_rgba", "tf_domain")
 #: ... and those of a medium that glows.
 EMISSION_PARAMETERS = ("emission_scale", "emission_rgba", "emission_domain")
+#: ... and those of a medium that glows as a blackbody (no emission TF).
+BLACKBODY_PARAMETERS = ("emission_scale",)
 #: The emission table of a medium that does not glow (never read).
 _DARK = TransferFunction(np.zeros((2, 4)), (0.0, 1.0))
+#: How a glowing medium's emission field becomes radiance: an emission TF
+#: (``tf``), or Planck's law at the field read as kelvin (``blackbody``;
+#: `mi_amr.transfer.spectra`).
+EMISSION_MODELS = ("tf", "blackbody")
 
 
 @jit_struct(scale="Float", tf_rgba="Float", tf_domain="Float", device=DeviceTransferFunction,
             emission_scale="Float", emission_rgba="Float", emission_domain="Float",
-            emission_device=DeviceTransferFunction)
+            emission_device=DeviceTransferFunction, blackbody="Float")
 class Classification:
     """TF and density scale of one medium, and its emission TF and scale
     (see the module docstring).
@@ -78,7 +85,8 @@ class Classification:
 
     def __init__(self, tf: TransferFunction, density_scale: float,
                  on_change: Callable[["Classification"], None] | None = None,
-                 emission: TransferFunction | None = None, emission_scale: float = 1.0):
+                 emission: TransferFunction | None = None, emission_scale: float = 1.0,
+                 emission_model: str = "tf"):
         self.on_change = on_change
         self.tf = _check_tf(tf)
         self.density_scale = check_density_scale(density_scale)
@@ -88,15 +96,25 @@ class Classification:
         self.device = DeviceTransferFunction(self.tf)
         dr.make_opaque(self.scale, self.tf_rgba, self.tf_domain)
         #: whether the medium glows (fixed at load: it shapes the kernel)
-        self.glows = emission is not None
-        self.emission = _check_tf(emission) if self.glows else None
+        if emission_model not in EMISSION_MODELS:
+            raise ParameterError(f"amr: emission_model must be one of {', '.join(EMISSION_MODELS)}, "
+                                 f"got {emission_model!r}")
+        #: ``tf`` or ``blackbody`` (fixed at load: it shapes the kernel)
+        self.emission_model = emission_model
+        self.glows = emission is not None or emission_model == "blackbody"
+        self.emission = _check_tf(emission) if emission is not None else None
         self.emission_scale_value = check_emission_scale(emission_scale)
         self.emission_scale = mi.Float(self.emission_scale_value)
-        table = self.emission if self.glows else _DARK
+        table = self.emission if self.emission is not None else _DARK
         self.emission_rgba = owned(mi.Float, table.rgba)
         self.emission_domain = mi.Float(table.domain)
         self.emission_device = DeviceTransferFunction(table)
         dr.make_opaque(self.emission_scale, self.emission_rgba, self.emission_domain)
+        # the blackbody's XYZ table over temperature (rgb and mono variants)
+        self.blackbody = None
+        if emission_model == "blackbody":
+            self.blackbody = owned(mi.Float, blackbody_table().ravel())
+            dr.make_opaque(self.blackbody)
 
     # ---- The one update path --------------------------------------------------
     def set(self, tf: TransferFunction | None = None, density_scale: float | None = None,
@@ -117,6 +135,9 @@ class Classification:
         if (emission is not None or emission_scale is not None) and not self.glows:
             raise ParameterError("amr: this medium was loaded without emission; give it an 'emission' TF "
                                  "at load to change its emission later")
+        if emission is not None and self.emission_model == "blackbody":
+            raise ParameterError("amr: this medium glows as a blackbody (emission_model='blackbody'), which "
+                                 "has no emission TF; only emission_scale changes")
         emission = self.emission if emission is None else _check_tf(emission)
         e_scale = self.emission_scale_value if emission_scale is None else check_emission_scale(emission_scale)
         self.tf, self.density_scale = tf, scale
@@ -124,9 +145,9 @@ class Classification:
         self.device.set(tf, _attached(self.tf_rgba))
         if self.glows:
             self.emission, self.emission_scale_value = emission, e_scale
-            _upload(self.emission_rgba, self.emission_domain, self.emission_scale, emission, e_scale,
-                    keep_gradients)
-            self.emission_device.set(emission, _attached(self.emission_rgba))
+            table = _DARK if emission is None else emission          # a blackbody has no TF
+            _upload(self.emission_rgba, self.emission_domain, self.emission_scale, table, e_scale, keep_gradients)
+            self.emission_device.set(table, _attached(self.emission_rgba))
         listener = self._listener() if self._listener is not None else None
         if listener is not None and not only_emission:
             listener(self)
@@ -174,6 +195,8 @@ class Classification:
     @property
     def parameter_names(self) -> tuple:
         """The scene parameters of this classification (`traverse`)."""
+        if self.emission_model == "blackbody":
+            return PARAMETERS + BLACKBODY_PARAMETERS
         return PARAMETERS + (EMISSION_PARAMETERS if self.glows else ())
 
     @staticmethod
@@ -196,6 +219,7 @@ class Classification:
         callback.put("tf_domain", self.tf_domain, mi.ParamFlags.NonDifferentiable)
         if self.glows:
             callback.put("emission_scale", self.emission_scale, mi.ParamFlags.Differentiable)
+        if self.emission is not None:
             callback.put("emission_rgba", self.emission_rgba, mi.ParamFlags.Differentiable)
             callback.put("emission_domain", self.emission_domain, mi.ParamFlags.NonDifferentiable)
 
@@ -215,16 +239,26 @@ class Classification:
         no value was found)."""
         return dr.select(found, self.scale * self.device.eval_alpha(value, found), 0.0)
 
-    def emitted_radiance(self, value, found):
-        """``L_e`` at emission-field values: ``emission_scale * rgb *
-        alpha`` of the emission TF (radiance; 0 where no value was found)."""
-        rgb, alpha = self.emission_device.eval(value, found)
-        return dr.select(found, self.emission_scale * alpha * rgb, 0.0)
+    def emitted_radiance(self, value, found, wavelengths=None):
+        """``L_e`` at emission-field values as the active variant's
+        unpolarized spectrum at ``wavelengths`` (radiance; 0 where no value
+        was found): ``emission_scale * colour * alpha`` of the emission TF
+        (the colour an emitted spectrum, `DeviceTransferFunction.eval_colour`),
+        or for a blackbody ``emission_scale`` times Planck's law at the
+        value in kelvin, normalised (`mi_amr.transfer.spectra`)."""
+        if self.emission_model == "blackbody":
+            return dr.select(found, self.emission_scale * blackbody_radiance(self.blackbody, value, wavelengths,
+                                                                             found), 0.0)
+        alpha = self.emission_device.eval_alpha(value, found)
+        colour = self.emission_device.eval_colour(value, found, wavelengths, emitted=True)
+        return dr.select(found, self.emission_scale * alpha * colour, 0.0)
 
-    def albedo_and_sigma_t(self, value, found):
-        """``(albedo, sigma_t)`` at reconstructed values."""
-        rgb, alpha = self.device.eval(value, found)
-        return rgb, dr.select(found, self.scale * alpha, 0.0)
+    def albedo_and_sigma_t(self, value, found, wavelengths=None):
+        """``(albedo, sigma_t)`` at reconstructed values, the albedo the
+        active variant's unpolarized spectrum at ``wavelengths``."""
+        alpha = self.device.eval_alpha(value, found)
+        return (self.device.eval_colour(value, found, wavelengths),
+                dr.select(found, self.scale * alpha, 0.0))
 
 
 def _check_tf(tf) -> TransferFunction:

@@ -12,10 +12,11 @@ import numpy as np
 
 from ..core.jit_struct import jit_struct, owned
 from .function import TransferFunction
+from .spectra import colour_as_spectrum, spectrum_of_entry, upsampling_jacobian, upsampling_table, variant_kind
 
 
 @jit_struct(rgba="Float", sparse="Float", sparse_min="Float", n="UInt32", lo="Float", inv_width="Float",
-            rgb_constant="Bool")
+            rgb_constant="Bool", spectral="Float", spectral_jacobian="Float")
 class DeviceTransferFunction:
     """A `TransferFunction` uploaded for use in Dr.Jit kernels."""
 
@@ -41,6 +42,17 @@ class DeviceTransferFunction:
         self.rgb_constant = mi.Bool(bool(np.all(rgb == rgb[0])))
         dr.make_opaque(self.rgba, self.sparse, self.sparse_min, self.n, self.lo, self.inv_width,
                        self.rgb_constant)
+        # spectral variants: each entry's colour upsampled as gridvolume does
+        # (`mi_amr.transfer.spectra`); None elsewhere (no kernel reads it)
+        # and, where the table carries gradients, their derivatives by the
+        # colours (`upsampling_jacobian`)
+        self.spectral = self.spectral_jacobian = None
+        if variant_kind() == "spectral":
+            self.spectral = owned(mi.Float, upsampling_table(rgb).ravel())
+            dr.make_opaque(self.spectral)
+            if rgba is not None and dr.grad_enabled(rgba):
+                self.spectral_jacobian = owned(mi.Float, upsampling_jacobian(rgb).ravel())
+                dr.make_opaque(self.spectral_jacobian)
 
     def _u(self, v):
         return dr.clip((v - self.lo) * self.inv_width, 0.0, 1.0)
@@ -57,6 +69,42 @@ class DeviceTransferFunction:
     def eval_rgb(self, v, active=True):
         """Colour at values ``v`` (as `eval`, three channels)."""
         return mi.Color3f(*self._channels(v, range(3), active))
+
+    def eval_colour(self, v, active=True, wavelengths=None, emitted: bool = False):
+        """The colour at values ``v`` as the active variant's unpolarized
+        spectrum at ``wavelengths`` (`colour_as_spectrum`): rgb as
+        `eval_rgb`, its luminance in mono, in spectral the linear
+        interpolation of the two entries' upsampled spectra (times D65 for
+        an ``emitted`` colour). The spectral form's gradient reaches the
+        table's colours through `upsampling_jacobian` (first order)."""
+        def entries(wl):
+            i, f = self._entry(v)
+            a = self._entry_spectrum(i, wl, active)
+            b = self._entry_spectrum(i + 1, wl, active)
+            return dr.fma(f, b - a, a)
+        rgb = None if variant_kind() == "spectral" else self.eval_rgb(v, active)
+        return colour_as_spectrum(rgb, wavelengths, emitted, entries)
+
+    def _entry_spectrum(self, i, wavelengths, active):
+        """Entry ``i``'s upsampled spectrum (`spectrum_of_entry`); with
+        gradients on the table, its coefficients move with the entry's
+        colour to first order (zero in value, the derivative in AD)."""
+        if self.spectral_jacobian is None or not dr.grad_enabled(self.rgba):
+            return spectrum_of_entry(self.spectral, i, wavelengths, active)
+        c = [dr.gather(mi.Float, self.spectral, 4 * i + m, active) for m in range(4)]
+        for k in range(3):
+            colour = dr.gather(mi.Float, self.rgba, 4 * i + k, active)
+            delta = colour - dr.detach(colour)
+            c = [c[m] + delta * dr.gather(mi.Float, self.spectral_jacobian, 12 * i + 4 * k + m, active)
+                 for m in range(4)]
+        return c[3] * mi.srgb_model_eval(mi.Vector3f(c[0], c[1], c[2]), wavelengths)
+
+    def _entry(self, v):
+        """Table entry ``i`` below ``v`` and the weight ``f`` of entry ``i + 1``."""
+        n1 = self.n - 1
+        x = self._u(v) * mi.Float(n1)
+        i = dr.minimum(mi.UInt32(dr.floor(x)), n1 - 1)
+        return i, x - mi.Float(i)
 
     def _channels(self, v, channels, active):
         n1 = self.n - 1
