@@ -1,5 +1,6 @@
 """Shared fixtures: the Mitsuba variant and small data factories."""
 
+import gc
 import os
 import shutil
 
@@ -163,3 +164,14 @@ def browser():
             "--disable-sync", "--no-first-run"])
         yield b
         b.close()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _collect_media_after_module():
+    """Free what a test module left behind (scenes, media in exception
+    tracebacks) before the next module renders: Dr.Jit dispatches a call
+    over every live instance of a plugin type, so stale media would join
+    the next module's kernels (slower, and one Dr.Jit 1.5 LLVM assembly
+    fault, a callable defined twice, was seen only with them)."""
+    yield
+    gc.collect()
