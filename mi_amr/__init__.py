@@ -18,7 +18,7 @@ from .data.cells import AMRCells  # noqa: E402
 from .data.convert import dense_to_amr  # noqa: E402
 from .autoscene import plan_scene  # noqa: E402
 from .data.opening import open_data  # noqa: E402
-from .data_scene import DataScene, scene  # noqa: E402
+from .data_scene import DataScene, scene, show  # noqa: E402
 from .rendering import RenderJob, render_jobs  # noqa: E402
 from .data.io import load_cells, read_exabricks, read_npz, write_exabricks, write_npz  # noqa: E402
 from .native_file import save_data as save_cells  # noqa: E402  (.amrb with its grids and statistics)
@@ -32,7 +32,7 @@ from .transfer.function import TransferFunction  # noqa: E402
 __version__ = "0.1.0"
 __all__ = ["AMRCells", "TransferFunction", "dense_to_amr", "load_cells", "save_cells",
            "read_exabricks", "write_exabricks", "read_npz", "write_npz", "register",
-           "set_transfer_function", "amr_media", "from_yt", "world_transform", "scene_for", "scene", "DataScene",
+           "set_transfer_function", "amr_media", "from_yt", "world_transform", "scene_for", "scene", "show", "DataScene",
            "open_data", "plan_scene", "RenderJob", "render_jobs"]
 
 

@@ -17,6 +17,7 @@ the Mitsuba objects for scripting and gradients.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import mitsuba as mi
@@ -26,7 +27,10 @@ from .autoscene import ScenePlan, plan_scene
 from .scene_writer import scene_for, write_scene_xml
 from .data.opening import is_native
 from .distributed import render_local
-from .images import png_bytes, write_exr, write_png
+from .annotations import Annotations, PinholeCamera, Placement, burn_in, srgb_png_bytes, write_srgb_png
+from .data.volume import as_volume
+from .images import png_bytes, srgb8, write_exr, write_png
+from .slicing import Slice, Slicer, axis_index
 from .native_file import save_data
 from .plugins.integrator import MODES
 from .plugins.medium import AMRMedium, scene_media
@@ -40,7 +44,18 @@ class Image(np.ndarray):
     shown inline by Jupyter as an sRGB PNG (`_repr_png_`)."""
 
     def _repr_png_(self) -> bytes:
-        return png_bytes(np.asarray(self))
+        shown = getattr(self, "annotated_srgb", None)          # set by ``render(annotate=...)``
+        return png_bytes(np.asarray(self)) if shown is None else srgb_png_bytes(shown)
+
+    def annotated(self, annotate=True) -> np.ndarray:
+        """The picture as sRGB 8-bit pixels (H, W, 3) with annotations drawn
+        on it (`DataScene.annotate`: ``annotate`` True for the outline and
+        the legend, or names among outline, axes, levels, legend); the
+        float image itself stays as rendered (its EXR never has them)."""
+        scene = getattr(self, "scene", None)
+        if scene is None:
+            raise ValueError("annotated: this image does not come from DataScene.render")
+        return scene.annotate(self, annotate)
 
     def to_bitmap(self) -> mi.Bitmap:
         """The picture as a ``mitsuba.Bitmap`` (linear RGB, float32)."""
@@ -72,7 +87,7 @@ class DataScene:
                  spp: int = DEFAULT_SPP, **plan):
         if mode is not None and mode not in MODES:
             raise ValueError(f"mode: one of {', '.join(MODES)}, got {mode!r}")
-        self.source = data
+        self.source, self.field = data, field
         self.plan: ScenePlan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **plan)
         self.mode, self.res, self.spp = mode, int(res), int(spp)
         #: A clip plane ``(normal, offset)`` in world space (the domain
@@ -80,6 +95,7 @@ class DataScene:
         #: ``normal . x <= offset``; None: none (`AMRMedium.set_clip_plane`).
         self.clip = None
         self._loaded = None           # (key, mi.Scene, the state put into it)
+        self._lock = contextlib.nullcontext()     # a widget's engine.JIT_LOCK while it renders (`show`)
 
     # ---- the plan's choices, to edit ---------------------------------------------
     tf = property(lambda self: self.plan.tf, lambda self, v: setattr(self.plan, "tf", str(v)),
@@ -174,10 +190,13 @@ class DataScene:
         self._loaded = (self._loaded[0], scene, dict(now))
 
     # ---- pictures ----------------------------------------------------------------
-    def render(self, spp: int | None = None, res: int | None = None, seed: int = 0, progress: bool = False) -> Image:
+    def render(self, spp: int | None = None, res: int | None = None, seed: int = 0, progress: bool = False,
+               annotate=None) -> Image:
         """The picture at ``spp`` samples per pixel and ``res`` x ``res``
         pixels (defaults: the scene's), float32 (H, W, 3) linear RGB; the
-        same chunks and seeds as ``mi-amr render --seed SEED``."""
+        same chunks and seeds as ``mi-amr render --seed SEED``. ``annotate``
+        (True, or names among outline, axes, levels, legend): a notebook
+        shows the picture with them (`Image.annotated`)."""
         spp = self.spp if spp is None else int(spp)
         if spp < 1:
             raise ValueError(f"spp: at least 1, got {spp}")
@@ -185,14 +204,19 @@ class DataScene:
             if int(res) < 1:
                 raise ValueError(f"res: at least 1, got {res}")
             self.res = int(res)
-        scene = self.mitsuba_scene
-        image = render_local(scene, spp, chunk_for(spp, None), seed, progress=progress, desc="mi_amr.scene")
+        with self._lock:
+            scene = self.mitsuba_scene
+            image = render_local(scene, spp, chunk_for(spp, None), seed, progress=progress, desc="mi_amr.scene")
         image = np.array(image, dtype=np.float32)
         if not np.all(np.isfinite(image)):
             raise ValueError(f"the rendered image holds {int((~np.isfinite(image)).sum())} non-finite values")
-        return image.view(Image)
+        image = image.view(Image)
+        image.scene = self
+        if annotate:
+            image.annotated_srgb = self.annotate(image, annotate)
+        return image
 
-    def save(self, path, spp: int | None = None, res: int | None = None, seed: int = 0) -> dict:
+    def save(self, path, spp: int | None = None, res: int | None = None, seed: int = 0, annotate=None) -> dict:
         """Render and write ``path`` (EXR), its PNG preview and the scene as
         XML beside it (``PATH.xml``, naming the data file: the source itself
         when it is a native file, else the data written once as
@@ -200,7 +224,9 @@ class DataScene:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         image = self.render(spp, res, seed)
-        written = {"exr": write_exr(path, image), "png": write_png(path.with_suffix(".png"), image)}
+        png = path.with_suffix(".png")           # ``annotate``: drawn into the PNG only, never the EXR
+        written = {"exr": write_exr(path, image), "png": write_srgb_png(png, self.annotate(image, annotate))
+                   if annotate else write_png(png, image)}
         source = self.source
         if isinstance(source, (str, Path)) and is_native(source) and Path(source).is_file():
             data_file = Path(source).resolve()
@@ -210,6 +236,63 @@ class DataScene:
         written["xml"] = write_scene_xml(self.plan, data_file, path.with_suffix(".xml"), res=self.res,
                                          spp=self.spp if spp is None else int(spp), mode=self.mode)
         return written
+
+    def show(self, res: int = 256, **options):
+        """The viewer in the notebook cell: a `mi_amr.view.widget.ViewWidget`
+        on Jupyter's comm channel (no port opened), ``res`` pixels wide;
+        its camera, TF, density scale and mode are written back into this
+        scene as they change, so `render` renders the view on screen.
+        ``options``: ``max_spp``, ``out_dir`` (snapshots), ``preview_scale``."""
+        from .view.widget import ViewWidget      # lazy: the mi-amr[notebooks] extra (anywidget)
+        return ViewWidget(self, res=res, **options)
+
+    # ---- annotations and slices (mi_amr.annotations, mi_amr.slicing) -----------------------
+    def _blocks(self):
+        """The plan's data as blocks (made once for per-cell data) and a
+        `Slicer` of them as the medium holds the values (log10 when `log`)."""
+        key = (id(self.plan.data), self.log)
+        if getattr(self, "_slicing", (None,))[0] != key:
+            volume = as_volume(self.plan.data)
+            self._slicing = (key, volume, Slicer(volume, transform="log10" if self.log else None))
+        return self._slicing[1:]
+
+    @property
+    def placement(self) -> Placement:
+        """Where the data sit in the world (the medium's ``to_world``)."""
+        return Placement.of(self._blocks()[0], self.plan.to_world_matrix())
+
+    @property
+    def camera(self) -> PinholeCamera:
+        """The sensor's camera (projects world points to the picture's pixels)."""
+        return PinholeCamera.looking(self.origin, self.target, self.up, self.plan.fov, (self.res, self.res))
+
+    def annotate(self, image, annotate=True) -> np.ndarray:
+        """``image`` (linear, or sRGB 8-bit) as sRGB 8-bit pixels with the
+        annotations ``annotate`` drawn on it (`Annotations.parse`): outline,
+        axes in the data's length unit, AMR level boxes, the TF's legend."""
+        rgb8 = np.asarray(image) if np.asarray(image).dtype == np.uint8 else srgb8(np.asarray(image))
+        h, w = rgb8.shape[:2]
+        volume = self._blocks()[0]
+        camera = PinholeCamera.looking(self.origin, self.target, self.up, self.plan.fov, (w, h))
+        meta = volume.meta or {}
+        name = str(meta.get("field") or "").strip("()").split(",")[-1].strip(" '\"")     # ('gas', 'density')
+        label = " ".join(x for x in (name, f"[{meta['units']}]" if meta.get("units") else "") if x)
+        tf = TransferFunction.load(self.plan.tf, self.plan.tf_range)
+        return burn_in(rgb8, camera, self.placement, volume, Annotations.parse(annotate), tf, label, self.log)
+
+    def slice(self, axis, position: float = 0.0, res=256, method: str = "tent") -> Slice:
+        """The field on the plane normal to ``axis`` (x, y, z or 0, 1, 2) at
+        world coordinate ``position`` along it (as `clip` offsets; 0 the
+        domain's centre), ``res`` pixels along its longer side (or
+        (width, height)): values as the medium holds them (log10 when
+        `log`), through the reconstruction ``method``, with the AMR level
+        per pixel (`mi_amr.slicing.Slice`; ``.image(tf)`` colours it)."""
+        from_axis, p = axis_index(axis), self.placement
+        unit = (float(position) - p.to_world[from_axis, 3]) / p.to_world[from_axis, from_axis]
+        if not 0.0 <= unit <= 1.0:
+            lo, hi = p.to_world[from_axis, 3], p.to_world[from_axis, 3] + p.to_world[from_axis, from_axis]
+            raise ValueError(f"slice position: a world coordinate in the domain [{lo:.4g}, {hi:.4g}], got {position}")
+        return self._blocks()[1].slice(from_axis, unit, res, method)
 
     def __repr__(self):
         return (f"DataScene[{self.plan.notes[0] if self.plan.notes else ''}; tf {self.tf!r} over "
@@ -221,3 +304,13 @@ def scene(data, field: str | None = None, **options) -> DataScene:
     """``DataScene(data, field, **options)``: AMR data planned into a scene
     (`DataScene`), as ``yt.create_scene`` makes one."""
     return DataScene(data, field, **options)
+
+
+def show(data, field: str | None = None, *, res: int = 256, max_spp: int | None = None, out_dir=".",
+         preview_scale: float = 0.5, **options):
+    """``scene(data, field, **options).show(res, ...)``: the viewer of AMR
+    data in the notebook cell (`DataScene.show`); ``w.scene`` is the scene."""
+    widget = {"out_dir": out_dir, "preview_scale": preview_scale}
+    if max_spp is not None:
+        widget["max_spp"] = max_spp
+    return scene(data, field, **options).show(res, **widget)

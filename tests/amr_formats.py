@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_amr.data import enzo_example as _package_enzo
+
 
 def write_amrex_plotfile(path, levels, prob_lo, prob_hi, field="density"):
     """Write a plotfile. ``levels``: per level, a list of ``(lo, data)``
@@ -84,51 +86,7 @@ def _write_level(level_dir, boxes, box):
     (level_dir / "Cell_H").write_text("\n".join(head) + "\n")
 
 
-def write_enzo(directory, name, root, children, field="Density", extra=None):
-    """Write an Enzo output ``directory/name`` (parameter file, ``.hierarchy``
-    and one packed-HDF5 ``.cpu0000`` file) as Enzo 2 writes it: one root
-    grid ``root`` (values indexed ``[i, j, k]``) over the unit cube and
-    level-1 grids ``children``: ``(start, data)`` with ``start`` the first
-    level-1 cell index. ``extra``: further fields, ``{name: f}`` with ``f``
-    mapping a grid's ``field`` values to that field's (e.g. a temperature
-    from the density). Returns the parameter file's path."""
-    extra = dict(extra or {})
-    import h5py
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    dims = np.asarray(root.shape)
-    (directory / name).write_text("\n".join([
-        "InitialTime = 0", "TopGridRank = 3", f"TopGridDimensions = {dims[0]} {dims[1]} {dims[2]}",
-        "DomainLeftEdge = 0 0 0", "DomainRightEdge = 1 1 1", "RefineBy = 2",
-        "LeftFaceBoundaryCondition = 3 3 3", "ComovingCoordinates = 0", "Gamma = 1.6667",
-        "NumberOfParticles = 0", "VersionNumber = 2.0", "LengthUnits = 1", "DensityUnits = 1",
-        "TimeUnits = 1", "HydroMethod = 0", "MultiSpecies = 0", "DualEnergyFormalism = 0", "Mu = 0.6", ""]))
-    data_file = f"{name}.cpu0000"
-    grids = [(0, np.zeros(3, int), root)] + [(1, np.asarray(s), d) for s, d in children]
-    lines = []
-    with h5py.File(directory / data_file, "w") as h5:
-        for gid, (level, start, data) in enumerate(grids, 1):
-            n = np.asarray(data.shape)
-            cell = 1.0 / (dims * 2 ** level)
-            left, right = start * cell, (start + n) * cell
-            group = h5.create_group(f"Grid{gid:08d}")
-            group.create_dataset(field, data=np.asarray(data, "<f8").transpose(2, 1, 0))
-            for other, f in extra.items():
-                group.create_dataset(other, data=np.asarray(f(data), "<f8").transpose(2, 1, 0))
-            lines += [f"Grid = {gid}", "GridRank = 3", f"GridDimension = {n[0]} {n[1]} {n[2]}",
-                      "GridStartIndex = 0 0 0", f"GridEndIndex = {n[0] - 1} {n[1] - 1} {n[2] - 1}",
-                      "GridLeftEdge = " + " ".join(f"{x:.17g}" for x in left),
-                      "GridRightEdge = " + " ".join(f"{x:.17g}" for x in right),
-                      "Time = 0", "SubgridsAreStatic = 0", f"NumberOfBaryonFields = {1 + len(extra)}",
-                      "FieldType = " + " ".join(str(t) for t in range(1 + len(extra))),
-                      f"BaryonFileName = {data_file}", "NumberOfParticles = 0"]
-            # root: first child below; children: the next sibling on level 1
-            this = gid + 1 if level == 1 and gid < len(grids) else 0
-            below = 2 if level == 0 and len(grids) > 1 else 0
-            lines += [f"Pointer: Grid[{gid}]->NextGridThisLevel = {this}",
-                      f"Pointer: Grid[{gid}]->NextGridNextLevel = {below}", ""]
-    (directory / f"{name}.hierarchy").write_text("\n".join(lines) + "\n")
-    return directory / name
+write_enzo = _package_enzo.write_enzo        # the package writes it (mi_amr.data.enzo_example)
 
 
 def write_athena_pp(path, levels, root_cells, box=(1.0, 1.0, 1.0), field="rho"):

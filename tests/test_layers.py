@@ -160,6 +160,7 @@ def test04_the_check_sees_an_import_that_runs_up(tmp_path):
 LAZY_IMPORTS = {
     # optional dependencies: a user without the extra still imports the package
     "yt": "the mi-amr[yt] extra, and 1-2 s to import",
+    "h5py": "the mi-amr[yt] extra (mi_amr.data.enzo_example writes an Enzo output)",
     "dask": "the mi-amr[distributed] extra",
     "distributed": "the mi-amr[distributed] extra",
     "starlette": "the mi-amr[view] extra",
@@ -178,6 +179,7 @@ LAZY_IMPORTS = {
     "mi_amr.bench": "`python -m mi_amr.bench` imports only the benchmark it runs",
     # needs a variant
     "mitsuba.ad": "Mitsuba's Python integrators are defined for the variant set at import",
+    "mitsuba.python.ad": "the same modules under the name Mitsuba reloads on a variant change",
 }
 
 

@@ -4,6 +4,8 @@
 options ask for) and that study's ``main_args``: the protocol
 (`mi_amr.bench.protocol`, the default), ``--scale`` (`mi_amr.bench.scale`),
 ``--resample`` (`mi_amr.bench.resample`), ``--view`` (`mi_amr.bench.view`),
+``--widget`` (`mi_amr.bench.widget`: the notebook widget's frames/s through
+Jupyter's comm channel),
 ``--distributed`` (`mi_amr.bench.distributed`), ``--modes``
 (`mi_amr.bench.modes`: frames/s per lighting mode, and the uniform field
 against Mitsuba's homogeneous medium), ``--modes-bound``
@@ -32,6 +34,8 @@ def dispatch(args) -> int:
         from .vs_yt import main_args
     elif args.view:
         from .view import main_args
+    elif args.widget:
+        from .widget import main_args
     elif args.distributed:
         from .distributed import main_args
     elif args.modes_bound:
@@ -158,6 +162,10 @@ def view_options(p):
                         "while dragging, change-to-frame and change-to-denoised times (--res, --repeats)")
     p.add_argument("--view-field", default=None, help="field of --view's data")
     p.add_argument("--view-preview-scale", type=float, default=0.5, help="--view: the viewer's preview scale")
+    p.add_argument("--widget", metavar="DATA", default=None,
+                   help="the notebook widget (sc.show()) on DATA in JupyterLab (chromium): frames/s reaching the "
+                        "page through Jupyter's comm channel while orbiting (--res, --repeats, --view-field)")
+    p.add_argument("--widget-seconds", type=float, default=4.0, help="--widget: each drag's length, seconds")
 
 
 def modes_options(p):

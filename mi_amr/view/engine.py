@@ -69,6 +69,8 @@ from .camera import FLOOR_MARGIN, MAX_ELEVATION, OrbitCamera
 from .protocol import (CameraChange, DenoiseChange, Error, Frame, Hello, HistogramReply, ModeChange, Status, TFChange,
                        ViewChange, parse_message)
 from .protocol import Describe, EditorRequest, FieldChange, TFFile, TFLoad, TFSave
+from .protocol import AnnotateChange, AnnotationsRequest, ClipChange, SliceRequest
+from .view_annotations import annotations_reply, burnt_in, slice_reply
 from .scene import LoadedScene, load_scene
 from .snapshot import Snapshot, SnapshotBudget, write_snapshot
 from .tf_spec import PRESET_POINTS, TFSpec, colormap_stops
@@ -93,6 +95,8 @@ FAST_BUDGET = 0.03
 #: not safe. Code that renders in the same process while a viewer runs (a
 #: notebook, a test) takes it too: ``with mi_amr.view.engine.JIT_LOCK: ...``.
 JIT_LOCK = threading.RLock()
+#: Seconds a snapshot asked for during a field reload waits for the new field's first full frame.
+SNAPSHOT_WAIT = 120.0
 
 def denoiser():
     """``(denoise function or None, why not)``: Intel Open Image Denoise
@@ -151,6 +155,8 @@ class View:
     broken: str | None = None            # why its state does not render (nothing to go back to)
     closed: bool = False
     replanned: bool = False              # the spec's range and density were planned again (log10 toggle)
+    clip: tuple | None = None            # (normal, offset) world: the medium kept where normal . x <= offset
+    annotate: AnnotateChange | None = None   # what the page draws over the picture (a snapshot's PNG too)
 
 
 class ViewEngine:
@@ -163,11 +169,12 @@ class ViewEngine:
     after a change (1: full size); ``mode``: the lighting mode views start
     in (None: the scene's integrator's own; a mode needs ``amrvolpath``);
     ``fast_ladder``: the fast passes' sizes as shares of the preview size,
-    largest first (`FAST_LADDER`)."""
+    largest first (`FAST_LADDER`); ``plan``: the `ScenePlan` of data
+    ``source`` made already (a notebook's `DataScene`), else planned at load."""
 
     def __init__(self, source, field: str | None = None, *, res: int = 256, max_spp: int = DEFAULT_MAX_SPP,
                  preview_scale: float = 0.5, variant: str = "llvm_ad_rgb", mode: str | None = None,
-                 fast_ladder=FAST_LADDER, embed_data: bool = False):
+                 fast_ladder=FAST_LADDER, embed_data: bool = False, plan=None):
         if not 16 <= res <= 4096:
             raise ValueError(f"res must lie in [16, 4096], got {res}")
         if not 1 <= max_spp <= 1_000_000:
@@ -184,6 +191,7 @@ class ViewEngine:
         self.source, self.field, self.res, self.max_spp = source, field, int(res), int(max_spp)
         self.preview_scale, self.variant = float(preview_scale), variant
         self.embed_data = bool(embed_data)       # snapshots of yt data: copy them (else name them)
+        self._plan = plan
         self.status = Status("loading", "starting", 0, None)
         self.error: str | None = None
         self.ready = threading.Event()
@@ -202,11 +210,17 @@ class ViewEngine:
         self._expected = 0                       # pages waiting for the load to open a view (`expect_view`)
         self._fast_level = 0                     # the fast passes' size: FAST_LADDER[level]
         self._fast_ms = {}                       # film size -> running mean of its fast passes (s)
+        self._reloads = 0                        # field switches asked for and not done (snapshots wait)
 
     @property
     def colormaps(self) -> tuple:
         """The loaded scene's colormaps ("scene" first for an XML scene)."""
         return self.loaded.colormaps
+
+    @property
+    def warming(self) -> bool:
+        """Whether passes are still to be recorded ahead (`_warm_up`)."""
+        return bool(self._warm)
 
     @property
     def initial_spec(self) -> TFSpec:
@@ -267,7 +281,8 @@ class ViewEngine:
         stop_listening = listen(heard)
         try:
             with JIT_LOCK:
-                self.loaded = load_scene(self.source, self.field, self.res, lambda desc: self._set_status(desc=desc))
+                self.loaded = load_scene(self.source, self.field, self.res, lambda desc: self._set_status(desc=desc),
+                                         plan=self._plan)
         finally:
             stop_listening()
         if self.mode is not None and self.mode not in self.loaded.modes:
@@ -320,6 +335,18 @@ class ViewEngine:
                      colormap_stops(s.colormaps, s.scene_rgb), editor=self._editor_extras(),
                      modes=s.modes or None, mode=view.mode, fast_mode=self._fast_mode(),
                      mode_note=s.mode_note or None)
+
+    def place_camera(self, view: View, camera: OrbitCamera):
+        """Put ``camera`` into ``view`` as it is (its field of view too: a
+        camera set from Python, `widget`); a `ValueError` when it cannot
+        render, and the view is then unchanged."""
+        check_camera(camera)
+        with self._wake:
+            view.camera = camera
+            view.epoch += 1
+            view.changed_at = time.monotonic()
+            view.broken = None
+            self._wake.notify_all()
 
     def change(self, view: View, change: ViewChange | dict) -> bool:
         """Apply a camera, TF, denoise or mode change to ``view`` (a page
@@ -412,7 +439,49 @@ class ViewEngine:
                 return None
             case Describe():
                 return self.describe(view)
+            case ClipChange(normal=normal, offset=offset):
+                self.set_clip(view, None if normal is None else (normal, offset))
+                return None
+            case AnnotateChange():
+                view.annotate = msg
+                return None
+            case AnnotationsRequest():
+                with JIT_LOCK:
+                    loaded = self.loaded
+                return annotations_reply(loaded)           # the page draws the legend from its TF
+            case SliceRequest():
+                with JIT_LOCK:
+                    loaded = self.loaded
+                return slice_reply(loaded, msg, loaded.table(view.spec), loaded.stored_log)
         raise ValueError(f"not an editor request: {type(msg).__name__}")
+
+    # ---- The clip plane ----------------------------------------------------------------
+    def set_clip(self, view: View, clip):
+        """Keep the medium where ``normal . x <= offset`` (``clip`` = (normal,
+        offset), world units; None: all of it) in ``view``'s pictures: put
+        into the medium before each of its passes, as its camera and TF
+        (`AMRMedium.set_clip_plane`: opaque, nothing recompiles). A bad
+        plane is a `ValueError`; the view is then unchanged."""
+        if clip is not None:
+            n = np.asarray(clip[0], np.float64).reshape(3)
+            if not (np.isfinite(n).all() and np.any(n) and np.isfinite(float(clip[1]))):
+                raise ValueError(f"clip: a nonzero finite normal and a finite offset, got {clip}")
+            clip = (tuple(float(x) for x in n), float(clip[1]))
+        with self._wake:
+            view.version += 1                    # a change message: the page counts it
+            if clip == view.clip:
+                return
+            view.clip = clip
+            view.epoch += 1
+            view.changed_at = time.monotonic()
+            view.broken = None
+            self._wake.notify_all()
+
+    def _put_clip(self, clip):
+        """The view's clip plane into the medium, when another is there (under `JIT_LOCK`)."""
+        if "clip" not in self.loaded.applied or self.loaded.applied["clip"] != clip:
+            self.loaded.medium.set_clip_plane(*(clip or (None,)))
+            self.loaded.applied["clip"] = clip
 
     def switch_field(self, name: str, timeout: float = 600.0):
         """Render the field ``name`` of the same data (one of
@@ -428,6 +497,7 @@ class ViewEngine:
         done, result = threading.Event(), {}
         with self._wake:
             self._field_requests.append((name, done, result))
+            self._reloads += 1
             self._wake.notify_all()
         if not done.wait(timeout):
             raise ValueError(f"field {name}: not loaded within {timeout:g} s")
@@ -444,6 +514,7 @@ class ViewEngine:
                     new = load_scene(self.source, name, self.res, lambda desc: self._set_status(desc=desc))
             except Exception as e:                   # the last good scene stays
                 result["error"] = f"field {name}: {one_line(e)}"
+                self._reload_done()
                 done.set()
                 continue
             with self._wake:
@@ -462,7 +533,13 @@ class ViewEngine:
             for v in views:
                 if v.notify is not None:
                     v.notify(self.describe(v))
+            self._reload_done()
             done.set()
+
+    def _reload_done(self):
+        with self._wake:
+            self._reloads -= 1
+            self._wake.notify_all()
 
     def histogram(self, view: View) -> HistogramReply:
         """The volume-weighted histogram under the view's TF editor."""
@@ -625,6 +702,7 @@ class ViewEngine:
         with JIT_LOCK:
             try:
                 self.loaded.apply(camera, spec, size)
+                self._put_clip(view.clip)
                 image = self.loaded.render(next(self._seeds), size, pass_mode)
             except Exception:
                 self.loaded.forget(size, pass_mode)  # its recording and what the scene holds
@@ -732,18 +810,32 @@ class ViewEngine:
         ``.png``, ``.xml``, ``.tf.json`` in ``out_dir`` (a numbered name when
         one is taken), the PNG and EXR from the same samples; ``name`` must
         be a plain file name. A `ValueError` before the first full frame,
-        or beyond ``budget``."""
+        or beyond ``budget``. Asked for while a field reloads, it waits for
+        the reload and the new field's first full frame (at most
+        ``SNAPSHOT_WAIT`` seconds, then refused with a message). With the
+        view's annotations' ``burn_in`` on, its PNG has them drawn in."""
         with self._wake:
+            if self._reloads:                    # passes do not notify: look again every 20 ms
+                deadline = time.monotonic() + SNAPSHOT_WAIT
+                while not (view.closed or not self._reloads and view.accum_epoch == view.epoch) \
+                        and time.monotonic() < deadline:
+                    self._wake.wait(min(0.02, max(0.0, deadline - time.monotonic())))
+                if view.closed or self._reloads or view.accum_epoch != view.epoch:
+                    raise ValueError(f"snapshot refused: the field was still reloading after {SNAPSHOT_WAIT:g} s "
+                                     "(ask again once the picture shows)")
             if view.accum is None or view.accum_epoch != view.epoch:
                 raise ValueError("no image yet: wait for the first full frame")
             image = (view.accum / view.spp).astype(np.float32)
             camera, spec, spp, mode = view.camera, view.spec, view.spp, view.mode
+            loaded, annotate, clip = self.loaded, view.annotate, view.clip
             denoise = view.denoise and self._denoise is not None
             shown = view.denoised if denoise and view.denoised_spp == spp else None
         if shown is None:
             shown = self._denoised(image) if denoise else image
-        return write_snapshot(self.loaded, out_dir, name, image, shown, camera, spec, spp, budget, mode=mode,
-                              embed_data=self.embed_data)
+        if annotate is not None and annotate.burn_in:
+            shown = burnt_in(loaded, shown, camera, loaded.table(spec), loaded.stored_log, annotate)
+        return write_snapshot(loaded, out_dir, name, image, shown, camera, spec, spp, budget, mode=mode,
+                              embed_data=self.embed_data, clip=clip)
 
     def snapshot(self, view: View, out_dir, name: str) -> list[Path]:
         """`take_snapshot`'s four files: [exr, png, xml, tf.json]."""

@@ -17,9 +17,14 @@ fields}``; a change message's missing fields keep the view's value:
   by a `TFFile`), ``tf_load`` (`TFLoad`), ``field`` (`FieldChange`: another
   field of the same data, for every tab), ``describe`` (`Describe`: a new
   `Hello`)
+* annotations, clip plane and slice (`SceneRequest`): ``clip`` (`ClipChange`,
+  world units), ``annotate`` (`AnnotateChange`: what the page draws, and
+  whether snapshots burn it in), ``annotations`` (`AnnotationsRequest`,
+  answered by an `AnnotationsReply`), ``slice`` (`SliceRequest`, answered by
+  a `SliceReply`)
 
-Server to page: `Status`, `Hello`, `HistogramReply`, `SnapshotDone` and
-`Error` as JSON text; `Frame` as the header of a binary message (a 4-byte
+Server to page: `Status`, `Hello`, `HistogramReply`, `SnapshotDone`,
+`AnnotationsReply`, `SliceReply` and `Error` as JSON text; `Frame` as the header of a binary message (a 4-byte
 big-endian header length, the header's JSON, the JPEG image).
 
 The parser checks what a message alone can tell (types, sizes, finite
@@ -276,6 +281,92 @@ class TFFile(Message):
 EditorRequest = TFSave | TFLoad | FieldChange | Describe
 
 
+# ---- Annotations, clip plane and slice (mi_amr/annotations.py, mi_amr/slicing.py) -----------------
+#: Largest slice a page may ask for (pixels along its longer side).
+MAX_SLICE = 1024
+
+
+@dataclass(frozen=True)
+class ClipChange(Message):
+    """Keep the medium where ``normal . x <= offset`` (world units) in this
+    view's pictures; ``normal`` None: no clip plane."""
+    TYPE: ClassVar[str] = "clip"
+    normal: tuple[float, float, float] | None = _optional()
+    offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class AnnotateChange(Message):
+    """What the page draws over the picture (``outline``, ``axes``, AMR
+    ``levels`` with the refinement levels of ``level_filter`` (None: all),
+    ``legend``), and whether a snapshot's PNG gets them (``burn_in``)."""
+    TYPE: ClassVar[str] = "annotate"
+    outline: bool = False
+    axes: bool = False
+    levels: bool = False
+    legend: bool = False
+    level_filter: tuple[int, ...] | None = _optional()
+    burn_in: bool = False
+
+
+@dataclass(frozen=True)
+class AnnotationsRequest(Message):
+    """Ask for the annotations' geometry (`AnnotationsReply`)."""
+    TYPE: ClassVar[str] = "annotations"
+
+
+@dataclass(frozen=True)
+class SliceRequest(Message):
+    """Ask for the slice normal to ``axis`` (x, y or z) at world coordinate
+    ``position`` along it, ``res`` pixels along its longer side."""
+    TYPE: ClassVar[str] = "slice"
+    axis: str
+    position: float
+    res: int = 256
+
+
+@dataclass(frozen=True)
+class AnnotationsReply(Message):
+    """World geometry to draw with the view's camera: the domain's 8
+    ``corners`` (corner ``x + 2y + 4z``), ``axes`` (name, colour, segment,
+    ticks, labels), ``levels`` (per level: ``refinement`` (0 the coarsest),
+    ``colour``, ``boxes`` [[lo, hi], ...] world, ``note``), the data's world
+    ``box`` (lo, hi) and length ``unit``; ``legend``: the TF's legend as a PNG
+    data URL where asked for ("" for the page, which draws its own)."""
+    TYPE: ClassVar[str] = "annotations"
+    corners: tuple
+    axes: tuple
+    levels: tuple
+    box: tuple
+    legend: str = ""
+    unit: str = ""
+
+
+@dataclass(frozen=True)
+class SliceReply(Message):
+    """A slice: ``png`` (a data URL: the TF's colours, level boundaries
+    drawn), ``values`` (base64 float32, row-major from the top row; NaN:
+    none) and ``levels`` (base64 int8 refinement levels; -1: none) of
+    ``width`` x ``height`` pixels; ``window`` [h0, h1, v0, v1] world
+    coordinates along the image axes ``axes`` (names), ``label`` of the
+    values (log10 when ``log``)."""
+    TYPE: ClassVar[str] = "slice"
+    axis: str
+    position: float
+    width: int
+    height: int
+    png: str
+    values: str
+    levels: str
+    window: tuple
+    axes: tuple
+    label: str
+    log: bool
+
+
+SceneRequest = ClipChange | AnnotateChange | AnnotationsRequest | SliceRequest
+
+
 # ---- JSON ----------------------------------------------------------------------------------------
 def _plain(value):
     """``value`` as JSON types (objects with a ``to_json``, tuples, numpy scalars)."""
@@ -418,12 +509,50 @@ def safe_name(name) -> str:
     return name
 
 
+def _bool(name, v) -> bool:
+    if not isinstance(v, bool):
+        raise ValueError(f"{name}: true or false")
+    return v
+
+
+def _clip(f: dict) -> ClipChange:
+    n = f.get("normal")
+    if n is None:
+        return ClipChange(None, 0.0)
+    if not isinstance(n, list) or len(n) != 3 or not all(_finite(x) and abs(x) <= 1e9 for x in n) \
+            or not any(x != 0 for x in n):
+        raise ValueError("clip normal: three finite numbers, not all 0 (or null: no clip plane)")
+    return ClipChange(tuple(float(x) for x in n), _number("clip offset", f.get("offset", 0.0), -1e9, 1e9))
+
+
+def _annotate(f: dict) -> AnnotateChange:
+    out = {k: _bool(k, f[k]) for k in ("outline", "axes", "levels", "legend", "burn_in") if k in f}
+    lf = f.get("level_filter")
+    if lf is not None:
+        if not isinstance(lf, list) or len(lf) > 64 or not all(isinstance(x, int) and not isinstance(x, bool)
+                                                                and 0 <= x < 64 for x in lf):
+            raise ValueError("level_filter: a list of refinement levels 0 to 63 (or null: all)")
+        out["level_filter"] = tuple(lf)
+    return AnnotateChange(**out)
+
+
+def _slice(f: dict) -> SliceRequest:
+    if f.get("axis") not in ("x", "y", "z"):
+        raise ValueError("slice axis: x, y or z")
+    res = f.get("res", 256)
+    if not isinstance(res, int) or isinstance(res, bool) or not 8 <= res <= MAX_SLICE:
+        raise ValueError(f"slice res: an integer in [8, {MAX_SLICE}]")
+    return SliceRequest(f["axis"], _number("slice position", f.get("position"), -1e9, 1e9), res)
+
+
 #: Each page message type: its class and the parser of its fields.
 _PARSERS = {cls.TYPE: (cls, parse_fields) for cls, parse_fields in (
     (CameraChange, _camera), (TFChange, _tf), (DenoiseChange, _denoise), (ModeChange, _mode),
     (HistogramRequest, lambda f: HistogramRequest()), (SnapshotRequest, _snapshot), (Ack, lambda f: Ack()),
     (TFSave, lambda f: TFSave()), (TFLoad, lambda f: TFLoad(_text("text", f.get("text")))),
-    (FieldChange, lambda f: FieldChange(_text("name", f.get("name"), MAX_NAME))), (Describe, lambda f: Describe()))}
+    (FieldChange, lambda f: FieldChange(_text("name", f.get("name"), MAX_NAME))), (Describe, lambda f: Describe()),
+    (ClipChange, _clip), (AnnotateChange, _annotate), (AnnotationsRequest, lambda f: AnnotationsRequest()),
+    (SliceRequest, _slice))}
 
 
 def parse(text) -> PageMessage | EditorRequest:

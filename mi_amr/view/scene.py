@@ -194,6 +194,8 @@ class LoadedScene:
         resized = self.applied.get("size") != size
         if moved:
             self.params[self.keys["to_world"]] = camera.transform()
+            if self.keys.get("fov") in self.params.keys():     # the view's field of view (a widget sets it)
+                self.params[self.keys["fov"]] = camera.fov
         if resized:
             self.params[self.keys["size"]] = size
         if moved or resized:
@@ -246,11 +248,14 @@ def scene_spec(tf: TransferFunction, stored_log: bool, density: float) -> TFSpec
     return TFSpec([(float(a), float(b)) for a, b in zip(u, alpha)], "scene", stored_log, tuple(tf.domain), density)
 
 
-def load_scene(source, field, res: int, say) -> LoadedScene:
+def load_scene(source, field, res: int, say, plan=None) -> LoadedScene:
     """``source`` loaded for views ``res`` pixels wide; ``say(desc)``
-    reports each step. Under `JIT_LOCK`, with the Mitsuba variant set."""
-    loaded = _load_xml(mi, source, res, say) if str(source).lower().endswith(".xml") \
-        else _load_data(mi, source, field, res, say)
+    reports each step; ``plan``: the `ScenePlan` of data ``source`` made
+    already (a notebook's `DataScene`: planned with its options, the data
+    read once), else planned here. Under `JIT_LOCK`, with the Mitsuba
+    variant set."""
+    loaded = _load_xml(mi, source, res, say) if plan is None and str(source).lower().endswith(".xml") \
+        else _load_data(mi, source, field, res, say, plan)
     loaded.medium = amr_media(loaded.scene)[0]
     cam = loaded.initial_camera
     loaded.initial_camera = replace(cam, floor=floor_height(ground_boxes(loaded.scene), cam.up))
@@ -261,7 +266,7 @@ def load_scene(source, field, res: int, say) -> LoadedScene:
     if not films:
         raise ValueError(f"{source}: the scene's sensor has no film to render into")
     prefix = "sensor." if "sensor.film.size" in params.keys() else films[0]
-    loaded.keys = {"to_world": prefix + "to_world", "size": prefix + "film.size"}
+    loaded.keys = {"to_world": prefix + "to_world", "size": prefix + "film.size", "fov": prefix + "x_fov"}
     params[loaded.keys["size"]] = loaded.size
     params.update()
     loaded.integrators, loaded.scene_mode, loaded.mode_note = mode_integrators(loaded.scene)
@@ -319,9 +324,9 @@ def data_fields(source, field) -> tuple[tuple, str, str]:
     return names, "", units
 
 
-def _load_data(mi, source, field, res: int, say) -> LoadedScene:
-    say(f"reading {source}")
-    plan = plan_scene(source, field)
+def _load_data(mi, source, field, res: int, say, plan=None) -> LoadedScene:
+    say(f"reading {source}" if plan is None else "planned already")
+    plan = plan_scene(source, field) if plan is None else plan
     stored_log = plan.transform == "log10" or positive_share(plan.data) >= MIN_POSITIVE_SHARE
     cmap, points = PRESET_POINTS.get(plan.tf, PRESET_POINTS["spiky"])
     spec = TFSpec(points, cmap, plan.transform == "log10", plan.tf_range, plan.density_scale)
@@ -332,7 +337,8 @@ def _load_data(mi, source, field, res: int, say) -> LoadedScene:
     medium["transfer_function"] = spec.table(stored_log)
     say("building the medium")
     fields, note, units = data_fields(source, field)
-    return LoadedScene(source, field, f"{source}" + (f" field {field}" if field else ""), [res, res],
+    named = str(source) if len(str(source)) <= 200 else type(source).__name__     # an object: its kind
+    return LoadedScene(source, field, named + (f" field {field}" if field else ""), [res, res],
                        OrbitCamera.looking(plan.origin, plan.target, world_up(plan.up), plan.fov), spec, COLORMAPS,
                        stored_log, plan=plan, fields=fields, field_note=note, units=units,
                        scene=mi.load_dict(d, parallel=False))

@@ -271,7 +271,8 @@ async def _handle(message, engine, view, out_dir, loop, acked, budget=None) -> p
             case p.SnapshotRequest(name=name):
                 shot = await loop.run_in_executor(None, engine.take_snapshot, view, out_dir, name, budget)
                 return p.SnapshotDone(tuple(str(f) for f in shot.files), shot.spp, notes=tuple(shot.notes) or None)
-            case p.TFSave() | p.TFLoad() | p.FieldChange() | p.Describe():     # the TF editor's
+            case p.TFSave() | p.TFLoad() | p.FieldChange() | p.Describe() | p.ClipChange() | p.AnnotateChange() \
+                    | p.AnnotationsRequest() | p.SliceRequest():     # the TF editor's, annotations, clip, slice
                 return await loop.run_in_executor(None, engine.request, view, msg)
     except p.ProtocolError as e:
         return p.Error(str(e), e.about)

@@ -29,6 +29,7 @@ import numpy as np
 from ..scene_writer import write_scene_xml
 from ..data.opening import field_scalars, is_native, volume_checksum
 from ..data.volume import as_volume
+from ..annotations import write_srgb_png
 from ..images import write_exr, write_png
 from ..native_file import save_native
 from ..scene_xml import amr_elements, integrator_elements, parse_scene, set_parameters
@@ -109,13 +110,16 @@ def place(written: Path, target: Path):
 
 def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, shown: np.ndarray,
                    camera: OrbitCamera, spec: TFSpec, spp: int, budget: SnapshotBudget | None = None,
-                   mode: str | None = None, embed_data: bool = False) -> Snapshot:
+                   mode: str | None = None, embed_data: bool = False, clip=None) -> Snapshot:
     """The files of a view (module docstring) in ``out_dir``: ``image`` the
     accumulation's mean (linear RGB, ``spp`` samples per pixel, rendered in
     the lighting ``mode``; None: the scene's integrator as it is), ``shown``
-    what the page shows (from the same samples). Data yt loads are named by
+    what the page shows (from the same samples; sRGB uint8 pixels when the
+    annotations are burnt in: never into the EXR). Data yt loads are named by
     path, field and checksum in the XML, not copied, unless ``embed_data``
-    (then written once as ``.amrb`` beside the snapshots). Nothing is
+    (then written once as ``.amrb`` beside the snapshots). ``clip``: the
+    view's clip plane ``(normal, offset)``, written onto the XML's ``amr``
+    medium (``clip_normal``, ``clip_offset``). Nothing is
     overwritten; what was placed is removed again when a later file fails."""
     out_dir = Path(out_dir).resolve()
     safe_name(name)
@@ -129,7 +133,10 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
     with tempfile.TemporaryDirectory(prefix=".mi-amr-snapshot-", dir=out_dir) as tmp:
         private = [Path(tmp) / q.name for q in paths]
         write_exr(private[0], image)
-        write_png(private[1], shown)
+        if np.asarray(shown).dtype == np.uint8:          # sRGB pixels: the annotations burnt in
+            write_srgb_png(private[1], shown)
+        else:
+            write_png(private[1], shown)
         tf = loaded.table(spec)
         tf.to_json(private[3])
         side = []
@@ -144,6 +151,8 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
             _data_xml(loaded, private[2], paths[3], source, camera, spec, tf, spp, mode)
         else:
             _scene_xml(loaded, private[2], paths[3], camera, spec, spp, mode)
+        if clip is not None:
+            _with_clip(private[2], clip)
         try:
             for src, target in list(zip(private, paths)) + side:
                 place(src, target)
@@ -198,6 +207,18 @@ def _data_xml(loaded: LoadedScene, path: Path, tf_path: Path, source, camera: Or
                           f"density_scale {spec.density:.4g}" + (f", lighting mode {mode}" if mode else "")])
     data, field, checksum = source
     write_scene_xml(plan, data, path, res=loaded.size[0], spp=spp, mode=mode, field=field, checksum=checksum)
+
+
+def _with_clip(path: Path, clip):
+    """The XML at ``path`` with the clip plane on its first ``amr`` medium."""
+    tree = parse_scene(path)
+    medium = amr_elements(tree.getroot())[0]
+    for child in list(medium):
+        if child.get("name") in ("clip_normal", "clip_offset"):
+            medium.remove(child)
+    ET.SubElement(medium, "vector", name="clip_normal", value=", ".join(f"{float(x):.9g}" for x in clip[0]))
+    ET.SubElement(medium, "float", name="clip_offset", value=f"{float(clip[1]):.9g}")
+    tree.write(path)
 
 
 def _scene_xml(loaded: LoadedScene, path: Path, tf_path: Path, camera: OrbitCamera, spec: TFSpec, spp: int,

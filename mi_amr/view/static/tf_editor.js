@@ -8,7 +8,6 @@
 // `mi-amr render --tf` reads, and the data's fields. The TF's units and
 // tables: mi_amr/view/tf_spec.py; messages: mi_amr/view/protocol.py.
 
-const $ = (id) => document.getElementById(id);
 // The plot inside the canvas (tests drag points at these offsets).
 const PAD = { l: 8, r: 8, t: 8, b: 58 };
 const SUPER = { "-": "⁻", 0: "⁰", 1: "¹", 2: "²", 3: "³", 4: "⁴", 5: "⁵", 6: "⁶", 7: "⁷", 8: "⁸", 9: "⁹" };
@@ -61,7 +60,9 @@ export function valueTicks(range, log) {
   return niceTicks(lo, hi, 5).map((x) => [(x - lo) / (hi - lo), fmt(x)]);
 }
 
-export function createTfEditor({ send, changed, message }) {
+// `$`: the element of an id in the viewer's own root (the page's document, or a
+// notebook widget's shadow root: widget.py).
+export function createTfEditor({ send, changed, message, $ = (id) => document.getElementById(id) }) {
   const canvas = $("tf-editor"), c = canvas.getContext("2d");
   let tf = null, histogram = null, stops = {}, extras = {}, grabbed = -1, selected = -1;
   const plotW = () => canvas.width - PAD.l - PAD.r, plotH = () => canvas.height - PAD.t - PAD.b;

@@ -1,19 +1,27 @@
-// mi-amr view: the page. One websocket to the server (mi_amr/view/server.py):
-// JSON messages out (camera, tf, denoise, mode, snapshot, ack), JSON and binary
-// frames in. Every control change is sent at most once per animation frame;
-// the server renders the newest state and drops what went stale. The TF
-// editor: tf_editor.js; the orbit camera's arithmetic: camera.js.
+// mi-amr view: the page. One connection to the server: JSON messages out
+// (camera, tf, denoise, mode, snapshot, ack), JSON and frames (a header and a
+// JPEG image) in. Every control change is sent at most once per animation
+// frame; the server renders the newest state and drops what went stale. The
+// TF editor: tf_editor.js; the orbit camera's arithmetic: camera.js.
+//
+// Where the page lives and how it talks (its host: { root, transport }): as
+// the viewer's own page, the document and a websocket to mi_amr/view/server.py
+// (`websocketHost`); in a notebook, a widget's shadow root and Jupyter's comm
+// channel (widget.js; mi_amr/view/widget.py bundles this file into a function
+// of `widgetHost`). A transport: send(msg), and connect({ onJson, onFrame(header,
+// jpegBytes), onClose }).
 
 import { createTfEditor } from "./tf_editor.js";
 import { basis, clampElevation, drawAxes } from "./camera.js";
+import { createAnnotations } from "./annotations.js";
+import { createSlicePanel } from "./slice.js";
 
-const $ = (id) => document.getElementById(id);
-// the token comes with the page itself (no cookie: other local servers never see it)
-const token = document.querySelector('meta[name="mi-amr-token"]')?.content
-  || new URLSearchParams(location.search).get("token") || "";
+// eslint-disable-next-line no-undef
+const host = typeof widgetHost !== "undefined" ? widgetHost : websocketHost();
+const $ = (id) => host.root.getElementById(id);
 const view = $("view"), ctx = view.getContext("2d");
 
-let ws = null, camera = null;
+let camera = null;
 let cameraLimits = { home: null, max_elevation: 85, floor_margin: 0.01 };   // from the server's hello
 let version = 0;                 // change messages sent (the server's view version)
 const changeTimes = new Map();   // version -> time it was sent (until a frame came after it)
@@ -36,7 +44,7 @@ const stats = window.viewerStats = {
   fastRenderMs: [], fastWidths: [], changes: 0,
 };
 
-function send(msg) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(msg)); }
+function send(msg) { host.transport.send(msg); }
 
 function changed() {             // a change message is about to go out
   version += 1;
@@ -52,7 +60,7 @@ function changed() {             // a change message is about to go out
 function flush() {               // once per animation frame: the newest camera and TF
   if (pendingCamera) { pendingCamera = false; changed(); send({ type: "camera", ...cameraMessage() }); }
   if (tfEditor.pending) { tfEditor.pending = false; changed(); send({ type: "tf", ...tfEditor.tf }); }
-  requestAnimationFrame(flush);
+  if (!host.closed) requestAnimationFrame(flush);
 }
 
 function cameraMessage() {
@@ -60,12 +68,34 @@ function cameraMessage() {
 }
 
 // ---- connection ----------------------------------------------------------------
+// The viewer's own page: the document, and a websocket to the server; the token
+// comes with the page itself (no cookie: other local servers never see it).
+// Binary messages: a 4-byte big-endian header length, the header's JSON, the JPEG.
+function websocketHost() {
+  const token = document.querySelector('meta[name="mi-amr-token"]')?.content
+    || new URLSearchParams(location.search).get("token") || "";
+  let ws = null;
+  const transport = {
+    send(msg) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(msg)); },
+    connect({ onJson, onFrame, onClose }) {
+      const proto = location.protocol === "https:" ? "wss:" : "ws:";
+      ws = new WebSocket(`${proto}//${location.host}/ws?token=${encodeURIComponent(token)}`);
+      ws.binaryType = "arraybuffer";
+      ws.onmessage = (ev) => {
+        if (typeof ev.data === "string") { onJson(JSON.parse(ev.data)); return; }
+        const n = new DataView(ev.data).getUint32(0);
+        onFrame(JSON.parse(new TextDecoder().decode(new Uint8Array(ev.data, 4, n))), new Uint8Array(ev.data, 4 + n));
+      };
+      ws.onclose = onClose;
+    },
+  };
+  return { root: document, transport, closed: false };
+}
+
 function connect() {
-  const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  ws = new WebSocket(`${proto}//${location.host}/ws?token=${encodeURIComponent(token)}`);
-  ws.binaryType = "arraybuffer";
-  ws.onmessage = (ev) => (typeof ev.data === "string" ? onJson(JSON.parse(ev.data)) : onFrame(ev.data));
-  ws.onclose = () => { if (!stats.fatal) showStatus("disconnected from the server (reload to reconnect)"); };
+  host.transport.connect({ onJson, onFrame, onClose: () => {
+    if (!stats.fatal) showStatus("disconnected from the server (reload to reconnect)");
+  } });
 }
 
 function showStatus(text) { const s = $("status"); s.textContent = text; s.classList.toggle("hidden", !text); }
@@ -97,8 +127,13 @@ function onJson(msg) {
     $("denoise").disabled = !msg.denoiser;
     $("denoise-note").textContent = msg.denoiser ? "" : `denoiser missing: ${msg.denoiser_missing}`;
     showModes(msg);
+    annotations.hello(msg);
     showStatus("rendering…");
     stats.ready = true;
+  } else if (msg.type === "annotations") {
+    annotations.reply(msg); slicePanel.geometry(msg);
+  } else if (msg.type === "slice") {
+    slicePanel.reply(msg);
   } else if (msg.type === "histogram") {
     tfEditor.histogram(msg);
   } else if (msg.type === "tf_file") {
@@ -113,15 +148,14 @@ function onJson(msg) {
     $("message").textContent = `server: ${msg.message}`;
     if (msg.about === "field") tfEditor.error();
     if (msg.about === "snapshot") $("snapshot-result").textContent = msg.message;
+    if (msg.about === "slice") slicePanel.failed();
     if (msg.camera) { camera = msg.camera; drawAxes($("axes"), camera); }   // a change that could not render, undone
     if (msg.tf) { tfEditor.setTf(msg.tf); send({ type: "histogram" }); }
   }
 }
 
-async function onFrame(buffer) {
-  const n = new DataView(buffer).getUint32(0);
-  const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, n)));
-  const bitmap = await createImageBitmap(new Blob([new Uint8Array(buffer, 4 + n)], { type: "image/jpeg" }));
+async function onFrame(header, jpeg) {
+  const bitmap = await createImageBitmap(new Blob([jpeg], { type: "image/jpeg" }));
   ctx.drawImage(bitmap, 0, 0, view.width, view.height);
   bitmap.close();
   send({ type: "ack" });
@@ -243,7 +277,11 @@ $("reset-camera").addEventListener("click", () => {     // the view the scene st
 });
 
 // ---- transfer-function editor (tf_editor.js) and the other controls ---------------------
-const tfEditor = createTfEditor({ send, changed, message: (text) => { $("message").textContent = text; } });
+const tfEditor = createTfEditor({ send, changed, message: (text) => { $("message").textContent = text; }, $ });
+// annotations over the picture, the clip plane and the slice panel (annotations.js, slice.js)
+const slicePanel = createSlicePanel({ $, send, stats, getTf: () => tfEditor.tf });
+const annotations = window.viewerAnnotations = createAnnotations({ $, send, changed, stats, getCamera: () => camera,
+  getSize: () => [view.width, view.height], getTf: () => tfEditor.tf, onClip: (clip) => slicePanel.clip(clip) });
 
 $("denoise").addEventListener("change", () => { changed(); send({ type: "denoise", on: $("denoise").checked }); });
 $("snapshot").addEventListener("click", () => {
