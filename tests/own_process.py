@@ -9,15 +9,30 @@ kernels from the same disk cache.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import mitsuba as mi
+
 TESTS = Path(__file__).resolve().parent
 #: The variant the child starts in (conftest's ``llvm`` fixture's).
 RGB = os.environ.get("MI_AMR_VARIANT") or "llvm_ad_rgb"
+#: The backend's prefix of the other variants (``cuda_ad_`` where the suite runs on CUDA).
+PREFIX = "cuda_ad_" if RGB.startswith("cuda") else "llvm_ad_"
+
+
+@contextlib.contextmanager
+def in_variant(kind: str):
+    """``kind`` (``spectral``, ``mono`` or a full name) for the block, then the rgb variant again."""
+    mi.set_variant(kind if "_" in kind else PREFIX + kind)
+    try:
+        yield
+    finally:
+        mi.set_variant(RGB)
 
 
 def in_own_process(test):

@@ -8,9 +8,7 @@ The tests that switch variants run in a process of their own
 (`own_process.in_own_process`).
 """
 
-import contextlib
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -20,24 +18,13 @@ from mi_amr.params import ParameterError
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.transfer import spectra
 
-from conftest import FORCED_VARIANT, volume_scene
-from own_process import in_own_process
+from conftest import volume_scene
+from own_process import RGB, in_own_process, in_variant
 
-PREFIX = "cuda_ad_" if (FORCED_VARIANT or "").startswith("cuda") else "llvm_ad_"
-RGB = FORCED_VARIANT or "llvm_ad_rgb"
 PASSES = 16
 #: The documented bound on the rgb table's error, relative to the
 #: luminance of the same temperature (docs/manual/glowing-gas.md).
 TABLE_ERROR = 3e-3
-
-
-@contextlib.contextmanager
-def in_variant(kind: str):
-    mi.set_variant(PREFIX + kind)
-    try:
-        yield
-    finally:
-        mi.set_variant(RGB)
 
 
 def hot_gas():

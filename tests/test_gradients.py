@@ -181,6 +181,12 @@ def test02_image_gradients_match_finite_differences(llvm, integrator, reconstruc
     differences of the same image with the same seed, a z-test over 6 seeds.
     The default suite runs amrprbvolpath; prbvolpath's image gradients are
     checked there by test03 and test10."""
+    check_image_gradients(integrator, reconstruction)
+
+
+def check_image_gradients(integrator, reconstruction):
+    """test02's check, in the active variant (tests/test_variants.py runs
+    it in a spectral one)."""
     desc, cells = small_medium(reconstruction)
     scene = mi.load_dict(volume_scene(desc, res=8, integrator=integrator, max_depth=4))
     params = mi.traverse(scene)

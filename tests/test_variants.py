@@ -10,7 +10,6 @@ the same single-level data by per-block z-tests over independent passes
 in rgb. Blackbody emission: tests/test_blackbody.py.
 """
 
-import contextlib
 
 import drjit as dr
 import mitsuba as mi
@@ -22,30 +21,18 @@ from mi_amr.reference import reference_medium
 from mi_amr.testing import block_z_scores, render_passes
 from mi_amr.transfer.spectra import refusal, variant_kind
 
-from conftest import FORCED_VARIANT, volume_scene
-from own_process import in_own_process
+from conftest import volume_scene
+from own_process import PREFIX, in_own_process, in_variant
 
 PASSES = 16
 Z_MAX = 4.0
 #: the JIT backend of the variants the tests switch to (cuda where the
 #: suite is forced onto it)
-PREFIX = "cuda_ad_" if (FORCED_VARIANT or "").startswith("cuda") else "llvm_ad_"
-RGB = FORCED_VARIANT or "llvm_ad_rgb"
 #: Seven TF entries of different colours (one grey): the data's values fall
 #: on the entries, so that the amr medium's colour is the entry's own, as
 #: the baked grid's voxel is.
 ENTRY_RGBA = np.array([[0.9, 0.2, 0.1, 0.0], [0.2, 0.8, 0.3, 0.3], [0.1, 0.3, 0.9, 0.6], [0.5, 0.5, 0.5, 1.0],
                        [0.95, 0.9, 0.2, 0.8], [0.3, 0.1, 0.6, 0.4], [0.7, 0.7, 0.9, 0.2]])
-
-
-@contextlib.contextmanager
-def in_variant(kind: str):
-    """``kind`` (``spectral``, ``mono`` or a full name) for the block, then the rgb variant again."""
-    mi.set_variant(kind if "_" in kind else PREFIX + kind)
-    try:
-        yield
-    finally:
-        mi.set_variant(RGB)
 
 
 def entry_data():
@@ -157,13 +144,6 @@ def test05_spectral_gradients_match_finite_differences():
     per level, against central differences of the same image with the same
     seed: tests/test_gradients.py's test02 (shapes, steps and z-test), in
     the spectral variant."""
-    from test_gradients import M, directions, gradients_and_differences, small_medium, z_test
+    from test_gradients import check_image_gradients
     with in_variant("spectral"):
-        desc, cells = small_medium("tent")
-        scene = mi.load_dict(volume_scene(desc, res=8, integrator="amrprbvolpath", max_depth=4))
-        params = mi.traverse(scene)
-        med = mi_amr.amr_media(scene)[0]
-        for key, e, h in directions(med, cells):
-            key = f"{M}.{key}"
-            grads, fds = gradients_and_differences(scene, params, key, e, h)
-            z_test(grads, fds, key, power=not key.endswith("values"))
+        check_image_gradients("amrprbvolpath", "tent")
