@@ -154,8 +154,9 @@ def test03_in_jupyterlab_through_the_comm_channel_alone(tmp_path, cloud, browser
     """JupyterLab in chromium, a notebook that runs ``sc.show()``: a
     picture appears in the cell output; an orbit in the page changes it and
     the next cell prints the new camera, which ``sc`` renders; a TF set
-    from Python changes the picture; the kernel listens on the ports
-    Jupyter gave it and on no other, before and after."""
+    from Python changes the picture; the annotations and the slice panel
+    work in the cell; the kernel listens on the ports Jupyter gave it and
+    on no other, before and after."""
     from mi_amr.bench.widget import CANVAS_PIXELS, FIND, JupyterLab
     cells = ["import json\nimport mitsuba as mi\nmi.set_variant('llvm_ad_rgb')\nimport mi_amr",
              f"sc = mi_amr.scene({str(cloud)!r}, res=32, spp=16)\nw = sc.show(res=32, max_spp=16)\nw",
@@ -217,6 +218,18 @@ def test03_in_jupyterlab_through_the_comm_channel_alone(tmp_path, cloud, browser
         page.get_by_test_id("snapshot").click()
         page.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=60_000)
         assert (tmp_path / "snapshot.exr").is_file() and (tmp_path / "snapshot.xml").is_file()
+
+        # the viewer's annotations in the cell (its page code, as tests/test_view_annotations.py test04 checks
+        # in mi-amr view): AMR levels add lines to the overlay, and the slice panel follows an x clip
+        drawn = ("() => { const c = (%s)('overlay'), d = c.getContext('2d').getImageData(0, 0, c.width, c.height)"
+                 ".data; let n = 0; for (let k = 3; k < d.length; k += 4) n += d[k] > 0; return n; }") % FIND
+        outline = page.evaluate(drawn)
+        page.get_by_test_id("show-levels").check()
+        page.wait_for_function(f"() => ({drawn})() > {outline}", timeout=30_000)
+        page.get_by_test_id("show-slice").check()
+        page.get_by_test_id("clip-axis").select_option("x")
+        page.wait_for_function("window.viewerStats.lastSlice && window.viewerStats.lastSlice.axis === 'x'",
+                               timeout=30_000)
         assert lab.listening(kernel) == ports, "the widget opened no port"
         page.close()
 
