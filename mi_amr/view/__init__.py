@@ -1,10 +1,11 @@
 """``mi-amr view``: explore AMR data in the browser (docs/design.md section 11).
 
-`ViewEngine` renders (one `scene.LoadedScene`, a view per browser tab),
-`ViewServer` serves the page and its websocket (messages: `protocol`),
-`snapshot` writes a view to files, `notebook` shows the same page in
-Jupyter. Needs the ``mi-amr[view]`` extra (Starlette, uvicorn; mitsuba-oidn
-for denoising)."""
+`ViewEngine` renders (one `scene.LoadedScene`, a view per browser tab;
+its parts: `views`, `scheduler`, `editor` and `snapshot`, which writes a
+view to files), `ViewServer` serves the page and its websocket
+(messages: `protocol`, routed to the engine by `dispatch`), `notebook`
+shows the same page in Jupyter. Needs the ``mi-amr[view]`` extra
+(Starlette, uvicorn; mitsuba-oidn for denoising)."""
 
 from __future__ import annotations
 

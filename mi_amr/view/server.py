@@ -11,11 +11,11 @@ server binds 127.0.0.1 unless told otherwise; the socket listens before the
 URL is printed.
 
 Each websocket message is parsed once (`protocol.parse`) and handed to the
-engine; a malformed one gets an ``error`` reply and changes nothing. Replies
-wait in a bounded `Outbox` (a newer histogram or status replaces an unsent
-one); frames wait for the page's ``ack`` of the previous one and only the
-newest waits (no backlog). A tab that goes away, however abruptly, ends its
-view quietly.
+engine (`dispatch`, as the notebook widget does); a malformed one gets an
+``error`` reply and changes nothing. Replies wait in a bounded `Outbox` (a
+newer histogram or status replaces an unsent one); frames wait for the
+page's ``ack`` of the previous one and only the newest waits (no backlog).
+A tab that goes away, however abruptly, ends its view quietly.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from . import protocol as p
+from .dispatch import VIEW_CHANGES, answer, error_reply
 from .engine import ViewEngine
 from .protocol import MAX_MESSAGE
 from .snapshot import SnapshotBudget
@@ -253,33 +254,21 @@ def _retrieve(task: asyncio.Task) -> None:
 
 
 async def _handle(message, engine, view, out_dir, loop, acked, budget=None) -> p.ServerMessage | None:
-    """One page message -> a reply (or None); never raises for bad input."""
+    """One page message -> a reply (or None); never raises for bad input.
+    An ``ack`` opens the frame gate; a view change and a histogram are
+    answered here, in order, the rest on a worker thread (`dispatch.answer`)."""
     about = None
     try:
         msg = p.parse(message.get("text"))
         about = msg.TYPE
-        match msg:
-            case p.Ack():
-                acked.set()
-                return None
-            case p.CameraChange() | p.TFChange() | p.DenoiseChange() | p.ModeChange():
-                if engine.change(view, msg):          # a new range or units: a new histogram
-                    return engine.histogram(view)
-                return None
-            case p.HistogramRequest():
-                return engine.histogram(view)
-            case p.SnapshotRequest(name=name):
-                shot = await loop.run_in_executor(None, engine.take_snapshot, view, out_dir, name, budget)
-                return p.SnapshotDone(tuple(str(f) for f in shot.files), shot.spp, notes=tuple(shot.notes) or None)
-            case p.TFSave() | p.TFLoad() | p.FieldChange() | p.Describe() | p.ClipChange() | p.AnnotateChange() \
-                    | p.AnnotationsRequest() | p.SliceRequest():     # the TF editor's, annotations, clip, slice
-                return await loop.run_in_executor(None, engine.request, view, msg)
-    except p.ProtocolError as e:
-        return p.Error(str(e), e.about)
-    except (ValueError, OSError) as e:
-        return p.Error(str(e), about)
-    except Exception as e:                            # a bug must not end the session: say it
-        return p.Error(f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", about)
+        if isinstance(msg, p.Ack):
+            acked.set()
+            return None
+        if isinstance(msg, VIEW_CHANGES + (p.HistogramRequest,)):
+            return answer(engine, view, msg, out_dir, budget)
+        return await loop.run_in_executor(None, answer, engine, view, msg, out_dir, budget)
+    except Exception as e:
+        return error_reply(e, about)
 
 
 class ViewServer:

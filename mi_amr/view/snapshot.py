@@ -12,6 +12,12 @@ with ``O_CREAT | O_EXCL | O_NOFOLLOW`` (a file or link planted there is
 never written through: a link is refused). What else a snapshot writes
 (the data of yt, once, as ``.amrb``) is announced in its ``notes``; a
 `SnapshotBudget` bounds how many snapshots and bytes one viewer writes.
+
+`ViewSnapshots` takes a snapshot of an engine's view (a part of
+`engine.ViewEngine`): the accumulation's mean and what the page shows
+(denoised, with the annotations burnt in where asked), from the same
+samples; asked for while a field reloads, it waits for the new field's
+first full frame (`SNAPSHOT_WAIT`).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import os
 import shutil
 import tempfile
 import threading
+import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -37,11 +44,15 @@ from .camera import OrbitCamera
 from .protocol import safe_name
 from .scene import LoadedScene
 from .tf_spec import TFSpec
+from .view_annotations import burnt_in
+from .views import View
 
 
 #: Snapshots one viewer may write, and their bytes in all (`SnapshotBudget`).
 MAX_SNAPSHOTS = 500
 MAX_SNAPSHOT_BYTES = 4 << 30
+#: Seconds a snapshot asked for during a field reload waits for the new field's first full frame.
+SNAPSHOT_WAIT = 120.0
 #: The file kinds of a snapshot, in the order of `Snapshot.files`.
 EXTENSIONS = (".exr", ".png", ".xml", ".tf.json")
 
@@ -168,6 +179,50 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
         notes.append(f"also wrote {target.name} ({target.stat().st_size / 1e6:.1f} MB): the data the XML "
                      "loads, written once for this folder")
     return Snapshot(placed, spp, notes)
+
+
+class ViewSnapshots:
+    """Snapshots of the views of `engine.ViewEngine` (module docstring); a
+    mixin over the engine's state (its views, ``loaded``, the denoiser,
+    ``_reloads``)."""
+
+    def take_snapshot(self, view: View, out_dir, name: str, budget: SnapshotBudget | None = None,
+                      wait: float = SNAPSHOT_WAIT) -> Snapshot:
+        """The view's files (`write_snapshot`): ``NAME.exr``,
+        ``.png``, ``.xml``, ``.tf.json`` in ``out_dir`` (a numbered name when
+        one is taken), the PNG and EXR from the same samples; ``name`` must
+        be a plain file name. A `ValueError` before the first full frame,
+        or beyond ``budget``. Asked for while a field reloads, it waits for
+        the reload and the new field's first full frame (at most
+        ``wait`` seconds, then refused with a message). With the
+        view's annotations' ``burn_in`` on, its PNG has them drawn in."""
+        with self._wake:
+            if self._reloads:                    # passes do not notify: look again every 20 ms
+                deadline = time.monotonic() + wait
+                while not (view.closed or not self._reloads and view.accum_epoch == view.epoch) \
+                        and time.monotonic() < deadline:
+                    self._wake.wait(min(0.02, max(0.0, deadline - time.monotonic())))
+                if view.closed or self._reloads or view.accum_epoch != view.epoch:
+                    raise ValueError(f"snapshot refused: the field was still reloading after {wait:g} s "
+                                     "(ask again once the picture shows)")
+            if view.accum is None or view.accum_epoch != view.epoch:
+                raise ValueError("no image yet: wait for the first full frame")
+            image = (view.accum / view.spp).astype(np.float32)
+            camera, spec, spp, mode = view.camera, view.spec, view.spp, view.mode
+            loaded, annotate, clip = self.loaded, view.annotate, view.clip
+            denoise = view.denoise and self._denoise is not None
+            shown = view.denoised if denoise and view.denoised_spp == spp else None
+        if shown is None:
+            shown = self._denoised(image) if denoise else image
+        if annotate is not None and annotate.burn_in:
+            shown = burnt_in(loaded, shown, camera, loaded.table(spec), loaded.stored_log, annotate)
+        return write_snapshot(loaded, out_dir, name, image, shown, camera, spec, spp, budget, mode=mode,
+                              embed_data=self.embed_data, clip=clip)
+
+    def snapshot(self, view: View, out_dir, name: str) -> list[Path]:
+        """`take_snapshot`'s four files: [exr, png, xml, tf.json]."""
+        return self.take_snapshot(view, out_dir, name).files[:4]
+
 
 
 def _source_reference(loaded: LoadedScene):

@@ -11,7 +11,8 @@ Messages are the viewer's `protocol` messages: the page's go out as the
 model's custom messages (``model.send``; those of 25 ms together as one
 ``{"type": "batch", "messages": [...]}``), the kernel's come back as custom
 messages, frames as ``{"type": "frame", "header": Frame}`` with the JPEG
-image as the message's one binary buffer. Nothing listens on any port: a
+image as the message's one binary buffer; the page's reach the engine as
+the server's do (`dispatch`). Nothing listens on any port: a
 notebook served through JupyterHub, VS Code or a proxy works as a local one.
 As the server does, the newest frame waits for the page's ``ack`` (of the
 one before the previous: `MAX_IN_FLIGHT`; `ACK_TIMEOUT` at most) and older
@@ -62,6 +63,7 @@ import traitlets
 
 from . import protocol as p
 from .camera import OrbitCamera, world_up
+from .dispatch import VIEW_CHANGES, answer, error_reply
 from .engine import DEFAULT_MAX_SPP, JIT_LOCK, ViewEngine
 from .snapshot import SnapshotBudget
 from .tf_spec import PRESET_POINTS
@@ -355,44 +357,33 @@ class ViewWidget(anywidget.AnyWidget):
             if not self._attached.is_set() or self.view is None:
                 self._send_json(self.engine.status)      # still loading (or failed): the page shows it
                 return
-            if isinstance(msg, (p.CameraChange, p.TFChange, p.DenoiseChange, p.ModeChange)):
+            if isinstance(msg, VIEW_CHANGES):
                 histogram = self.engine.change(self.view, msg)
                 self._pull_soon()
-                if histogram:
+                if histogram:                    # a new range or units: its histogram from the worker
                     self._pool.submit(self._answer, p.HistogramRequest())
             else:                                # slower: on the widget's worker thread
                 self._pool.submit(self._answer, msg)
-        except p.ProtocolError as e:
-            self._send_json(p.Error(str(e), e.about))
-        except (ValueError, OSError) as e:
-            self._send_json(p.Error(str(e), about))
-        except Exception as e:                   # a bug must not end the session: say it
-            self._send_json(p.Error(f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", about))
+        except Exception as e:                   # one line for the page (a bug too: the session goes on)
+            self._send_json(error_reply(e, about))
 
     def _answer(self, msg):
-        """Answer a request (as the server's ``_handle`` does), on the worker thread."""
+        """Answer a request on the worker thread (`dispatch.answer`, as the
+        server does); a `Hello` says where snapshots go, ``describe`` also
+        sends the newest frame again, the TF editor's changes reach the traits."""
         try:
-            match msg:
-                case p.HistogramRequest():
-                    reply = self.engine.histogram(self.view)
-                case p.SnapshotRequest(name=name):
-                    shot = self.engine.take_snapshot(self.view, self.out_dir, name, self._budget)
-                    reply = p.SnapshotDone(tuple(str(f) for f in shot.files), shot.spp,
-                                           notes=tuple(shot.notes) or None)
-                case p.Describe():
-                    self._describe()
-                    return
-                case _:                          # the TF editor's: save, load, field
-                    reply = self.engine.request(self.view, msg)
-                    self._pull()
+            if isinstance(msg, p.Describe):
+                self._describe()
+                return
+            reply = answer(self.engine, self.view, msg, self.out_dir, self._budget)
+            if not isinstance(msg, (p.HistogramRequest, p.SnapshotRequest)):    # the TF editor's: save, load, field
+                self._pull()
             if isinstance(reply, p.Hello):
                 reply = replace(reply, out_dir=str(self.out_dir))
             if reply is not None:
                 self._send_json(reply)
-        except (ValueError, OSError) as e:
-            self._send_json(p.Error(str(e), msg.TYPE))
         except Exception as e:
-            self._send_json(p.Error(f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}", msg.TYPE))
+            self._send_json(error_reply(e, msg.TYPE))
 
     # ---- the view's state as traits, and into the DataScene ------------------------------
     @contextlib.contextmanager
