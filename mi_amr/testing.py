@@ -6,6 +6,7 @@ rendering.
 
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -28,11 +29,19 @@ def brute_force(cells: AMRCells, x, method: str | Reconstruction = "tent", chunk
     return val, found
 
 
-def render_passes(scene, passes: int, spp: int, seed0: int = 0, sensor=0) -> np.ndarray:
-    """``passes`` independent renders (seeds ``seed0 ..``), shape (P, H, W, C)."""
+def render_passes(scene, passes: int, spp: int, seed0: int = 0, sensor=0, frozen: bool = False) -> np.ndarray:
+    """``passes`` independent renders (seeds ``seed0 ..``), shape (P, H, W, C).
+    ``frozen``: the passes are one ``dr.freeze`` recording of ``mi.render``,
+    replayed with each seed (the same images; the first pass records, the
+    others skip tracing the integrator again, which is most of a small
+    pass's time)."""
+    render = mi.render
+    if frozen:
+        render = dr.freeze(lambda scene, spp, seed, sensor: mi.render(scene, spp=spp, seed=seed, sensor=sensor))
     imgs = []
     for i in range(passes):
-        img = mi.render(scene, spp=spp, seed=seed0 + i, sensor=sensor)
+        seed = dr.opaque(mi.UInt32, seed0 + i) if frozen else seed0 + i
+        img = render(scene, spp=spp, seed=seed, sensor=sensor)
         imgs.append(np.array(img, dtype=np.float64))
     return np.stack(imgs)
 
