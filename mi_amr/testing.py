@@ -29,21 +29,27 @@ def brute_force(cells: AMRCells, x, method: str | Reconstruction = "tent", chunk
     return val, found
 
 
-def render_passes(scene, passes: int, spp: int, seed0: int = 0, sensor=0, frozen: bool = False) -> np.ndarray:
+def render_passes(scene, passes: int, spp: int, seed0: int = 0, sensor=0, frozen: bool = True) -> np.ndarray:
     """``passes`` independent renders (seeds ``seed0 ..``), shape (P, H, W, C).
-    ``frozen``: the passes are one ``dr.freeze`` recording of ``mi.render``,
-    replayed with each seed (the same images; the first pass records, the
-    others skip tracing the integrator again, which is most of a small
-    pass's time)."""
-    render = mi.render
+
+    ``frozen``: the passes replay one ``dr.freeze`` recording of
+    ``mi.render`` with each seed (the same images; tracing the integrator
+    again is most of a small pass's time). A scene that cannot be recorded
+    (Dr.Jit refuses some of Mitsuba's own plugins, and the spectral
+    variants' colour upsampling) renders its passes plainly."""
+    seeds = [seed0 + i for i in range(passes)]
     if frozen:
-        render = dr.freeze(lambda scene, spp, seed, sensor: mi.render(scene, spp=spp, seed=seed, sensor=sensor))
-    imgs = []
-    for i in range(passes):
-        seed = dr.opaque(mi.UInt32, seed0 + i) if frozen else seed0 + i
-        img = render(scene, spp=spp, seed=seed, sensor=sensor)
-        imgs.append(np.array(img, dtype=np.float64))
-    return np.stack(imgs)
+        record = dr.freeze(lambda scene, spp, seed, sensor: mi.render(scene, spp=spp, seed=seed, sensor=sensor))
+        try:
+            first = np.array(record(scene, spp=spp, seed=dr.opaque(mi.UInt32, seeds[0]), sensor=sensor), np.float64)
+        except RuntimeError as e:
+            if "frozen function" not in str(e):
+                raise
+        else:
+            rest = [np.array(record(scene, spp=spp, seed=dr.opaque(mi.UInt32, s), sensor=sensor), np.float64)
+                    for s in seeds[1:]]
+            return np.stack([first] + rest)
+    return np.stack([np.array(mi.render(scene, spp=spp, seed=s, sensor=sensor), np.float64) for s in seeds])
 
 
 def block_z_scores(passes_a: np.ndarray, passes_b: np.ndarray, block: int = 8,

@@ -22,8 +22,7 @@ traversal x sampling x reconstruction x majorant x integrator and mode is
 ``slow``. One data set (two levels, 225 cells), 8x8 pixels: a distinct
 kernel costs a fraction of a second cold, and a pass about 10 ms, at 4 spp
 as at 32 (tracing the frame dominates: each case's passes replay one
-``dr.freeze`` recording, `render_passes(frozen=True)`, 28 -> 21 s cold for
-test02), so passes take 32 spp: a majorant
+``dr.freeze`` recording, `render_passes`, 28 -> 21 s cold for test02), so passes take 32 spp: a majorant
 5x too low in stock volpath's ``majorant=global`` moves the mean by 10
 standard errors there, 4 at 4 spp.
 """
@@ -157,7 +156,7 @@ class Renderer:
         med, integ = dict(med or {}), dict(integ or {})
         case = f"{integrator} {med} {integ}"
         try:
-            passes = render_passes(self.scene(integrator, med, integ), PASSES if compare else 1, SPP, frozen=True)
+            passes = render_passes(self.scene(integrator, med, integ), PASSES if compare else 1, SPP)
         except Exception as e:                 # noqa: BLE001
             while e.__cause__ is not None or e.__context__ is not None:     # Dr.Jit's wrapper: the cause
                 e = e.__cause__ or e.__context__
@@ -176,8 +175,7 @@ class Renderer:
             d = dict(key[1:])
             self.refs[key] = render_passes(
                 self.scene(ref_integrator, {k: v for k, v in d.items() if k in MEDIUM_KNOWN},
-                           {k: v for k, v in d.items() if k not in MEDIUM_KNOWN}), REF_PASSES, SPP, seed0=1000,
-                frozen=True)
+                           {k: v for k, v in d.items() if k not in MEDIUM_KNOWN}), REF_PASSES, SPP, seed0=1000)
         z = float(block_z_scores(passes, self.refs[key], block=RES)[0, 0])
         self.compared += 1
         if not abs(z) < Z_MAX:
