@@ -62,8 +62,9 @@ for cell in nb["cells"]:
 
 #: Notebooks run in the default suite; the others run with marker ``slow``
 #: (quickstart.ipynb runs in a real Jupyter kernel in tests/test_widget.py
-#: test04 by default, its widget included).
-FAST_NOTEBOOKS = {"view.ipynb", "inverse.ipynb"}
+#: test04 by default, its widget included; inverse.ipynb's gradients are
+#: tests/test_gradients.py's by default).
+FAST_NOTEBOOKS = {"view.ipynb"}
 #: Set for every notebook run here: a notebook with a size switch (inverse.ipynb) runs at its
 #: small size; the committed outputs are those of the full size.
 SMALL_NOTEBOOKS = {"MI_AMR_NOTEBOOK_SMALL": "1"}

@@ -478,7 +478,8 @@ def _empty_space_scene(integrator, alpha0):
     return mi.load_dict(volume_scene(desc, res=8, integrator=integrator, max_depth=4))
 
 
-@pytest.mark.parametrize("integrator", ["prbvolpath", "amrprbvolpath"])
+# stock prbvolpath's case is slow: its gradients are checked by default in test03
+@pytest.mark.parametrize("integrator", [pytest.param("prbvolpath", marks=pytest.mark.slow), "amrprbvolpath"])
 def test10_gradients_where_the_majorant_equals_sigma_t(llvm, integrator):
     """Empty space holds the value 0, the TF's first entry, of opacity 0.2:
     a leaf there has a majorant equal to sigma_t, where no null collision

@@ -242,12 +242,23 @@ def test02_every_option_value_renders_against_the_defaults(matrix, renderer):
 
 def test03_every_traversal_and_sampling_pair_renders_in_every_integrator(matrix, renderer):
     """The traversal and the sampling decide which structures are built:
-    every pair in every integrator (stock volpath once crashed with
+    every pair in stock volpath and amrvolpath (amrprbvolpath: test03b) (stock volpath once crashed with
     ``traversal=abr, sampling=abr``: a warning asked for the macrocell grid,
     which neither builds), compared with the default's mean."""
+    _pairs(matrix, renderer, ("volpath", "amrvolpath"))
+
+
+@pytest.mark.slow
+def test03b_every_traversal_and_sampling_pair_renders_in_amrprbvolpath(matrix, renderer):
+    """test03 in amrprbvolpath (its primal kernels walk the same
+    structures as amrvolpath's; slow to keep the default suite's time)."""
+    _pairs(matrix, renderer, ("amrprbvolpath",))
+
+
+def _pairs(matrix, renderer, integrators):
     for t in matrix.medium["traversal"]:
         for s in matrix.medium["sampling"]:
-            for plugin in INTEGRATORS:
+            for plugin in integrators:
                 renderer.check(plugin, {"traversal": t, "sampling": s})
     renderer.assert_ok()
 
