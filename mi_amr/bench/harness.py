@@ -8,9 +8,11 @@ same way (docs/performance/protocol.md).
 
 from __future__ import annotations
 
+import json
 import resource
 import sys
 import time
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -115,3 +117,13 @@ def frame_function(mi, spp: int, frozen: bool):
         return np.array(render(scene, dr.opaque(mi.UInt32, seed)), dtype=np.float64)
     frame.recorder = render
     return frame
+
+
+def write_report(out_dir, name: str, result: dict, report: str) -> None:
+    """A benchmark's result as ``NAME.json`` and its Markdown report as
+    ``NAME.md`` in ``out_dir`` (made if missing); the report is printed."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"{name}.json").write_text(json.dumps(result, indent=1, default=float))
+    (out_dir / f"{name}.md").write_text(report)
+    print(report)

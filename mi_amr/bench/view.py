@@ -46,6 +46,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..plugins.integrator import MODES
+from .harness import write_report
 from ..view.engine import FAST_MODE, JIT_LOCK, ViewEngine
 from ..view.server import ViewServer
 
@@ -365,11 +366,7 @@ def first_report(result: dict) -> str:
 def run(data, field, res, out_dir, repeats=3, seconds=4.0, preview_scale=0.5, modes=None, move_ms=16,
         driver="page"):
     result = measure(data, field, res, seconds, repeats, preview_scale, modes, move_ms, driver)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "view.json").write_text(json.dumps(result, indent=1, default=float))
-    (out_dir / "view.md").write_text(report(result))
-    print(report(result))
+    write_report(out_dir, "view", result, report(result))
 
 
 def main_args(args) -> int:

@@ -34,6 +34,8 @@ from pathlib import Path
 
 import psutil
 
+from .harness import write_report
+
 #: Chromium's flags for a quiet headless run.
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run"]
@@ -288,11 +290,7 @@ def report(result: dict) -> str:
 
 def run(data, field, res, out_dir, repeats=3, seconds=4.0):
     result = measure(data, field, res, seconds, repeats)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "widget.json").write_text(json.dumps(result, indent=1, default=float))
-    (out_dir / "widget.md").write_text(report(result))
-    print(report(result))
+    write_report(out_dir, "widget", result, report(result))
 
 
 def main_args(args) -> int:
