@@ -313,20 +313,11 @@ def test05_the_notebook_widget_answers_the_same_requests(enzo, llvm):
     plane reaches its view, a bad plane is one clear error."""
     pytest.importorskip("anywidget")
     import mi_amr
-    from mi_amr.view.widget import ViewWidget
+    from test_widget import Recorded, _wait_for
 
-    class Recorded(ViewWidget):
-        def send(self, content, buffers=None):
-            self.__dict__.setdefault("sent", []).append((content, buffers))
-
-    def wait_for(w, kind, timeout=60):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            found = [c for c, _ in list(w.__dict__.get("sent", [])) if c.get("type") == kind]
-            if found:
-                return found[-1]
-            time.sleep(0.02)
-        raise AssertionError(f"no {kind} message sent")
+    def wait_for(w, kind):
+        """The last message of ``kind`` the widget sent (test_widget's wait)."""
+        return _wait_for(w, lambda c: c.get("type") == kind)[-1][0]
 
     engine, _ = enzo
     sc = mi_amr.scene(str(engine.source), "Density", mode="emission_absorption", res=48, spp=2)
