@@ -19,9 +19,11 @@ One level (uniform grids, single-level outputs) is AMR too, whatever
 not find is one line naming it (`MissingDependency`), while loading and
 while reading fields. A field is what a user types (`resolve_field`: yt's
 own names, ``TYPE,NAME``, any case), else one line with the closest names
-(`FieldNotFound`); a file of the output that yt's reader fails on is one
-line naming it (`DamagedFile`); a 2-D output is refused before its files
-are read (`require_3d`).
+(`FieldNotFound`); whatever yt raises while it opens, indexes or reads an
+output (a damaged file's IndexError, or a TypeError of its index parser)
+is one line naming the output or its file and what yt said
+(`DamagedFile`); a 2-D output is refused before its files are read
+(`require_3d`).
 """
 
 from __future__ import annotations
@@ -253,8 +255,9 @@ class _GridLeaves:
             amr_level = max_level - int(g.Level)
             start = np.rint((np.asarray(g.LeftEdge.to("code_length").d) - dle) / dx_finest).astype(np.int64)
             ijk = np.argwhere(mask)
-            yield (start + ijk * (1 << amr_level), np.full(len(ijk), amr_level, dtype=np.int32),
-                   np.asarray(g[field], dtype=np.float64)[mask].astype(np.float32))
+            with np.errstate(over="ignore"):       # beyond float32: inf, refused as non-finite later
+                values = np.asarray(g[field], dtype=np.float64)[mask].astype(np.float32)
+            yield start + ijk * (1 << amr_level), np.full(len(ijk), amr_level, dtype=np.int32), values
 
     positions = sample = None          # the blocks pass reads the grids as the others do
 
@@ -312,7 +315,9 @@ class _OctreeLeaves:
                                      f"which holds {n} leaf cells")
             s = 0
             for pos, level in pieces:
-                yield pos, level, None if values is None else values[s:s + len(level)].astype(np.float32)
+                with np.errstate(over="ignore"):   # beyond float32: inf, refused as non-finite later
+                    piece = None if values is None else values[s:s + len(level)].astype(np.float32)
+                yield pos, level, piece
                 s += len(level)
         self._complete = True
 
@@ -392,12 +397,15 @@ def load_dataset(path):
         # fields are read) names it in one line
         warnings.filterwarnings("ignore", message="This dataset appears to be of type")
         try:
-            return require_3d(yt.load(str(path)))
+            ds = require_3d(yt.load(str(path)))
         except YTAmbiguousDataType as e:
             names = ", ".join(c.__name__ for c in e.candidates)
             raise ValueError(f"{path}: yt finds it could be any of {names}") from e
         except YTUnidentifiedDataType as e:
             raise ValueError(f"{path}: {_unidentified(path)}") from e
+    with _reading(ds, path):
+        ds.index                      # built here, so that a damaged index is one line too
+    return ds
 
 
 def _unidentified(path) -> str:
@@ -433,28 +441,72 @@ def require_3d(ds):
 
 #: What yt's readers raise on a truncated or damaged file (a numpy reshape of
 #: too few bytes, an HDF5 file cut short, a Fortran record whose lengths
-#: disagree, a header that no longer parses).
+#: disagree, a header that no longer parses). Any other exception raised
+#: inside yt is one `DamagedFile` line too (a header line replaced by another
+#: ends in a TypeError of yt's Enzo index parser), worded as yt failing on
+#: the output rather than as damage for sure.
 DAMAGE_ERRORS = (OSError, ValueError, EOFError, struct.error, IndexError, KeyError, AttributeError)
 
 
 @contextlib.contextmanager
 def _reading(ds, path=None):
-    """An ImportError raised by yt while it loads or reads ``ds`` (or the
-    data at ``path``) becomes one `MissingDependency` line naming the
-    package and how to install it; an error of `DAMAGE_ERRORS` raised
-    inside yt (not in mi-amr's own code) one `DamagedFile` line naming the
-    file (`_damage_message`)."""
+    """An ImportError raised by yt while it loads, indexes or reads ``ds``
+    (or the data at ``path``) becomes one `MissingDependency` line naming
+    the package and how to install it; any other exception raised inside yt
+    (not in mi-amr's own code) but a MemoryError one `DamagedFile` line
+    naming the output, or the file of it, and what yt said
+    (`_damage_message`). The original stays the `DamagedFile`'s cause
+    (``mi-amr --traceback`` shows it)."""
     try:
         yield
     except (MissingDependency, FieldNotFound, DamagedFile):
         raise
     except ImportError as e:
         raise MissingDependency(_missing_message(e, ds, path), name=_package(e)) from e
-    except DAMAGE_ERRORS as e:
+    except MemoryError:                          # data too large, not damaged: the command line says so
+        raise
+    except Exception as e:
         if not _raised_in_yt(e):
             raise
         file = _file_of(e, ds, path)
-        raise DamagedFile(_damage_message(e, ds, path, file), file) from e
+        message = _damage_message(e, ds, path, file)
+        _release_quietly(e)
+        raise DamagedFile(message, file) from e
+
+
+def _release_quietly(e: BaseException):
+    """Free the objects yt had half built when ``e`` was raised (an index
+    whose ``__init__`` failed), which the traceback's frames hold: their
+    ``__del__`` fails on the missing attributes, and Python would print that
+    as an 'Exception ignored' traceback whenever they are collected. Done
+    here, with those reports from yt's own code silenced; the traceback
+    keeps its lines (``--traceback``), not the frames' local variables."""
+    import gc
+    import sys
+    tb, frames = e.__traceback__, []
+    while tb is not None:
+        frames.append(tb.tb_frame)
+        tb = tb.tb_next
+    hook = sys.unraisablehook
+
+    def quiet(report):
+        where = getattr(report.object, "__module__", None) or type(report.object).__module__ or ""
+        if not where.startswith("yt."):
+            hook(report)
+    sys.unraisablehook = quiet
+    try:
+        while frames:
+            frame = frames.pop()
+            if frame.f_code.co_filename != __file__:
+                try:
+                    frame.clear()
+                    frame.f_locals                     # drops the snapshot `_file_of` read (Python < 3.13)
+                except RuntimeError:                   # a frame still running (ours, or a caller's)
+                    pass
+            del frame
+        gc.collect()
+    finally:
+        sys.unraisablehook = hook
 
 
 def _raised_in_yt(e: BaseException) -> bool:
@@ -476,7 +528,8 @@ def _file_of(e: BaseException, ds, path) -> str | None:
     """The data file the reader was at when ``e`` was raised: the innermost
     frame's local naming an existing file of the output (a path, an open
     file, or an object's ``fname``/``filename``; a RAMSES domain's
-    ``amr_fn``, whose reader is Cython), else the file of a
+    ``amr_fn``, whose reader is Cython; an index's ``index_filename``, e.g.
+    Enzo's ``.hierarchy``), else the file of a
     FileNotFoundError, else None."""
     if isinstance(e, FileNotFoundError) and e.filename:
         return os.fsdecode(e.filename)
@@ -490,7 +543,8 @@ def _file_of(e: BaseException, ds, path) -> str | None:
         for value in list(frame.f_locals.values()):
             attrs = getattr(value, "__dict__", None) or {}
             for c in (value, getattr(value, "name", None) if hasattr(value, "read") else None,
-                      attrs.get("fname"), attrs.get("filename"), attrs.get("amr_fn")):
+                      attrs.get("fname"), attrs.get("filename"), attrs.get("amr_fn"),
+                      attrs.get("index_filename")):
                 if isinstance(c, (str, bytes, os.PathLike)):
                     try:
                         c = os.path.abspath(os.fsdecode(c))
@@ -503,15 +557,21 @@ def _file_of(e: BaseException, ds, path) -> str | None:
 
 
 def _damage_message(e: BaseException, ds, path, file) -> str:
-    """``FILE: truncated or damaged (what the reader said)``, one line."""
+    """``FILE: truncated or damaged (what the reader said)``, one line; for
+    an exception that is not one of `DAMAGE_ERRORS`, ``OUTPUT: yt failed
+    reading ... (what yt said)``."""
     code = _code_name(ds, e)
     what = f"this {code} output" if code else "this output"
     said = " ".join(str(e).split()) or type(e).__name__
+    yt_said = f"(yt: {type(e).__name__}: {said})"[:600]
     if isinstance(e, FileNotFoundError):
         return f"{file or path or _where(ds)}: missing, and {what} needs it"
+    if not isinstance(e, DAMAGE_ERRORS):
+        return (f"{file or path or _where(ds)}: yt failed reading {what}; a file of it may be truncated or "
+                f"damaged {yt_said}")
     if file is None:
-        return f"{path or _where(ds)}: a file of {what} is truncated or damaged (yt: {type(e).__name__}: {said})"
-    return f"{file}: truncated or damaged file of {what} (yt: {type(e).__name__}: {said})"
+        return f"{path or _where(ds)}: a file of {what} is truncated or damaged {yt_said}"
+    return f"{file}: truncated or damaged file of {what} {yt_said}"
 
 
 def _package(e: ImportError) -> str | None:
