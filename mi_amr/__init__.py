@@ -1,7 +1,10 @@
 """mi-amr: path tracing of adaptive-mesh-refinement volume data in Mitsuba 3.
 
 Importing this package registers the ``amr`` medium for the active Mitsuba
-variant and for every variant selected later.
+variant and for every variant selected later. Its Python front door
+(`scene`, `show`, `render_jobs`, `scene_for`) needs no variant set first: it
+renders in the one set, else in the one ``mi-amr render`` chooses
+(`mi_amr.rendering.use_variant`).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from .data.convert import dense_to_amr  # noqa: E402
 from .autoscene import plan_scene  # noqa: E402
 from .data.opening import open_data  # noqa: E402
 from .data_scene import DataScene, scene, show  # noqa: E402
-from .rendering import RenderJob, render_jobs  # noqa: E402
+from .rendering import RenderJob, render_jobs, use_variant  # noqa: E402
 from .data.io import load_cells, read_exabricks, read_npz, write_exabricks, write_npz  # noqa: E402
 from .native_file import save_data as save_cells  # noqa: E402  (.amrb with its grids and statistics)
 from .data.yt_import import from_yt as _from_yt, world_transform as _world_transform  # noqa: E402
@@ -80,10 +83,13 @@ def world_transform(ds):
     return _world_transform(ds)
 
 
-def scene_for(data, field=None, **options) -> dict:
+def scene_for(data, field=None, variant: str | None = None, **options) -> dict:
     """A scene dictionary for ``mi.load_dict`` made from AMR data alone:
     camera framing the domain at its true aspect, sun and sky, a TF over
-    the values' distribution (see `mi_amr.scene_writer.scene_for`)."""
+    the values' distribution (see `mi_amr.scene_writer.scene_for`), in
+    ``variant``, else the one set, else the one ``mi-amr render`` chooses
+    (`use_variant`)."""
+    use_variant(variant)
     return _scene_for(data, field, **options)
 
 

@@ -13,6 +13,11 @@ new TF, density scale, camera or image size goes into it as parameters
 (majorants recomputed, nothing rebuilt, no kernel compiled); a new mode or
 log10/linear choice loads it again. ``mitsuba_scene`` and ``params`` give
 the Mitsuba objects for scripting and gradients.
+
+No Mitsuba variant need be set first: a scene renders in the one set, else
+in the one ``mi-amr render`` chooses (`mi_amr.rendering.use_variant`:
+``cuda_ad_rgb`` where a CUDA device works, else ``llvm_ad_rgb``), or in
+``variant=`` given to `scene` or `show`.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ from .slicing import Slice, Slicer, axis_index
 from .native_file import save_data
 from .plugins.integrator import MODES
 from .plugins.medium import AMRMedium, scene_media
-from .rendering import DEFAULT_SPP, chunk_for
+from .rendering import DEFAULT_SPP, chunk_for, use_variant
 from .scene_xml import dict_with_integrator_parameters
 from .transfer.function import TransferFunction
 
@@ -80,13 +85,16 @@ class DataScene:
     `BlockVolume` or a `ScenePlan`; ``field``: the field (yt data);
     ``mode``: the ``amrvolpath`` lighting mode (None: ``multi``); ``res``,
     ``spp``: the picture's width and height (pixels) and samples per pixel;
+    ``variant``: the Mitsuba variant, set for the process (None: the one
+    set, else ``mi-amr render``'s choice, `mi_amr.rendering.use_variant`);
     ``plan``: `mi_amr.autoscene.plan_scene` options (``tf``, ``log``,
     ``value_range``, ``density_scale``, ``emission``...)."""
 
     def __init__(self, data, field: str | None = None, *, mode: str | None = None, res: int = 400,
-                 spp: int = DEFAULT_SPP, **plan):
+                 spp: int = DEFAULT_SPP, variant: str | None = None, **plan):
         if mode is not None and mode not in MODES:
             raise ValueError(f"mode: one of {', '.join(MODES)}, got {mode!r}")
+        use_variant(variant)                         # before the data are read: a refused variant is one line
         self.source, self.field = data, field
         self.plan: ScenePlan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **plan)
         self.mode, self.res, self.spp = mode, int(res), int(spp)
@@ -141,8 +149,9 @@ class DataScene:
     # ---- Mitsuba -----------------------------------------------------------------
     @property
     def mitsuba_scene(self) -> mi.Scene:
-        """The Mitsuba scene with this scene's current choices in it."""
-        key = (self.mode, self.plan.transform, id(self.plan.data), repr(self.plan.emission))
+        """The Mitsuba scene with this scene's current choices in it (in the
+        variant set now: a scene made before a change of variant loads again)."""
+        key = (use_variant(), self.mode, self.plan.transform, id(self.plan.data), repr(self.plan.emission))
         if self._loaded is None or self._loaded[0] != key:
             d = scene_for(self.plan, res=self.res, spp=self.spp)
             if self.mode:
@@ -242,8 +251,10 @@ class DataScene:
         on Jupyter's comm channel (no port opened), ``res`` pixels wide;
         its camera, TF, density scale and mode are written back into this
         scene as they change, so `render` renders the view on screen.
-        ``options``: ``max_spp``, ``out_dir`` (snapshots), ``preview_scale``."""
+        ``options``: ``max_spp``, ``out_dir`` (snapshots), ``preview_scale``.
+        The widget renders in the variant set now (`use_variant`)."""
         from .view.widget import ViewWidget      # lazy: the mi-amr[notebooks] extra (anywidget)
+        use_variant()
         return ViewWidget(self, res=res, **options)
 
     # ---- annotations and slices (mi_amr.annotations, mi_amr.slicing) -----------------------
@@ -302,7 +313,8 @@ class DataScene:
 
 def scene(data, field: str | None = None, **options) -> DataScene:
     """``DataScene(data, field, **options)``: AMR data planned into a scene
-    (`DataScene`), as ``yt.create_scene`` makes one."""
+    (`DataScene`), as ``yt.create_scene`` makes one; ``options``: ``mode``,
+    ``res``, ``spp``, ``variant`` and the plan's options (`DataScene`)."""
     return DataScene(data, field, **options)
 
 

@@ -1,5 +1,5 @@
 """Rendering as a library: what ``mi-amr render`` does, called from Python
-with no command line (the command line, `mi_amr.render`, is a caller).
+with no command line (the command line, `mi_amr.tools.render`, is a caller).
 
 A `RenderJob` names one picture: an XML scene (with its ``<default>``
 values) or data (a path of any kind `mi_amr.data.opening` reads, a yt data
@@ -11,31 +11,80 @@ jobs here, or frame-parallel on a Dask cluster (``cluster``: a
 (float32 ``(H, W, C)``, linear), the plan of a data job and the seconds.
 
 It writes nothing and prints nothing: the command line writes the images
-(`mi_amr.render.write_frame`) and the planned scene's XML, and shows the
+(`mi_amr.tools.render.write_frame`) and the planned scene's XML, and shows the
 plan's notes; a progress bar only with ``progress=True``. Bad jobs are
 `ValueError`s naming the option, raised before any data are read.
+
+The Mitsuba variant is chosen here for every caller (`use_variant`): the
+one the user set, else ``cuda_ad_rgb`` where a CUDA device works and
+``llvm_ad_rgb`` elsewhere (`default_variant`), said once per process.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from . import distributed
 from .autoscene import ScenePlan, plan_scene
 from .scene_writer import scene_for
 from .plugins.integrator import MODES
+from .transfer.spectra import refusal
 
 #: Samples per pixel when neither the job nor its XML scene says.
 DEFAULT_SPP = 64
 #: The plan options a data job takes (`mi_amr.autoscene.plan_scene`).
 PLAN_OPTIONS = ("tf", "log", "value_range", "density_scale", "emission", "emission_field", "emission_log",
                 "emission_range", "emission_scale")
+
+
+#: The variants chosen when none is set, in order: the first whose Dr.Jit
+#: backend works here (`default_variant`).
+DEFAULT_VARIANTS = (("cuda_ad_rgb", dr.JitBackend.CUDA), ("llvm_ad_rgb", dr.JitBackend.LLVM))
+
+
+def default_variant() -> str:
+    """``cuda_ad_rgb`` where Dr.Jit finds a CUDA device, else ``llvm_ad_rgb``
+    (what ``mi-amr render`` and ``mi_amr.scene`` render in when no variant
+    is set); a one-line `OSError` when neither backend works."""
+    for variant, backend in DEFAULT_VARIANTS:
+        if variant in mi.variants() and dr.has_backend(backend):
+            return variant
+    raise OSError("no Mitsuba variant can render here: no CUDA device, and Dr.Jit's LLVM backend found no "
+                  "libLLVM (install Debian's libllvm19 or set DRJIT_LIBLLVM_PATH; docs/manual/setup.md)")
+
+
+def use_variant(variant: str | None = None, say=True) -> str:
+    """Make the Mitsuba variant to render in active and return its name:
+    ``variant`` when given (set for the process, as ``mi.set_variant``
+    does), else the one set before, else `default_variant` (said in one
+    line on stderr unless ``say`` is false: once, as it stays set). A variant that
+    is not there, or that the plugins cannot render in (scalar, polarized:
+    `mi_amr.transfer.spectra.refusal`), is a one-line `ValueError` and
+    nothing changes."""
+    chosen = variant or mi.variant()
+    if chosen is None:
+        chosen = default_variant()
+        if say:
+            why = "a CUDA device works here" if chosen.startswith("cuda") else "no CUDA device here"
+            print(f"mi-amr: rendering in Mitsuba's {chosen} ({why}; mi.set_variant(...) or variant= chooses "
+                  "another)", file=sys.stderr)
+    if chosen not in mi.variants():
+        raise ValueError(f"variant {chosen!r} is not available (available: {', '.join(mi.variants())})")
+    why = refusal(chosen)
+    if why is not None:
+        raise ValueError(f"mi-amr cannot render in the variant {chosen!r}: {why}")
+    if mi.variant() != chosen:
+        mi.set_variant(chosen)
+    return chosen
 
 
 @dataclass
@@ -131,17 +180,21 @@ def job_spp(job: RenderJob) -> int:
 
 
 def render_jobs(jobs, cluster=None, *, chunk_spp: int | None = None, progress: bool = False,
-                desc: str | None = None, drjit_threads: int | None = None) -> list[RenderResult]:
+                desc: str | None = None, drjit_threads: int | None = None,
+                variant: str | None = None) -> list[RenderResult]:
     """Render ``jobs`` (`RenderJob`s) and return their `RenderResult`s in
     order. ``cluster``: a ``dask.distributed.Client`` (frames in parallel;
     a data job goes as its scene dictionary) or None (here, one after the
     other); data jobs are planned here unless their ``source`` is a
     `ScenePlan` already; ``chunk_spp``: samples per chunk (default an
     eighth of the job's spp; the image depends on the chunks, not on where
-    they run); ``desc``: the progress bar's label. The Mitsuba variant must be set."""
+    they run); ``desc``: the progress bar's label; ``variant``: the Mitsuba
+    variant (None: the one set, else `default_variant`; `use_variant`), which
+    a cluster's workers render in too."""
     jobs = list(jobs)
     for job in jobs:
         job.check()
+    use_variant(variant)
     plans = [None if j.is_xml else plan_job(j) for j in jobs]
     frames, spps = [], []
     for job, plan in zip(jobs, plans):

@@ -37,15 +37,16 @@ FLOORS = [
     # scenes planned from data and written for Mitsuba, the native file written with what they and a medium
     # read first, a run's outputs
     ["mi_amr.autoscene", "mi_amr.scene_writer", "mi_amr.native_file", "mi_amr.series"],
-    # services: rendering on a cluster, rendering as a library, the Python API from data
-    # to picture, the viewer, render jobs and their frames
-    ["mi_amr.distributed", "mi_amr.rendering", "mi_amr.data_scene", "mi_amr.view", "mi_amr.render"],
+    # services: rendering on a cluster, rendering as a library (and the variant it renders in),
+    # the Python API from data to picture, the viewer
+    ["mi_amr.distributed", "mi_amr.rendering", "mi_amr.data_scene", "mi_amr.view"],
     # the package's front (plugin registration, short-cuts to the floors below)
     ["mi_amr"],
     # the benchmarks (bench: protocol, scale, resample, peers, view, distributed and their
     # shared harness)
     ["mi_amr.bench"],
-    # what a user runs: the command line (tools; `mi-amr bench` hands over to the benchmarks)
+    # what a user runs: the command line and its adapters of the library (tools: cli, render,
+    # commands, info, gallery; `mi-amr bench` hands over to the benchmarks)
     ["mi_amr.tools"],
 ]
 
@@ -239,7 +240,7 @@ def test06_the_lazy_check_sees_an_inner_import(tmp_path, monkeypatch):
 
 def folder_of(name: str) -> str:
     """The folder (sub-package) a module sits in, or the module itself for
-    one at the package's top (``mi_amr.render``) and the package's front."""
+    one at the package's top (``mi_amr.rendering``) and the package's front."""
     parts = name.split(".")
     return ".".join(parts[:2]) if len(parts) > 2 or (PACKAGE / parts[-1]).is_dir() else name
 

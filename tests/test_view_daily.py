@@ -496,7 +496,7 @@ def test10_render_takes_the_scenes_own_spp(served, tmp_path, capsys):
     spp (the XML's default), with -D spp=N that, with --spp that."""
     import gc
 
-    from mi_amr.render import scene_spp
+    from mi_amr.rendering import scene_spp
     from mi_amr.tools.cli import main
     from mi_amr.view.engine import JIT_LOCK
     server, _ = served

@@ -11,12 +11,12 @@ import sys
 
 from ..params import plugin_error
 from ..plugins.integrator import MODES
-from ..render import render
+from .render import render
 from .commands import compare, convert, dataset, frametime, reference, view
 from .info import describe, format_info
 
 
-# Each subcommand is a call: ``render`` is `mi_amr.render`, ``info``
+# Each subcommand is a call: ``render`` is `mi_amr.tools.render`, ``info``
 # `mi_amr.tools.info`, the others `mi_amr.tools.commands`.
 def cmd_render(args):
     return render(args)
@@ -145,6 +145,10 @@ def _block_sizes(text: str):
     return sizes[0] if len(sizes) == 1 else tuple(sizes)
 
 
+#: ``--variant``'s help: the default is the library's (`mi_amr.rendering.default_variant`).
+VARIANT_HELP = "the Mitsuba variant (default: cuda_ad_rgb where a CUDA device works, else llvm_ad_rgb)"
+
+
 def _render_flags(p, spp: int | None):
     """The flags every command that renders takes (``spp`` None: the
     scene's own sample count, else 64)."""
@@ -152,7 +156,7 @@ def _render_flags(p, spp: int | None):
                    help=f"samples per pixel (default {spp})" if spp else
                    "samples per pixel (default: an XML scene's own sample_count, else 64)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--variant", default="llvm_ad_rgb")
+    p.add_argument("--variant", default=None, help=VARIANT_HELP)
     p.add_argument("-D", "--define", action="append", metavar="NAME=VALUE",
                    help="set a scene <default> parameter, e.g. -D res=512 -D tf=spiky")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
@@ -252,7 +256,7 @@ def build_parser():
     v.add_argument("--mode", choices=MODES, default=None,
                    help="the lighting mode the page refines in, and starts its selector at (default: the "
                         "scene's amrvolpath mode, multi for data); drags render in emission_absorption")
-    v.add_argument("--variant", default="llvm_ad_rgb")
+    v.add_argument("--variant", default=None, help=VARIANT_HELP)
     v.set_defaults(func=cmd_view)
 
     f = _command(sub, "reference", "render a scene with every amr medium replaced by "

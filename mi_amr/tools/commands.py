@@ -1,5 +1,5 @@
 """The bodies of the ``mi-amr`` subcommands other than ``render`` (which
-is `mi_amr.render`) and ``info`` (`mi_amr.tools.info`): view, reference,
+is `mi_amr.tools.render`) and ``info`` (`mi_amr.tools.info`): view, reference,
 frametime, convert, compare, dataset. Each takes the parsed arguments of its
 subcommand (`mi_amr.tools.cli`)."""
 
@@ -25,7 +25,7 @@ from ..data.transform import apply_value_transform
 from ..data.yt_import import from_yt_blocks
 from ..images import compare_images, read_exr, write_exr
 from ..progress import progress
-from ..render import scene_params, set_variant, write_frame
+from .render import scene_params, set_variant, write_frame
 from ..scene_xml import integrator_elements, parse_scene, with_amr_parameters
 from ..reference import reference_scene
 
@@ -67,11 +67,11 @@ def view(args):
     if not os.access(out, os.W_OK | os.X_OK):
         raise ValueError(f"--out {out}: not writable")
     try:
-        set_variant(args.variant)
+        mi = set_variant(args.variant)
     except SystemExit as e:
         raise ValueError(str(e.code).removeprefix("mi-amr: ")) from None
     engine = ViewEngine(args.scene, args.field, res=args.res, max_spp=args.max_spp,
-                        preview_scale=args.preview_scale, variant=args.variant, mode=args.mode,
+                        preview_scale=args.preview_scale, variant=mi.variant(), mode=args.mode,
                         embed_data=args.embed_data)
     try:
         server = ViewServer(engine, host, port, out_dir=out)

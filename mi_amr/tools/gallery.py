@@ -19,7 +19,7 @@ import numpy as np
 
 from .. import distributed
 from ..images import write_png
-from ..render import set_variant as _set_variant
+from .render import set_variant as _set_variant
 
 #: name -> (scene, -D parameters, caption)
 GALLERY = {

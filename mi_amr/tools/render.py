@@ -1,5 +1,7 @@
-"""What ``mi-amr render`` does, below the command line: render jobs and the
-frames they write.
+"""What ``mi-amr render`` does with its parsed command line: render jobs
+and the frames they write. The command line's adapter of the library
+(`mi_amr.rendering`: `RenderJob`, `render_jobs`), which a Python user calls
+instead.
 
 Three jobs (`render`): an XML scene (with ``-D`` variations as frames), data
 planned into a scene (`mi_amr.autoscene`: the planned data are rendered as
@@ -25,29 +27,27 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from . import distributed, series
-from .autoscene import GLOW_TF, plan_scene
-from .scene_writer import write_scene_xml
-from .data.opening import field_scalars, is_native
-from .native_file import save_data
-from .images import write_exr, write_png
-from .plugins.medium import require_jit_rgb_variant
-from .rendering import DEFAULT_SPP, RenderJob, render_jobs, scene_spp
+from .. import distributed, series
+from ..autoscene import GLOW_TF, plan_scene
+from ..scene_writer import write_scene_xml
+from ..data.opening import field_scalars, is_native
+from ..native_file import save_data
+from ..images import write_exr, write_png
+from ..rendering import DEFAULT_SPP, RenderJob, render_jobs, scene_spp, use_variant
 
 DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
                       "not XML scenes (set those in the scene)")
 
 
-def set_variant(variant: str):
-    """Select a Mitsuba variant (a one-line exit when it is missing or not a
-    JIT RGB one) with the mi-amr plugins registered; returns ``mitsuba``."""
-    if variant not in mi.variants():
-        raise SystemExit(f"mi-amr: variant {variant!r} is not available "
-                         f"(available: {', '.join(mi.variants())})")
-    mi.set_variant(variant)
+def set_variant(variant: str | None):
+    """Select the Mitsuba variant ``--variant`` names, or (None) the one the
+    library chooses (`mi_amr.rendering.use_variant`: the one set, else
+    ``cuda_ad_rgb`` where a CUDA device works, else ``llvm_ad_rgb``), with
+    the mi-amr plugins registered; a one-line exit when it is missing or
+    refused. Returns ``mitsuba``."""
     try:
-        require_jit_rgb_variant("mi-amr render")
-    except RuntimeError as e:
+        use_variant(variant, say=False)
+    except (ValueError, OSError) as e:
         raise SystemExit(f"mi-amr: {e}")
     return mi
 
@@ -85,14 +85,14 @@ def frame_path(out, k: int, n: int) -> Path:
 
 def require_denoiser():
     """``--denoise``: fail before any work when the denoiser is missing."""
-    from .view.engine import denoiser
+    from ..view.engine import denoiser
     if denoiser()[0] is None:
         raise ValueError(f"--denoise: {denoiser()[1]}")
 
 
 def denoised(images) -> list:
     """The images (linear RGB) through Intel Open Image Denoise."""
-    from .view.engine import denoiser
+    from ..view.engine import denoiser
     denoise, missing = denoiser()
     if denoise is None:
         raise ValueError(f"--denoise: {missing}")
