@@ -1,17 +1,23 @@
 """The floor plan of the package, checked from the source (docs/design.md
 section 6c): every module sits on a floor, imports only from its own floor
 or below (imports inside functions count too), and no modules import each
-other in a circle. A module added on no floor fails here until it is placed."""
+other in a circle. A module added on no floor fails here until it is placed
+(test09 proves it on a planted module), and the folders are read from the
+tree: a folder the table does not name fails test07 (test10)."""
 
 import ast
 import sys
 from pathlib import Path
 
+import pytest
+
 PACKAGE = Path(__file__).resolve().parents[1] / "mi_amr"
 
-#: Floors from the bottom: a module's floor is that of the longest prefix
-#: that names it (``mi_amr`` alone is the package's ``__init__``, which
-#: registers the plugins and offers the short-cuts of the top floors).
+#: Floors from the bottom. An entry names a folder (every module in it) or
+#: one module; a module's floor is that of the longest entry that names it
+#: (`covers`). ``mi_amr`` names the package's ``__init__`` alone, which
+#: registers the plugins and offers the short-cuts of the top floors: a
+#: module at the top of the package is on no floor until it is listed.
 FLOORS = [
     # foundations: no mi-amr import at all; core/ holds the block keys and
     # the Dr.Jit structs every folder above reaches downward
@@ -83,13 +89,27 @@ def imports(name: str, path: Path, known: dict) -> set:
     return found
 
 
-def floor_of(name: str):
+def covers(entry: str, name: str) -> bool:
+    """Whether the `FLOORS` entry ``entry`` names the module ``name``: the
+    module itself, or a module in the folder ``entry`` (the package's own
+    name covers its ``__init__`` only, never the modules beside it)."""
+    return name == entry or (entry != PACKAGE.name and name.startswith(entry + "."))
+
+
+def floor_of(name: str, floors=None):
+    """The floor (index into ``floors``, default `FLOORS`) of the longest
+    entry that names ``name``; None when no entry does."""
     best, length = None, -1
-    for i, prefixes in enumerate(FLOORS):
-        for p in prefixes:
-            if (name == p or name.startswith(p + ".")) and len(p) > length:
+    for i, entries in enumerate(FLOORS if floors is None else floors):
+        for p in entries:
+            if covers(p, name) and len(p) > length:
                 best, length = i, len(p)
     return best
+
+
+def unplaced(names, floors=None) -> list:
+    """The modules among ``names`` that no entry of ``floors`` names."""
+    return sorted(name for name in names if floor_of(name, floors) is None)
 
 
 def graph() -> dict:
@@ -98,8 +118,8 @@ def graph() -> dict:
 
 
 def test01_every_module_is_on_a_floor():
-    missing = sorted(name for name in modules() if floor_of(name) is None)
-    assert not missing, f"modules on no floor (place them in FLOORS): {missing}"
+    missing = unplaced(modules())
+    assert not missing, f"modules on no floor (place them in FLOORS): {', '.join(missing)}"
 
 
 def test02_no_import_runs_up():
@@ -245,13 +265,39 @@ def folder_of(name: str) -> str:
     return ".".join(parts[:2]) if len(parts) > 2 or (PACKAGE / parts[-1]).is_dir() else name
 
 
+def folders() -> list:
+    """The package's folders that hold Python modules, dotted, read from the
+    tree (``mi_amr.data``, ...; a folder of page files such as
+    ``view/static`` holds none)."""
+    return sorted({".".join(path.relative_to(PACKAGE.parent).parent.parts) for path in PACKAGE.rglob("*.py")}
+                  - {PACKAGE.name})
+
+
+def floor_plan_problems(floors=None) -> list:
+    """What keeps the folders of the tree from being floors of ``floors``
+    (default `FLOORS`): a folder no entry names as a whole, an entry that
+    names a module inside a folder (it would split the folder), an entry
+    that names nothing in the tree, a module off its folder's floor."""
+    floors = FLOORS if floors is None else floors
+    entries = [p for row in floors for p in row]
+    known, dirs = modules(), folders()
+    problems = [f"folder {d} is on no floor (name it in FLOORS)" for d in dirs if d not in entries]
+    problems += [f"{p} names a module inside the folder {folder_of(p)} (name the folder)"
+                 for p in entries if p not in dirs and folder_of(p) != p]
+    problems += [f"{p} names no module or folder of the tree" for p in entries if p not in known]
+    problems += [f"{name} (floor {floor_of(name, floors)}) in {folder_of(name)} "
+                 f"(floor {floor_of(folder_of(name), floors)})"
+                 for name in known if floor_of(name, floors) != floor_of(folder_of(name), floors)]
+    return sorted(problems)
+
+
 def test07_a_folder_is_one_floor():
-    """Folders are floors: every module of a folder sits on the folder's
-    floor (no FLOORS entry splits a folder), so the floor plan can be read
-    from the folders themselves."""
-    split = sorted(f"{name} (floor {floor_of(name)}) in {folder_of(name)} (floor {floor_of(folder_of(name))})"
-                   for name in modules() if floor_of(name) != floor_of(folder_of(name)))
-    assert not split, "modules off their folder's floor:\n" + "\n".join(split)
+    """Folders are floors, read from the tree: every folder holding modules
+    is named whole on one floor, no entry splits a folder or names what is
+    not there, so every module of a folder sits on the folder's floor and
+    the floor plan can be read from the folders themselves."""
+    problems = floor_plan_problems()
+    assert not problems, "the folders are not the floors:\n" + "\n".join(problems)
 
 
 def test08_no_folder_imports_up_or_in_a_circle():
@@ -268,3 +314,51 @@ def test08_no_folder_imports_up_or_in_a_circle():
     assert not up, "folders importing up:\n" + "\n".join(up)
     mutual = sorted(f"{a} <-> {b}" for a, bs in edges.items() for b in bs if a in edges.get(b, ()) and a < b)
     assert not mutual, "folders importing each other:\n" + "\n".join(mutual)
+
+
+def _planted_package(tmp_path, monkeypatch, files) -> Path:
+    """A package ``mi_amr`` of empty ``files`` (paths inside it) under
+    ``tmp_path``, made the package this module checks."""
+    pkg = tmp_path / "mi_amr"
+    for f in ("__init__.py", *files):
+        (pkg / f).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / f).write_text("")
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", pkg)
+    return pkg
+
+
+def test09_a_module_on_no_floor_fails_with_its_name(tmp_path, monkeypatch):
+    """test01 on a planted package: a new module at the package's top
+    (``mi_amr.brand_new``, which the prefix ``mi_amr`` must not place)
+    fails it, named; a new module in a folder lands on the folder's floor;
+    the same module added to a copy of the table passes."""
+    _planted_package(tmp_path, monkeypatch, ["rendering.py", "data/__init__.py", "data/cells.py",
+                                             "data/brand_new_reader.py", "brand_new.py"])
+    floors = [["mi_amr.data"], ["mi_amr.rendering"], ["mi_amr"]]
+    monkeypatch.setattr(sys.modules[__name__], "FLOORS", floors)
+    with pytest.raises(AssertionError, match=r"(?m)^modules on no floor \(place them in FLOORS\): mi_amr\.brand_new$"):
+        test01_every_module_is_on_a_floor()
+    assert floor_of("mi_amr.data.brand_new_reader") == floor_of("mi_amr.data") == 0
+    placed = [list(row) for row in floors]
+    placed[1].append("mi_amr.brand_new")
+    monkeypatch.setattr(sys.modules[__name__], "FLOORS", placed)
+    test01_every_module_is_on_a_floor()
+    assert floor_of("mi_amr.brand_new") == 1 and floors[1] == ["mi_amr.rendering"]     # the table itself unchanged
+
+
+def test10_a_folder_the_table_does_not_name_fails(tmp_path, monkeypatch):
+    """test07 on a planted tree: a new folder is read from the tree and fails
+    until it is named; an entry that splits a folder, or names nothing,
+    fails too."""
+    _planted_package(tmp_path, monkeypatch, ["data/__init__.py", "data/cells.py", "fresh/__init__.py",
+                                             "fresh/walk.py", "view/static/page.js"])
+    assert folders() == ["mi_amr.data", "mi_amr.fresh"]
+    monkeypatch.setattr(sys.modules[__name__], "FLOORS", [["mi_amr.data"], ["mi_amr"]])
+    with pytest.raises(AssertionError, match="folder mi_amr.fresh is on no floor"):
+        test07_a_folder_is_one_floor()
+    assert floor_plan_problems([["mi_amr.data", "mi_amr.fresh"], ["mi_amr"]]) == []
+    assert floor_plan_problems([["mi_amr.data", "mi_amr.fresh"], ["mi_amr.fresh.walk", "mi_amr"]]) == [
+        "mi_amr.fresh.walk (floor 1) in mi_amr.fresh (floor 0)",
+        "mi_amr.fresh.walk names a module inside the folder mi_amr.fresh (name the folder)"]
+    assert floor_plan_problems([["mi_amr.data", "mi_amr.fresh", "mi_amr.gone"], ["mi_amr"]]) == [
+        "mi_amr.gone names no module or folder of the tree"]
