@@ -31,9 +31,11 @@ from .data.statistics import (STATS_VERSION, ValueStats, cells_and_weights, fine
 from .data.transform import apply_value_transform
 from .data.yt_import import field_key
 from .transfer.function import PRESETS, TransferFunction
+from .transfer.layers import Layers, is_layers
 from .transfer.spectra import blackbody_luminance
-from .visibility import (OPAQUE_OPACITY, PREDICT_RES, Visibility, camera_rays, opacity_grid, projected_depth,
-                         scale_for_opacity, visibility_of_depths)
+from .visibility import (OPAQUE_OPACITY, PREDICT_RES, LayersSeen, Visibility, camera_rays, layer_weights,
+                         layers_seen, max_grid, opacity_grid, projected_depth, ray_samples, scale_for_opacity,
+                         visibility_of_depths)
 
 #: Percentiles (of the volume and of the mass) that bound the TF domain.
 LOW_PERCENTILE, HIGH_PERCENTILE = 1.0, 99.9
@@ -57,7 +59,7 @@ MAX_DEPTH = 500.0
 FOV = 35.0
 #: Opacity peaks at a few values, like the layered Gaussians of yt's volume
 #: renderings: shells of structure rather than a fog over the whole domain.
-DEFAULT_TF = "spiky"
+DEFAULT_TF = "layers"
 #: ``--emission blackbody``: Planck's law at the emission field in kelvin
 #: (the medium's ``emission_model="blackbody"``), not the TF preset of that
 #: name (docs/manual/glowing-gas.md).
@@ -101,6 +103,9 @@ class ScenePlan:
     optical_depth: float | None = None       # of the mean opacity across the longest side (planned scale)
     peak_depth: float | None = None          # at the TF's highest opacity over the values, same length
     visibility: "Visibility | None" = None   # the planned picture as predicted (`mi_amr.visibility`)
+    layers: "LayersSeen | None" = None       # a layered TF's layers the picture is predicted to show
+    value_range: tuple | None = None         # the range the values' distributions give (`_value_scale`);
+                                             # a layered default's ``tf_range`` lies within it
 
     @property
     def lit(self) -> bool:
@@ -247,6 +252,9 @@ def _planned_range(stats, field, vs: ValueStats, log: bool, vol=None, mass=None,
 
 
 def _check_tf_name(tf, flag):
+    if is_layers(tf):
+        Layers.parse(tf)                          # its options, checked: a ValueError names the bad one
+        return
     if tf not in PRESETS and not Path(tf).is_file():
         import matplotlib
         if tf not in matplotlib.colormaps:
@@ -289,6 +297,7 @@ def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = No
     volume, extent, what = open_data(data, field, fields)
     stats = volume if stats is None else stats
     notes = [f"data: {what}"]
+    range_given = value_range is not None
     log, value_range, more, vs = _value_scale(stats, None, log, value_range, source=what)
     notes += more
     transform = "log10" if log else "none"
@@ -337,8 +346,116 @@ def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = No
     direction = np.array([1.5, 1.0, 0.35]) / np.linalg.norm([1.5, 1.0, 0.35])    # just above the horizon
     origin = direction * radius / np.sin(np.radians(FOV / 2)) * 1.1
     plan = ScenePlan(volume, transform, tf, value_range, float(density_scale), world, origin, notes=notes,
-                     emission=glow, optical_depth=float(depth), peak_depth=float(peak_depth))
+                     emission=glow, optical_depth=float(depth), peak_depth=float(peak_depth),
+                     value_range=value_range)
+    if is_layers(tf):
+        scale_given |= _planned_layers(plan, stats, vs, tf_given, scale_given, range_given)
     return _checked(plan, stats, vs, tf_given, scale_given)
+
+
+#: The first layer's opacities (relative to the last's, 1) the plan tries for
+#: the default layered TF ...
+LAYER_LOWS = np.logspace(-3.5, 0.0, 15)
+#: ... and the density scales, times the one of `_planned_density_scale`.
+LAYER_SCALES = np.exp2(np.arange(-6.0, 6.01, 0.5))
+#: A plan whose layers tint less than this share of the footprint shows
+#: none of them.
+MIN_TINTED = 0.2
+#: Pixels per side and steps of the rays the search predicts layers with.
+LAYER_SEARCH_RES, LAYER_SEARCH_STEPS = 32, 64
+
+
+#: The default layered TF spans the values that the picture's pixels reach
+#: at most along their rays, from this quantile of the pixels to that one
+#: (within the planned range): each layer then shows over a comparable
+#: share of the picture.
+PIXEL_QUANTILES = (0.05, 0.95)
+
+
+def _pixel_range(plan: ScenePlan, log: bool):
+    """``(lo, hi)`` (transformed units) of the largest values along the
+    check's camera rays through the voxel grid of the values' means
+    (`opacity_grid` of the values), at the `PIXEL_QUANTILES` of the
+    footprint's pixels, within the planned range; None when they do not
+    span a range."""
+    lo, hi = plan.tf_range
+
+    def value_and_presence(v):
+        x = np.maximum(_log_or_floor(v), lo) if log else v
+        return np.stack([x, np.ones_like(x)], axis=1)
+    grid = opacity_grid(plan.data, value_and_presence)
+    values = np.where(grid[..., 1] > 0, grid[..., 0] / np.where(grid[..., 1] > 0, grid[..., 1], 1.0), -np.inf)
+    rays = camera_rays(plan.origin, plan.target, plan.up, plan.fov, PREDICT_RES)
+    samples, _, hits = ray_samples(values, plan.extent, *rays)
+    top = samples.max(axis=1) if len(samples) else np.zeros(0)
+    top = top[np.isfinite(top)]
+    if not len(top):
+        return None
+    q = np.quantile(top, PIXEL_QUANTILES)
+    lo, hi = max(lo, float(q[0])), min(hi, float(q[1]))
+    return (lo, hi) if hi > lo else None
+
+
+def _planned_layers(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scale_given: bool,
+                    range_given: bool = False) -> bool:
+    """Plan a layered TF so that light crosses the outer layers to the inner
+    ones: the layers' unit-peak profiles are averaged into the check's
+    voxel grid (`opacity_grid`, one channel a layer) and the camera's rays
+    march through it (`ray_samples`); for each first-layer opacity of
+    `LAYER_LOWS` (unless the TF was given) and density scale of
+    `LAYER_SCALES` (unless given, within the `MAX_DEPTH` bound) the share
+    of each pixel's light that each layer gives is predicted
+    (`layer_weights`), and the plan takes the pair that shows the most
+    layers (`layers_seen`), the most evenly. Notes say which layers the
+    picture is predicted to show. Returns whether it set the density scale."""
+    log = plan.transform == "log10"
+    layers = Layers.parse(plan.tf)
+    if not range_given:
+        shown = _pixel_range(plan, log)
+        if shown is not None and shown != plan.tf_range:
+            plan.notes.append(f"layers: over [{shown[0]:.4g}, {shown[1]:.4g}]{' (log10 units)' if log else ''}, "
+                              f"the largest values along the rays of {100 * PIXEL_QUANTILES[0]:g}-"
+                              f"{100 * PIXEL_QUANTILES[1]:g}% of the picture's pixels (values above take the "
+                              f"last layer's colour)")
+            plan.tf_range = shown
+    lo, hi = plan.tf_range
+
+    def u(v):
+        return ((_log_or_floor(v) if log else v) - lo) / (hi - lo)
+    grid = opacity_grid(plan.data, lambda v: layers.profiles(u(v)))
+    search = camera_rays(plan.origin, plan.target, plan.up, plan.fov, LAYER_SEARCH_RES)
+    samples, dt, hits = ray_samples(grid, plan.extent, *search, LAYER_SEARCH_STEPS)
+    if not hits.any():
+        return False
+    lows = [layers.low] if tf_given else LAYER_LOWS
+    best = None
+    for low in lows:
+        opac = layers.with_low(low).opacities()
+        alpha = grid @ opac
+        base = TARGET_DEPTH / max(float(alpha[alpha > 0].mean()) if (alpha > 0).any() else 0.0, 1e-6)
+        scales = [plan.density_scale] if scale_given else np.minimum(base * LAYER_SCALES, MAX_DEPTH / opac.max())
+        for scale in np.unique(scales):
+            seen = layers_seen(layer_weights(samples, dt, opac, scale), int(hits.sum()))
+            p = seen.shares[list(seen.seen)]
+            even = float(np.exp(-(p / p.sum() * np.log(p / p.sum())).sum())) if len(p) else 0.0
+            score = (len(seen.seen) if seen.tinted >= MIN_TINTED else 0, seen.tinted, even)
+            if best is None or score > best[0]:
+                best = (score, low, float(scale))
+    _, low, scale = best
+    chosen = layers if tf_given else layers.with_low(low)
+    if not tf_given:
+        plan.tf = chosen.spec()
+    ratio = scale / plan.density_scale
+    plan.density_scale = scale
+    mean = _mean_alpha(stats, plan.tf, plan.tf_range, log)
+    plan.optical_depth, plan.peak_depth = scale * mean, scale * _peak_alpha(plan.tf, plan.tf_range, log, vs)
+    rays = camera_rays(plan.origin, plan.target, plan.up, plan.fov, PREDICT_RES)
+    samples, dt, hits = ray_samples(grid, plan.extent, *rays)
+    plan.layers = layers_seen(layer_weights(samples, dt, chosen.opacities(), scale), int(hits.sum()))
+    plan.notes.append(f"layers: TF '{plan.tf}' (first layer's opacity {chosen.low:.3g} of the last's), "
+                      f"density_scale {scale:.3g}{'' if scale_given else f' ({ratio:.3g}x the mean-opacity one)'}: "
+                      f"optical depth {plan.optical_depth:.3g} at the mean opacity; predicted {plan.layers}")
+    return not scale_given
 
 
 #: The plan's check: a predicted picture showing the data in less than this

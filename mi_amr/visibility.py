@@ -92,27 +92,29 @@ def sampled_cells(data, max_cells: int = MAX_SAMPLES):
         np.asarray(data.values[::step], np.float64), np.full(len(data.pos[::step]), float(step))
 
 
-def opacity_grid(data, opacity, grid: int = GRID) -> np.ndarray:
-    """The volume-weighted mean of ``opacity(values)`` (the TF's alpha of the
-    stored values, unit density scale) per voxel of a grid over ``data``'s
-    bounding box, ``grid`` voxels along its longest side (at least 2 on each
-    side). Voxels no sampled cell reaches are 0 (no data: empty space)."""
+def _grid_shape(data, grid: int):
+    """``(lo, voxel size, shape)`` of a grid over ``data``'s bounding box
+    with ``grid`` voxels along its longest side (at least 2 on each side)."""
     lo, hi = (np.asarray(b, np.float64) for b in data.bounds)
     size = hi - lo
     shape = np.maximum(2, np.round(grid * size / size.max())).astype(np.int64)
-    voxel = size / shape
-    num, den = np.zeros(int(np.prod(shape))), np.zeros(int(np.prod(shape)))
+    return lo, size / shape, shape
+
+
+def _voxel_cover(data, grid: int):
+    """Yield ``(flat voxel index (k,), values (k,), volume weight (k,))``
+    for a sample of the cells of ``data`` (`sampled_cells`): a cell within
+    one voxel once, a cell larger than a voxel once per voxel it covers,
+    its weight shared among them."""
+    lo, voxel, shape = _grid_shape(data, grid)
     for pos, width, v, weight in sampled_cells(data):
-        a = opacity(v)
         w = weight * width ** 3
         i0 = np.clip(np.floor((pos - lo) / voxel + 1e-9), 0, shape - 1).astype(np.int64)
         i1 = np.clip(np.ceil((pos + width[:, None] - lo) / voxel - 1e-9), i0 + 1, shape).astype(np.int64)
         span = i1 - i0
         cover = span.prod(axis=1)
         one = cover == 1                        # cells within one voxel: the common case
-        flat = np.ravel_multi_index(i0[one].T, shape)
-        num += np.bincount(flat, weights=a[one] * w[one], minlength=num.size)
-        den += np.bincount(flat, weights=w[one], minlength=den.size)
+        yield np.ravel_multi_index(i0[one].T, shape), v[one], w[one]
         big = np.flatnonzero(~one)              # cells larger than a voxel: spread over the ones they cover
         if big.size:
             counts = cover[big]
@@ -120,12 +122,44 @@ def opacity_grid(data, opacity, grid: int = GRID) -> np.ndarray:
             rank = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
             sx, sy = span[big][owner, 0], span[big][owner, 1]
             offset = np.stack([rank % sx, (rank // sx) % sy, rank // (sx * sy)], axis=1)
-            flat = np.ravel_multi_index((i0[big][owner] + offset).T, shape)
-            share = (w[big] / counts)[owner]
-            num += np.bincount(flat, weights=a[big][owner] * share, minlength=num.size)
-            den += np.bincount(flat, weights=share, minlength=den.size)
+            yield (np.ravel_multi_index((i0[big][owner] + offset).T, shape), v[big][owner],
+                   (w[big] / counts)[owner])
+
+
+def opacity_grid(data, opacity, grid: int = GRID) -> np.ndarray:
+    """The volume-weighted mean of ``opacity(values)`` (the TF's alpha of the
+    stored values, unit density scale) per voxel of a grid over ``data``'s
+    bounding box, ``grid`` voxels along its longest side (at least 2 on each
+    side). Voxels no sampled cell reaches are 0 (no data: empty space).
+    ``opacity`` may give several channels per value ((m, c): each layer's
+    opacity of a layered TF); the grid then has them as its last axis."""
+    shape = tuple(_grid_shape(data, grid)[2])
+    size = int(np.prod(shape))
+    num, den, channels = None, np.zeros(size), ()
+    for flat, v, w in _voxel_cover(data, grid):
+        a = np.asarray(opacity(v), np.float64)
+        channels = a.shape[1:]
+        a = a.reshape(a.shape[0], int(np.prod(a.shape[1:])))
+        if num is None:
+            num = np.zeros((size, a.shape[1]))
+        for c in range(a.shape[1]):             # a few channels at most
+            num[:, c] += np.bincount(flat, weights=a[:, c] * w, minlength=size)
+        den += np.bincount(flat, weights=w, minlength=size)
+    if num is None:
+        return np.zeros(shape)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0).reshape(shape)
+        out = np.where(den[:, None] > 0, num / np.where(den > 0, den, 1.0)[:, None], 0.0)
+    return out.reshape(shape + tuple(channels))
+
+
+def max_grid(data, transform=None, grid: int = GRID) -> np.ndarray:
+    """The largest of the (``transform``-ed) values of a sample of the cells
+    per voxel of the grid of `opacity_grid`; -inf where no cell reaches."""
+    shape = tuple(_grid_shape(data, grid)[2])
+    out = np.full(int(np.prod(shape)), -np.inf)
+    for flat, v, _ in _voxel_cover(data, grid):
+        np.maximum.at(out, flat, v if transform is None else transform(v))
+    return out.reshape(shape)
 
 
 def camera_rays(origin, target, up, fov: float, res: int) -> tuple[np.ndarray, np.ndarray]:
@@ -156,26 +190,34 @@ def box_chords(origins, dirs, lo, hi) -> tuple[np.ndarray, np.ndarray]:
     return np.nanmax(np.minimum(t_a, t_b), axis=1).clip(min=0.0), np.nanmin(np.maximum(t_a, t_b), axis=1)
 
 
-def projected_depth(alpha_grid, extent, origins, dirs, steps: int | None = None) -> tuple:
-    """``(optical depth (n,), hits (n,) bool)`` of rays through the domain box
-    (world space: centred at the origin, sides ``extent``) at unit density
-    scale: midpoint sums of ``alpha_grid`` (nearest voxel) along each ray's
-    chord of the box; ``hits``: the rays that meet the box."""
+def ray_samples(alpha_grid, extent, origins, dirs, steps: int | None = None) -> tuple:
+    """``(samples (h, steps, ...), dt (h,), hits (n,) bool)``: ``alpha_grid``
+    (nearest voxel; any channels after the first three axes) at the
+    midpoints of ``steps`` equal steps of length ``dt`` along the chords of
+    the ``h`` rays that meet the domain box (world space: centred at the
+    origin, sides ``extent``), front to back."""
     extent = np.asarray(extent, np.float64)
     half = 0.5 * extent
     t0, t1 = box_chords(origins, dirs, -half, half)
     hits = t1 > t0
-    shape = np.asarray(alpha_grid.shape)
+    shape = np.asarray(alpha_grid.shape[:3])
     steps = steps or int(2 * shape.max())
-    tau = np.zeros(len(dirs))
-    if not hits.any():
-        return tau, hits
     o, d, a, b = origins[hits], dirs[hits], t0[hits], t1[hits]
     dt = (b - a) / steps
     s = (np.arange(steps) + 0.5)[None, :]
     p = o[:, None, :] + (a[:, None] + s * dt[:, None])[..., None] * d[:, None, :]
     idx = np.clip(((p + half) / extent * shape).astype(np.int64), 0, shape - 1)
-    tau[hits] = alpha_grid[idx[..., 0], idx[..., 1], idx[..., 2]].sum(axis=1) * dt
+    return alpha_grid[idx[..., 0], idx[..., 1], idx[..., 2]], dt, hits
+
+
+def projected_depth(alpha_grid, extent, origins, dirs, steps: int | None = None) -> tuple:
+    """``(optical depth (n,), hits (n,) bool)`` of rays through the domain box
+    (world space: centred at the origin, sides ``extent``) at unit density
+    scale: midpoint sums of ``alpha_grid`` (nearest voxel) along each ray's
+    chord of the box; ``hits``: the rays that meet the box."""
+    samples, dt, hits = ray_samples(alpha_grid, extent, origins, dirs, steps)
+    tau = np.zeros(len(dirs))
+    tau[hits] = samples.sum(axis=1) * dt
     return tau, hits
 
 
@@ -187,6 +229,61 @@ def visibility_of_depths(tau, hits, density_scale: float) -> Visibility:
         return Visibility(0.0, 0.0, 0)
     opacity = 1.0 - np.exp(-density_scale * tau[hits])
     return Visibility(float((opacity > VISIBLE_OPACITY).mean()), float((opacity > OPAQUE_OPACITY).mean()), n)
+
+
+#: A layer tints a pixel when it gives at least this share of the pixel's
+#: light (its colour then shows through the rest; predicted) ...
+TINT_WEIGHT = 0.3
+#: ... and a layer is seen when it tints most at least this share of the
+#: tinted pixels (the colour-layer measure's `MIN_LAYER_SHARE`).
+SEEN_SHARE = 0.03
+
+
+@dataclass
+class LayersSeen:
+    """Which layers of a layered TF a picture is predicted to show:
+    ``seen`` (indices, 0 the lowest values), ``shares`` (n,): the share of
+    the tinted pixels that each layer tints most, ``tinted``: the share of
+    the footprint that some layer tints."""
+    seen: tuple
+    shares: np.ndarray
+    tinted: float
+
+    def __str__(self):
+        n = len(self.shares)
+        return (f"{len(self.seen)} of {n} layers seen ({', '.join(str(k + 1) for k in self.seen) or 'none'}; "
+                f"1 = the lowest values), tinting {100 * self.tinted:.3g}% of the footprint")
+
+
+def layer_weights(samples, dt, opacities, scale: float) -> np.ndarray:
+    """``(h, n)``: the share of each ray's light that each layer gives
+    (emission-absorption weights ``integral T sigma_k ds``, front to back)
+    from ``samples`` (h, steps, n) of the layers' unit-peak profiles along
+    the rays (`ray_samples`), steps ``dt`` (h,), layer opacities
+    ``opacities`` (n,) and the density scale."""
+    sig_k = scale * samples * np.asarray(opacities, np.float64)[None, None, :]
+    sig = sig_k.sum(axis=2)
+    depth = sig * dt[:, None]
+    before = np.exp(-(np.cumsum(depth, axis=1) - depth))
+    absorbed = before * -np.expm1(-depth)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where(sig[..., None] > 0, sig_k / np.where(sig > 0, sig, 1.0)[..., None], 0.0)
+    return (absorbed[..., None] * frac).sum(axis=1)
+
+
+def layers_seen(weights, footprint: int) -> LayersSeen:
+    """`LayersSeen` of per-ray layer weights (h, n) (`layer_weights`) on a
+    footprint of ``footprint`` pixels: a pixel is tinted by its strongest
+    layer where that gives at least `TINT_WEIGHT` of its light."""
+    n = weights.shape[1]
+    if not len(weights):
+        return LayersSeen((), np.zeros(n), 0.0)
+    top = weights.argmax(axis=1)
+    tinted = weights.max(axis=1) >= TINT_WEIGHT
+    counts = np.bincount(top[tinted], minlength=n).astype(np.float64)
+    shares = counts / max(tinted.sum(), 1)
+    seen = tuple(int(k) for k in np.flatnonzero(shares >= SEEN_SHARE))
+    return LayersSeen(seen, shares, float(tinted.sum() / max(footprint, 1)))
 
 
 def scale_for_opacity(tau, hits, share: float, opacity: float) -> float:
@@ -275,3 +372,102 @@ def rendered_visibility(scene, extent, passes: int = 2, spp: int = 16, block: in
         params[key] = scale
         params.update()
     return visibility_score(planned, empty, footprint_mask(scene, extent), block)
+
+
+# ---- Colour layers: what a picture says ------------------------------------
+
+#: A pixel carries colour when its CIELAB chroma ``C* = |(a*, b*)|`` is at
+#: least this (the grey ground, tinted blue-grey by the sky, the white-grey
+#: sky near the horizon and a black background have less) ...
+MIN_CHROMA = 12.0
+#: ... and its lightness ``L*`` lies in this range (a black background and
+#: the palest sky lie outside).
+LIGHTNESS_RANGE = (5.0, 95.0)
+#: Two colour layers an eye tells apart at a glance differ in hue (the angle
+#: of (a*, b*)) by at least this many degrees: the half width of a layer.
+HUE_RADIUS = 15.0
+#: A colour layer holds at least this share of the pixels that carry colour.
+MIN_LAYER_SHARE = 0.03
+#: Bin width (degrees) of the hue histogram the layers are made from.
+HUE_BIN = 1.0
+
+
+def srgb_to_lab(rgb) -> np.ndarray:
+    """``(..., 3)`` CIELAB (D65 white) of sRGB-encoded colours: floats in [0,
+    1] or uint8 (the picture as displayed)."""
+    rgb = np.asarray(rgb)
+    c = rgb.astype(np.float64) / 255.0 if rgb.dtype == np.uint8 else np.clip(np.asarray(rgb, np.float64), 0, 1)
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    m = np.array([[0.4124564, 0.3575761, 0.1804375], [0.2126729, 0.7151522, 0.0721750],
+                  [0.0193339, 0.1191920, 0.9503041]])
+    xyz = lin @ m.T / np.array([0.95047, 1.0, 1.08883])
+    f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
+    return np.stack([116 * f[..., 1] - 16, 500 * (f[..., 0] - f[..., 1]), 200 * (f[..., 1] - f[..., 2])], axis=-1)
+
+
+@dataclass
+class ColourLayers:
+    """What a picture says: ``count`` colour layers an eye can tell apart,
+    their hues (degrees, the angle of (a*, b*)) and shares of the
+    ``coloured`` pixels (those that carry colour, of ``pixels`` looked
+    at), most populous first."""
+    count: int
+    hues: np.ndarray
+    shares: np.ndarray
+    coloured: int
+    pixels: int
+
+    def __str__(self):
+        return (f"{self.count} colour layer{'s' if self.count != 1 else ''} "
+                f"({100 * self.coloured / max(self.pixels, 1):.3g}% of the pixels carry colour)")
+
+
+def colour_layers(image, mask=None, *, radius: float = HUE_RADIUS, min_share: float = MIN_LAYER_SHARE,
+                  min_chroma: float = MIN_CHROMA, lightness=LIGHTNESS_RANGE) -> ColourLayers:
+    """The number of colour layers an eye can tell apart in ``image`` (H, W,
+    3+; sRGB uint8 or floats in [0, 1] as displayed: `mi_amr.images.srgb8`
+    of a rendered one; docs/design.md section 16).
+
+    The pixels that carry colour (within ``mask`` (H, W) bool when given;
+    CIELAB chroma at least ``min_chroma`` and lightness within
+    ``lightness``: the grey ground, the pale sky and a black background are
+    left out) are clustered by their chromaticity's direction in the (a*,
+    b*) plane, the hue: lightness is shading, and a lower chroma of the same
+    hue is the same layer seen through less of it. The most populous hue
+    seeds a layer that takes the hues within ``radius`` degrees, the most
+    populous hue left the next one, and so on; then every hue joins its
+    nearest seed. A colour layer is one holding at least ``min_share`` of
+    the coloured pixels."""
+    img = np.asarray(image)[..., :3]
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"colour_layers needs an (H, W, 3) image, got shape {np.shape(image)}")
+    lab = srgb_to_lab(img).reshape(-1, 3)
+    keep = np.ones(len(lab), bool) if mask is None else np.asarray(mask, bool).reshape(-1).copy()
+    if keep.size != len(lab):
+        raise ValueError(f"colour_layers: the mask's shape {np.shape(mask)} is not the image's {img.shape[:2]}")
+    pixels = int(keep.sum())
+    chroma = np.hypot(lab[:, 1], lab[:, 2])
+    keep &= (chroma >= min_chroma) & (lab[:, 0] >= lightness[0]) & (lab[:, 0] <= lightness[1])
+    n = int(keep.sum())
+    if not n:
+        return ColourLayers(0, np.zeros(0), np.zeros(0), 0, pixels)
+    hue = np.degrees(np.arctan2(lab[keep, 2], lab[keep, 1])) % 360.0
+    nbins = int(round(360.0 / HUE_BIN))
+    counts = np.bincount(np.minimum((hue / HUE_BIN).astype(np.int64), nbins - 1), minlength=nbins)
+    centre = (np.arange(nbins) + 0.5) * HUE_BIN
+
+    def apart(h, ref):                                   # circular distance in degrees
+        d = np.abs(h - ref) % 360.0
+        return np.minimum(d, 360.0 - d)
+    seeds = []
+    free = counts > 0
+    for i in np.argsort(-counts, kind="stable"):        # 360 bins: a short host loop
+        if free[i]:
+            seeds.append(i)
+            free &= apart(centre, centre[i]) > radius
+    seed_hue = centre[seeds]
+    nearest = np.argmin(apart(centre[:, None], seed_hue[None, :]), axis=1)
+    share = np.bincount(nearest, weights=counts, minlength=len(seeds)) / n
+    layer = share >= min_share
+    order = np.argsort(-share[layer], kind="stable")
+    return ColourLayers(int(layer.sum()), seed_hue[layer][order], share[layer][order], n, pixels)

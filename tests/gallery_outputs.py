@@ -12,6 +12,10 @@ output and returns what ``mi-amr render PATH --field FIELD`` takes:
   volume, filaments and haloes hold the mass. Refined around the haloes.
 * ``collapse`` (AMReX, code units): a collapsing core, density ~ r^-4,
   seven decades (2e-4 to 3e3), refined in the centre.
+* ``deep`` (AMReX, code units): a collapse eight levels deep, a 16^3 root
+  grid refined seven times around the centre (finest cells 2^-7 of the
+  root's), density 1 / (1 + (r / 10^-3)^2): nested shells over six
+  decades (1.5e-6 to 0.85).
 * ``waves`` (Athena++): a smooth field within one decade (1 to 10).
 * ``velocity`` (AMReX): a signed field (a velocity component), negative in
   half the volume, zero mean.
@@ -121,6 +125,23 @@ def collapse(directory):
     return path, "density"
 
 
+def deep(directory, levels: int = 8):
+    """An AMReX plotfile of a collapse ``levels`` levels deep: a 16^3 root
+    grid over the unit cube and, on each finer level, one 16^3 box at the
+    centre (see the module docstring)."""
+    def rho(x, y, z):
+        r = np.sqrt((x - 0.5) ** 2 + (y - 0.5) ** 2 + (z - 0.5) ** 2)
+        return 1.0 / (1.0 + (r / 1e-3) ** 2)
+    boxes = [[((0, 0, 0), rho(*_centres(16)))]]
+    for level in range(1, levels):
+        n = 16 * 2 ** level
+        start = (n // 2 - 8,) * 3
+        boxes.append([(start, rho(*_centres(n, start=start, shape=(16, 16, 16))))])
+    path = Path(directory) / "plt_deep"
+    write_amrex_plotfile(path, boxes, [0, 0, 0], [1, 1, 1])
+    return path, "density"
+
+
 def waves(directory):
     """An Athena++ output of smooth waves between 1 and 10 (16^3 root cells in
     8^3 mesh blocks, one block refined)."""
@@ -204,4 +225,4 @@ def core(directory):
 
 
 #: Every case, by name.
-CASES = {f.__name__: f for f in (cosmology, collapse, waves, velocity, sheet, embedded, core)}
+CASES = {f.__name__: f for f in (cosmology, collapse, deep, waves, velocity, sheet, embedded, core)}

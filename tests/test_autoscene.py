@@ -53,8 +53,10 @@ def test02_plan_reads_aspect_percentiles_and_scale(llvm):
     plan = plan_scene(cosmology_like())
     np.testing.assert_allclose(plan.extent, [1.0, 0.5, 0.25])
     assert plan.transform == "log10"
-    lo, hi = plan.tf_range
+    lo, hi = plan.value_range
     assert -31 < lo < -30 and -26 < hi < -25.4
+    # the default layers span the values the picture's pixels reach, within that range
+    assert lo <= plan.tf_range[0] < plan.tf_range[1] <= hi
     # the histogram percentiles against numpy's, weighted by cell volume
     cells = random_amr(1, 16, 3)
     w = np.exp2(3.0 * cells.level)
@@ -286,8 +288,9 @@ def test11_zeros_and_negatives_under_log10(llvm):
     bin_width = (lv.max() - lv.min()) / 4096
     expected = (lv[order][np.searchsorted(cdf, 0.01)],
                 max(lv[order][np.searchsorted(cdf, 0.999)], lv[order][np.searchsorted(mass_cdf, 0.999)]))
-    for want, got in zip(expected, plan.tf_range):
+    for want, got in zip(expected, plan.value_range):
         assert abs(got - want) <= 1.01 * bin_width + 1e-9
+    assert plan.value_range[0] <= plan.tf_range[0] < plan.tf_range[1] <= plan.value_range[1]
     scene = mi.load_dict(scene_for(plan, res=16, spp=4))
     med = mi_amr.amr_media(scene)[0]
     assert med.volume.meta["log_floor"] == pytest.approx(cells.value[pos].min())
@@ -336,7 +339,14 @@ def test13_density_scale_is_bounded(llvm, make, capped):
     from mi_amr.autoscene import MAX_DEPTH, TARGET_DEPTH
     from mi_amr.transfer.function import TransferFunction
     cells = make()
-    plan = plan_scene(cells)
+    layered = plan_scene(cells)                 # the default: layers, their scale planned by the layers' check
+    v = cells.value.astype(np.float64)
+    if layered.transform == "log10":
+        v = np.log10(np.maximum(v, v[v > 0].min()))
+    peak = TransferFunction.load(layered.tf, layered.tf_range).max_alpha(v.min(), v.max())[0]
+    assert layered.density_scale * peak <= MAX_DEPTH * (1 + 1e-6)
+    assert column_depths(layered, cells).max() <= MAX_DEPTH * (1 + 1e-6)
+    plan = plan_scene(cells, tf="spiky")        # a TF named: the mean-opacity rule
     tau = column_depths(plan, cells)
     assert tau.mean() == pytest.approx(plan.optical_depth, rel=1e-4, abs=1e-9)
     assert tau.mean() <= TARGET_DEPTH * (1 + 1e-6) and tau.max() <= MAX_DEPTH * (1 + 1e-6)

@@ -17,6 +17,8 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 
+from .layers import Layers, is_layers
+
 
 class TransferFunction(mi.Object):
     """An RGBA lookup table over a scalar value domain.
@@ -139,7 +141,13 @@ class TransferFunction(mi.Object):
         * ``blackbody``: for emission (the ``amr`` medium's ``emission``):
           matplotlib's ``inferno`` (black through red and orange to pale
           yellow, as a heated body), intensity ``alpha = u^2``.
+        * ``layers`` (or ``layers:n=8,width=0.2,colormap=plasma,low=0.02``):
+          narrow Gaussian layers coloured from a colormap, opacity rising
+          with the value (`mi_amr.transfer.layers.Layers`, yt's
+          ``add_layers``); the plan's default for data.
         """
+        if is_layers(name):
+            return cls(Layers.parse(name).rgba(n), domain)
         if name == "spiky":
             peaks = [(0.25, 0.55), (0.5, 0.8), (0.8, 1.0)]
             u = np.linspace(0, 1, n)
@@ -162,8 +170,8 @@ class TransferFunction(mi.Object):
             tf = cls.from_colormap("inferno", list(zip(u, u * u)), domain, n)
         else:
             raise ValueError(f"unknown transfer function preset {name!r} "
-                             f"(choose from {', '.join(PRESETS)}, a matplotlib colormap name, "
-                             "or a .json file)")
+                             f"(choose from {', '.join(PRESETS)} (layers:n=N,width=W,colormap=NAME,low=A), "
+                             "a matplotlib colormap name, or a .json file)")
         return tf
 
     # ---- Files -------------------------------------------------------------
@@ -186,7 +194,9 @@ class TransferFunction(mi.Object):
     @classmethod
     def read_json(cls, path, name: str | None = None) -> "TFFile":
         """A TF ``.json`` file with what it says about its range (`TFFile`):
-        ours, or a ParaView preset (``name`` picks one from a list)."""
+        ours (a table, or layers: ``{"layers": {"n": 8, ...}}`` with an
+        optional ``"domain"``), or a ParaView preset (``name`` picks one
+        from a list)."""
         path = Path(path)
         try:
             d = json.loads(path.read_text())
@@ -195,8 +205,15 @@ class TransferFunction(mi.Object):
         if isinstance(d, list) or (isinstance(d, dict) and "RGBPoints" in d):
             preset = _paraview_preset(d, path, name)
             return TFFile(cls._from_paraview_preset(preset, path), True, _keep_range(preset, path))
+        if isinstance(d, dict) and "layers" in d:
+            try:
+                layers = Layers.from_dict(d["layers"])
+                tf = cls(layers.rgba(256), d.get("domain", (0.0, 1.0)))
+            except (ValueError, TypeError) as e:
+                raise ValueError(f"{path}: {e}") from e
+            return TFFile(tf, False, _keep_range(d, path), layers, "domain" in d)
         if not isinstance(d, dict) or "domain" not in d or "rgba" not in d:
-            raise ValueError(f"{path}: expected an object with 'domain' and 'rgba'")
+            raise ValueError(f"{path}: expected an object with 'domain' and 'rgba' (or 'layers')")
         try:
             return TFFile(cls(d["rgba"], d["domain"]), False, _keep_range(d, path))
         except (ValueError, TypeError) as e:
@@ -282,6 +299,10 @@ class TransferFunction(mi.Object):
         spec = str(spec)
         if spec.endswith(".json"):
             f = cls.read_json(spec)
+            if f.layers is not None:          # layers span the range asked for, else the file's, else the data's
+                keep = (keep_range or f.keep_range or domain is None) and f.has_domain
+                target = f.tf.domain if keep else domain if domain is not None else data_range
+                return f.tf if target is None else f.tf.rescaled(target)
             target = domain if domain is not None else (data_range if f.paraview else None)
             return f.tf if target is None or keep_range or f.keep_range else f.tf.rescaled(target)
         domain = domain if domain is not None else (data_range if data_range is not None else (0.0, 1.0))
@@ -293,7 +314,7 @@ class TransferFunction(mi.Object):
         return cls.preset(spec, domain)
 
 
-PRESETS = ("spiky", "foggy", "ramp", "constant", "dust", "blackbody")
+PRESETS = ("layers", "spiky", "foggy", "ramp", "constant", "dust", "blackbody")
 
 
 @dataclass(frozen=True)
@@ -301,10 +322,13 @@ class TFFile:
     """A TF ``.json`` file as read: the table over the domain it stores,
     whether it is a ParaView preset (rescaled to the data's range unless
     told otherwise) and whether it asks to keep its own range
-    (``"keep_range": true``)."""
+    (``"keep_range": true``); for a file of layers, their parameters and
+    whether it stores a domain (else the table spans [0, 1])."""
     tf: TransferFunction
     paraview: bool
     keep_range: bool
+    layers: Layers | None = None
+    has_domain: bool = True
 
 
 def _paraview_preset(d, path, name: str | None) -> dict:
