@@ -188,7 +188,8 @@ def build_parser():
                        help="data: TF over the values themselves")
     r.add_argument("--range", type=_finite, nargs=2, metavar=("LO", "HI"),
                    help="data: TF domain (in log10 units with --log; default: 1st-99.9th volume percentiles)")
-    r.add_argument("--tf", help="data: TF preset (spiky, foggy, ramp, constant) or .json file (default spiky)")
+    r.add_argument("--tf", help="data: TF preset (layers, layers:n=N,width=W,colormap=NAME,low=A, spiky, foggy, ramp, "
+                   "constant) or .json file (default: layers, planned)")
     r.add_argument("--emission", metavar="TF",
                    help="data: make the gas glow: 'blackbody' is Planck's law at the emission field in kelvin "
                         "(docs/manual/glowing-gas.md), anything else an emission TF (a matplotlib colormap, a "

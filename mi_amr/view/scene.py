@@ -41,7 +41,7 @@ from ..transfer.classification import check_density_scale
 from ..transfer.function import TransferFunction
 from .camera import OrbitCamera, floor_height, world_up
 from .protocol import MAX_POINTS
-from .tf_spec import COLORMAPS, PRESET_POINTS, Histogram, TFSpec
+from .tf_spec import COLORMAPS, Histogram, TFSpec, preset_points
 
 #: Opacity samples the editor starts from for an XML scene's TF table of more
 #: than `MAX_POINTS` entries (the table itself is kept; see the module docstring).
@@ -328,7 +328,7 @@ def _load_data(mi, source, field, res: int, say, plan=None) -> LoadedScene:
     say(f"reading {source}" if plan is None else "planned already")
     plan = plan_scene(source, field) if plan is None else plan
     stored_log = plan.transform == "log10" or positive_share(plan.data) >= MIN_POSITIVE_SHARE
-    cmap, points = PRESET_POINTS.get(plan.tf, PRESET_POINTS["spiky"])
+    cmap, points = preset_points(plan.tf)
     spec = TFSpec(points, cmap, plan.transform == "log10", plan.tf_range, plan.density_scale)
     plan = replace(plan, transform="log10" if stored_log else "none")
     d = scene_for(plan, res=res, spp=1)

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..data.statistics import VIEW_HISTOGRAM_BINS, fine_histogram, stored_fine_histogram
 from ..transfer.function import TransferFunction
+from ..transfer.layers import Layers, is_layers
 from .protocol import TFChange, parse_message
 
 #: Entries of the tables the editor makes (fine enough for a linear display
@@ -32,29 +33,6 @@ from .protocol import TFChange, parse_message
 TABLE_SIZE = 1024
 #: Colormaps offered in the editor ("scene": the medium's own colours).
 COLORMAPS = ("plasma", "viridis", "magma", "inferno", "cividis", "turbo", "coolwarm", "gray")
-
-
-def spiky_points() -> list[tuple[float, float]]:
-    """The ``spiky`` preset's opacity as control points (three tents)."""
-    pts = [(0.0, 0.0)]
-    for c, a in ((0.25, 0.55), (0.5, 0.8), (0.8, 1.0)):
-        pts += [(c - 0.025, 0.0), (c, a), (c + 0.025, 0.0)]
-    return pts + [(1.0, 0.0)]
-
-
-#: The editor's presets: a colormap and opacity points (the first three
-#: are `TransferFunction.preset`'s, what the autoscene plan names).
-PRESET_POINTS = {
-    "spiky": ("plasma", spiky_points()),
-    "foggy": ("viridis", [(0.0, 0.0), (0.15, 0.02), (0.5, 0.08), (1.0, 0.15)]),
-    "ramp": ("viridis", [(0.0, 0.0), (1.0, 1.0)]),
-    "ramp down": ("magma", [(0.0, 1.0), (1.0, 0.0)]),
-    "tent": ("coolwarm", [(0.0, 0.0), (0.5, 0.8), (1.0, 0.0)]),
-    "step": ("inferno", [(0.0, 0.0), (0.5, 0.0), (0.52, 0.7), (1.0, 0.7)]),
-    "gray ramp": ("gray", [(0.0, 0.0), (1.0, 0.6)]),
-}
-#: Opacity samples the editor takes from a loaded table of more entries.
-LOADED_POINTS = 65
 
 
 def hex_rgb(colours) -> np.ndarray:
@@ -66,6 +44,61 @@ def rgb_hex(rgb) -> list[str]:
     """(n, 3) floats in [0, 1] -> ``"#rrggbb"`` strings."""
     q = np.rint(255 * np.clip(np.asarray(rgb, np.float64).reshape(-1, 3), 0, 1)).astype(int)
     return ["#%02x%02x%02x" % tuple(c) for c in q]
+
+
+def spiky_points() -> list[tuple[float, float]]:
+    """The ``spiky`` preset's opacity as control points (three tents)."""
+    pts = [(0.0, 0.0)]
+    for c, a in ((0.25, 0.55), (0.5, 0.8), (0.8, 1.0)):
+        pts += [(c - 0.025, 0.0), (c, a), (c + 0.025, 0.0)]
+    return pts + [(1.0, 0.0)]
+
+
+def layer_points(layers: Layers | str = "layers") -> list:
+    """A layered TF (`mi_amr.transfer.layers.Layers`, or its name) as the
+    editor's points: per layer a peak at its centre, its shoulders one
+    standard deviation off (``exp(-1/2)`` of the peak) and its feet at
+    zero 2.5 deviations off (the last layer holds its peak up to u = 1),
+    each point in its layer's colour; what the editor's "add layers"
+    builds over the range shown (tf_editor.js ``layerPoints``)."""
+    layers = Layers.parse(layers) if isinstance(layers, str) else layers
+    sigma = layers.width / layers.n
+    foot = min(2.5 * sigma, 0.5 / layers.n - 1e-4)
+    shoulder = min(sigma, 0.8 * foot)
+    pts = [(0.0, 0.0)]
+    for k, (c, a, colour) in enumerate(zip(layers.centres(), layers.opacities(), rgb_hex(layers.colours()))):
+        last = k == layers.n - 1
+        side = [(c - foot, 0.0), (c - shoulder, a * float(np.exp(-0.5 * (shoulder / sigma) ** 2))), (c, a)]
+        side += [(1.0, a)] if last else [(c + shoulder, side[1][1]), (c + foot, 0.0)]
+        pts += [(float(u), float(v), colour) for u, v in side]
+    if pts[-1][0] < 1.0:
+        pts.append((1.0, 0.0))
+    return pts
+
+
+def preset_points(name: str) -> tuple[str, list]:
+    """``(colormap, points)`` of a TF the plan names: a layered one's
+    (`layer_points`), else `PRESET_POINTS`' (``spiky``'s for others)."""
+    if is_layers(name):
+        layers = Layers.parse(name)
+        return layers.colormap if layers.colormap in COLORMAPS else "viridis", layer_points(layers)
+    return PRESET_POINTS.get(name, PRESET_POINTS["spiky"])
+
+
+#: The editor's presets: a colormap and opacity points (the first four
+#: are `TransferFunction.preset`'s, what the autoscene plan names).
+PRESET_POINTS = {
+    "layers": ("viridis", layer_points()),
+    "spiky": ("plasma", spiky_points()),
+    "foggy": ("viridis", [(0.0, 0.0), (0.15, 0.02), (0.5, 0.08), (1.0, 0.15)]),
+    "ramp": ("viridis", [(0.0, 0.0), (1.0, 1.0)]),
+    "ramp down": ("magma", [(0.0, 1.0), (1.0, 0.0)]),
+    "tent": ("coolwarm", [(0.0, 0.0), (0.5, 0.8), (1.0, 0.0)]),
+    "step": ("inferno", [(0.0, 0.0), (0.5, 0.0), (0.52, 0.7), (1.0, 0.7)]),
+    "gray ramp": ("gray", [(0.0, 0.0), (1.0, 0.6)]),
+}
+#: Opacity samples the editor takes from a loaded table of more entries.
+LOADED_POINTS = 65
 
 
 def point_colours(points, u, base) -> np.ndarray:

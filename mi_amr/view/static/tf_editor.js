@@ -36,6 +36,22 @@ export function colourAt(points, stops, u) {
   return cp.map((v, k) => v + t * (cq[k] - v));
 }
 
+// N layers over u in [0, 1] as opacity points (tf_spec.layer_points): per layer
+// a peak at (k + 1/2) / n, shoulders one deviation (width / n) off, feet at 0
+// 2.5 deviations off, opacity low^(1 - k / (n - 1)) rising to 1 (the last layer
+// holds it up to u = 1), each point in its layer's colour from the colormap.
+export function layerPoints(n, stops, width = 0.18, low = 0.02) {
+  const sigma = width / n, foot = Math.min(2.5 * sigma, 0.5 / n - 1e-4), shoulder = Math.min(sigma, 0.8 * foot);
+  const pts = [[0, 0]];
+  for (let k = 0; k < n; k++) {
+    const c = (k + 0.5) / n, t = n > 1 ? k / (n - 1) : 1, a = Math.pow(low, 1 - t), colour = rgbHex(stopColour(stops, t));
+    const s = a * Math.exp(-0.5 * (shoulder / sigma) ** 2);
+    pts.push([c - foot, 0, colour], [c - shoulder, s, colour], [c, a, colour]);
+    if (k === n - 1) pts.push([1, a, colour]); else pts.push([c + shoulder, s, colour], [c + foot, 0, colour]);
+  }
+  return pts;
+}
+
 // About n round ticks over [lo, hi].
 function niceTicks(lo, hi, n) {
   const raw = (hi - lo) / n, mag = Math.pow(10, Math.floor(Math.log10(raw))), f = raw / mag;
@@ -202,6 +218,13 @@ export function createTfEditor({ send, changed, message, $ = (id) => document.ge
     if ([...$("colormap").options].some((o) => o.value === p.colormap)) tf.colormap = p.colormap;
     tf.points = p.points.map((q) => q.slice(0, 2));
     selectPoint(-1); sync(); editor.pending = true;
+  });
+  $("add-layers").addEventListener("click", () => {
+    const n = Math.round(+$("layers-n").value);
+    if (!tf || !(n >= 1 && n <= 32)) { message("layers: a whole number from 1 to 32"); return; }
+    message("");
+    tf.points = layerPoints(n, stops[tf.colormap] || stops.viridis || ["#000000", "#ffffff"]);
+    selectPoint(-1); edited();
   });
   $("colormap").addEventListener("change", () => { tf.colormap = $("colormap").value; selectPoint(selected); edited(); });
   $("density").addEventListener("input", () => {
