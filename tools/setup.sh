@@ -1,7 +1,8 @@
 #!/bin/sh
 # Idempotent set-up: libLLVM 19 for Dr.Jit's LLVM backend, Debian's chromium for
-# the browser tests of mi-amr view, the .venv with mi-amr installed (editable,
-# with test extras). Safe to run every time.
+# the browser tests of mi-amr view, Debian's nodejs for the notebook page's module
+# check, the .venv with mi-amr installed (editable, with test extras). Safe to run
+# every time.
 set -e
 cd "$(dirname "$0")/.."
 if ! tools/find-llvm19 >/dev/null; then
@@ -15,6 +16,12 @@ if ! command -v chromium >/dev/null 2>&1; then
     SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
     $SUDO apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null
+fi
+if ! command -v node >/dev/null 2>&1; then
+    echo "== installing nodejs (tests/test_widget.py checks that node parses the notebook page's module)"
+    SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq nodejs >/dev/null
 fi
 PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
