@@ -12,7 +12,7 @@ from mi_amr.bench import modes as modes_bench
 from mi_amr.bench.__main__ import main
 from mi_amr.bench.harness import bench_scene
 from mi_amr.bench.protocol import all_configs
-from mi_amr.plugins.integrator import MODES
+from mi_amr.bench.modes import MODES
 
 
 def test01_bench_writes_results_tables_and_curves(llvm, tmp_path):

@@ -211,8 +211,10 @@ def test01_the_parsers_name_every_axis_and_refuse_in_one_line(matrix, cells):
     choices."""
     for axis in AXES:
         assert len(matrix.medium.get(axis, ())) >= 2, (axis, matrix.medium)
-    for plugin in ("amrvolpath", "amrprbvolpath"):
-        assert set(matrix.integrator[plugin]["mode"]) == set(amrvolpath_module.MODES)
+    assert set(matrix.integrator["amrvolpath"]["mode"]) == set(amrvolpath_module.MODES)
+    from mi_amr.plugins.prb_integrator import REPLAYED_MODES
+    assert set(matrix.integrator["amrprbvolpath"]["mode"]) == set(REPLAYED_MODES) == set(amrvolpath_module.MODES) - {
+        "ray_march"}
     from mi_amr.building import SAMPLINGS, TRAVERSALS
     assert set(matrix.medium["traversal"]) == set(TRAVERSALS)
     assert set(matrix.medium["sampling"]) == set(SAMPLINGS)

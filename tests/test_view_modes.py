@@ -81,7 +81,7 @@ def test01_an_integrator_per_mode_and_the_mode_message(llvm):
     msg = p.ModeChange("emission_absorption")
     assert p.parse(p.dumps(msg)) == msg and p.to_json(msg) == {"type": "mode", "mode": "emission_absorption"}
     for bad in ({"type": "mode", "mode": "ambient"}, {"type": "mode"}, {"type": "mode", "mode": 3}):
-        with pytest.raises(p.ProtocolError, match="mode: one of emission_absorption, single, multi"):
+        with pytest.raises(p.ProtocolError, match="mode: one of ray_march, emission_absorption, single, multi"):
             p.parse(json.dumps(bad))
     with pytest.raises(ValueError, match="mode must be one of"):
         ViewEngine("x.cells", mode="ambient")

@@ -32,8 +32,8 @@ from ..structures.brick_lists import BrickLists
 from ..structures.bricks import Bricks
 from ..structures.cost_model import REFINEMENTS, GridPlan, auto_grid, thinning_candidate
 from ..structures.kdtree_sah import build_sah_kdtree
-from ..structures.macrocell_grid import MacrocellGrid, axis_resolution, default_resolution
-from ..structures.region_tree import brick_region_tree, exact_value_ranges
+from ..structures.macrocell_grid import MacrocellGrid, axis_resolution, default_resolution, finest_levels_in_boxes
+from ..structures.region_tree import brick_region_tree, exact_value_ranges, finest_levels
 
 
 @dataclass(frozen=True)
@@ -145,11 +145,13 @@ def _region_tree(over_domains: bool, name: str):
                                      what=f"amr: the {name} structure of {s.volume.source} ({len(s.volume)} cells)",
                                      method=method)
             # the tree is over the supports of the method unless it is the bounds tree of a wider method
-            vmin, vmax = exact_value_ranges(tree, bricks, method, own_lists=over_domains or not s.support_beyond_cell)
-            return tree, vmin, vmax
+            own = over_domains or not s.support_beyond_cell
+            vmin, vmax = exact_value_ranges(tree, bricks, method, own_lists=own)
+            return tree, vmin, vmax, finest_levels(tree, bricks, method, own_lists=own)
 
-        tree, vmin, vmax = s.cache.get(s.volume, (name, s.options.brick_size, method.name), make_host)
-        return DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), vmin, vmax)
+        tree, vmin, vmax, levels = s.cache.get(s.volume, (name, s.options.brick_size, method.name, "levels"),
+                                               make_host)
+        return DeviceTree(tree, 2 * lo, 0.5 / (hi - lo), vmin, vmax, finest_level=levels)
     return build
 
 
@@ -168,7 +170,8 @@ def build_kdtree(s) -> DeviceTree:
     vmin = g.vmin.reshape(shape).transpose(2, 1, 0)
     vmax = g.vmax.reshape(shape).transpose(2, 1, 0)
     tree, lmin, lmax = build_sah_kdtree(maj, vmin, vmax, o.kdtree_leaves)
-    return DeviceTree(tree, np.zeros(3), 1.0 / r, lmin, lmax)
+    bits = g.level_bits.reshape(shape).transpose(2, 1, 0)
+    return DeviceTree(tree, np.zeros(3), 1.0 / r, lmin, lmax, finest_level=finest_levels_in_boxes(bits, tree))
 
 
 def build_hash(s) -> DeviceReconstruction:

@@ -144,9 +144,10 @@ class Structures:
         return store[name]
 
     # ---- Views used by the tracking kernels --------------------------------
-    def segments(self):
-        """The segment walker of the chosen traversal."""
-        return self.traversal.walker(self._built(self.traversal.structure(self)))
+    def segments(self, levels: bool = False):
+        """The segment walker of the chosen traversal; with ``levels``, one
+        that reports each segment's finest level (`Segment.level`)."""
+        return self.traversal.walker(self._built(self.traversal.structure(self)), levels)
 
     def thinning(self):
         """``thin(u, active) -> mu_f``: the finer majorant at local points

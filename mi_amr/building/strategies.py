@@ -25,8 +25,9 @@ from ..device.segments import GridSegments, TreeSegments, TwoLevelGridSegments
 @dataclass(frozen=True)
 class Traversal:
     """``structure(s)``: the name of the component whose leaves are the
-    segments (for `mi_amr.building.pipeline.Structures` ``s``); ``walker(device)``:
-    the segment walker over its device struct."""
+    segments (for `mi_amr.building.pipeline.Structures` ``s``); ``walker(device,
+    levels)``: the segment walker over its device struct (``levels``: it
+    reports each segment's finest level)."""
     structure: Callable
     walker: Callable
 
@@ -46,8 +47,8 @@ class Sampling:
         return tuple(c(s) if callable(c) else c for c in self.needs_)
 
 
-def _grid_walker(grid):
-    return TwoLevelGridSegments(grid) if isinstance(grid, DeviceTwoLevelGrid) else GridSegments(grid)
+def _grid_walker(grid, levels=False):
+    return (TwoLevelGridSegments if isinstance(grid, DeviceTwoLevelGrid) else GridSegments)(grid, levels)
 
 
 def _abr_tree(s) -> str:

@@ -161,7 +161,7 @@ assert MAX_SKIP_EDGE.bit_length() - 1 < 1 << SKIP_BITS
 
 
 @jit_struct(res="Vector3i", coarse_res="Vector3i", fine=DeviceMacrocellGrid, coarse_mu="Float",
-            coarse_min="Float", coarse_skip="UInt32", fine_inside="Bool", n_fine="Float", keep_step="Float",
+            coarse_min="Float", coarse_skip="UInt32", coarse_level="UInt32", fine_inside="Bool", n_fine="Float", keep_step="Float",
             refine_step="Float", world_scale="Float")
 class DeviceTwoLevelGrid:
     """A two-level macrocell grid in Dr.Jit (docs/design.md section 4).
@@ -179,7 +179,8 @@ class DeviceTwoLevelGrid:
     ``coarse_skip``: per coarse macrocell and octant of ray directions, the
     edge of an empty cube of coarse macrocells that stretches from it along
     the octant (`_skip_cubes`), so that a ray may cross that whole cube in
-    one step (empty-space skipping).
+    one step (empty-space skipping). ``coarse_level``: the finest level
+    that reaches each coarse macrocell (`Segment.level` of a coarse step).
     """
 
     def __init__(self, grid, refinement: int, world_scale: float, step_costs):
@@ -204,12 +205,14 @@ class DeviceTwoLevelGrid:
         self.fine.host = grid
         self.fine_inside = mi.Bool(inside > 0)
         self.n_fine = dr.block_sum(mi.Float(inside), f ** 3)
+        self.coarse_level = dr.block_reduce(dr.ReduceOp.Min, dr.minimum(dr.tzcnt(self.fine.level_bits), 31),
+                                            f ** 3)
         self.coarse_mu = dr.zeros(mi.Float, self.n_coarse)
         self.coarse_min = dr.zeros(mi.Float, self.n_coarse)
         self.coarse_skip = dr.zeros(mi.UInt32, self.n_coarse)
         self.keep_step, self.refine_step = mi.Float(step_costs[0]), mi.Float(step_costs[1])
         self.world_scale = mi.Float(world_scale)
-        dr.make_opaque(self.res, self.coarse_res, self.fine_inside, self.n_fine, self.keep_step,
+        dr.make_opaque(self.res, self.coarse_res, self.fine_inside, self.n_fine, self.coarse_level, self.keep_step,
                        self.refine_step, self.world_scale)
 
     def blocked(self, a, fill):

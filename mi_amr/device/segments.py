@@ -12,6 +12,12 @@ unit cube). A *segment iterator* has two methods used inside symbolic loops:
   next segment along ``o + t d`` after the previous one; its ``valid`` is
   false once the ray has left ``[t_lo, t_hi]``.
 
+A walker made with ``levels=True`` also reports the finest level under
+each segment (``Segment.level``: the finest level whose cells' supports
+reach the leaf, from the leaf's level mask or its own record; the step of
+the ray marcher, docs/design.md section 14); without it ``level`` is 0 and
+costs no gather.
+
 `GridSegments` walks the macrocell grid with a 3D DDA (Amanatides-Woo);
 `TwoLevelGridSegments` walks a two-level grid by locating the macrocell at
 the current point (the fine one where its coarse one is refined, the cube
@@ -31,21 +37,35 @@ from ..core.jit_struct import jit_struct
 from .tree import DeviceTree
 
 
-@jit_struct(t0="Float", t1="Float", mu="Float", mu_min="Float", valid="Bool")
+#: `Segment.level` of a leaf that no cell reaches (its majorant is 0 too).
+NO_LEVEL = 31
+
+
+@jit_struct(t0="Float", t1="Float", mu="Float", mu_min="Float", valid="Bool", level="UInt32")
 class Segment:
     """One piece ``[t0, t1]`` (local ray parameter) of a ray with majorant
     ``mu`` and minorant ``mu_min`` (inverse world units); ``valid`` is false
-    past the ray's end."""
+    past the ray's end; ``level``: the finest level under it (walkers made
+    with ``levels=True``; 0 otherwise)."""
 
-    def __init__(self, t0=None, t1=None, mu=None, mu_min=None, valid=None):
+    def __init__(self, t0=None, t1=None, mu=None, mu_min=None, valid=None, level=None):
         self.t0, self.t1, self.mu, self.mu_min, self.valid = t0, t1, mu, mu_min, valid
+        self.level = mi.UInt32(0) if level is None else level
+
+
+def finest_level(level_bits):
+    """The finest level set in per-leaf level masks (bit L: a level-L cell
+    reaches the leaf); `NO_LEVEL` where none is set."""
+    return dr.minimum(dr.tzcnt(level_bits), NO_LEVEL)
 
 
 class GridSegments:
     """Front-to-back macrocells of a `DeviceMacrocellGrid`."""
 
-    def __init__(self, grid):
+    def __init__(self, grid, levels: bool = False):
         self.grid = grid
+        #: report each segment's finest level (`Segment.level`)
+        self.levels = levels
 
     def leaf_bounds(self):
         """``(minorant, majorant, volume)`` per leaf on the host (numpy):
@@ -90,7 +110,8 @@ class GridSegments:
                              dr.select(mv & ax_y, t_next.y + dt.y, t_next.y),
                              dr.select(mv & ax_z, t_next.z + dt.z, t_next.z))
         t_cell = dr.select(mv, t1, t_cell)
-        return (cell, t_next, t_cell), Segment(t0, t1, mu, mu_min, valid)
+        level = finest_level(dr.gather(mi.UInt32, g.level_bits, flat, valid)) if self.levels else None
+        return (cell, t_next, t_cell), Segment(t0, t1, mu, mu_min, valid, level)
 
 
 def direction_guard(d):
@@ -157,14 +178,20 @@ class TwoLevelGridSegments(GridSegments):
         t1 = dr.minimum(t_exit, t_hi)
         t0 = t_cell
         t_cell = dr.select(valid, t1, t_cell)
-        return (t_cell,), Segment(t0, t1, dr.select(refined, mu_f, mu_c), mu_min, valid)
+        level = None
+        if self.levels:
+            level = dr.select(refined, finest_level(dr.gather(mi.UInt32, g.fine.level_bits, fflat, refined)),
+                              dr.gather(mi.UInt32, g.coarse_level, mi.UInt32(cflat), valid & ~refined))
+        return (t_cell,), Segment(t0, t1, dr.select(refined, mu_f, mu_c), mu_min, valid, level)
 
 
 class TreeSegments:
     """Front-to-back leaves of a `DeviceTree` (kd-restart)."""
 
-    def __init__(self, tree: DeviceTree):
+    def __init__(self, tree: DeviceTree, levels: bool = False):
         self.tree = tree
+        #: report each segment's finest level (`Segment.level`)
+        self.levels = levels
 
     def leaf_bounds(self):
         """``(minorant, majorant, volume)`` per leaf on the host (numpy;
@@ -197,4 +224,5 @@ class TreeSegments:
         mu_min = dr.gather(mi.Float, tree.minorant, leaf, valid)
         t0 = t_cell
         t_cell = dr.select(valid, t1, t_cell)
-        return (t_cell,), Segment(t0, t1, mu, mu_min, valid)
+        level = dr.gather(mi.UInt32, tree.finest_level, leaf, valid) if self.levels else None
+        return (t_cell,), Segment(t0, t1, mu, mu_min, valid, level)

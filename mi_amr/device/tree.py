@@ -12,15 +12,18 @@ from ..core.jit_struct import jit_struct
 
 @jit_struct(axis="UInt32", split="Float", child="UInt32", leaf_lo="Vector3f", leaf_hi="Vector3f",
             vmin="Float", vmax="Float", list_offset="UInt32", list_count="UInt32", items="UInt32",
-            depth="UInt32", majorant="Float", minorant="Float")
+            depth="UInt32", majorant="Float", minorant="Float", finest_level="UInt32")
 class DeviceTree:
     """A `RegionTree` (or SAH kd-tree) in Dr.Jit, in local coordinates.
 
     ``to_local(x) = (x - lo) * scale`` maps the tree's host units to the unit
-    cube. Leaves carry value ranges (``vmin``/``vmax``), majorants and minorants.
+    cube. Leaves carry value ranges (``vmin``/``vmax``), majorants and
+    minorants, and the finest level whose cells reach them
+    (``finest_level``: the ray marcher's step, docs/design.md section 14;
+    0, the finest possible, where the builder gave none).
     """
 
-    def __init__(self, tree, lo, scale, vmin, vmax, majorant=None):
+    def __init__(self, tree, lo, scale, vmin, vmax, majorant=None, finest_level=None):
         lo = np.asarray(lo, dtype=np.float64)
         scale = np.asarray(scale, dtype=np.float64)
         self.host = tree
@@ -44,9 +47,11 @@ class DeviceTree:
         self.majorant = mi.Float(np.zeros(tree.n_leaves, np.float32) if majorant is None
                                  else np.asarray(majorant, dtype=np.float32))
         self.minorant = dr.zeros(mi.Float, tree.n_leaves)
+        self.finest_level = mi.UInt32(np.zeros(tree.n_leaves, np.uint32) if finest_level is None
+                                      else np.asarray(finest_level, dtype=np.uint32))
         dr.make_opaque(self.axis, self.split, self.child, self.leaf_lo, self.leaf_hi,
                        self.vmin, self.vmax, self.list_offset, self.list_count, self.items,
-                       self.depth, self.majorant, self.minorant)
+                       self.depth, self.majorant, self.minorant, self.finest_level)
 
     @property
     def n_leaves(self) -> int:

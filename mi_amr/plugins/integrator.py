@@ -47,7 +47,12 @@ COUNTER_NAMES = ("lookups", "null", "real", "steps", "capped",
 #: The parameters ``amrvolpath`` accepts (docs/manual/integrator.md's table and the
 #: docstring's are tested against this set: tests/test_docs.py).
 KNOWN = {"max_depth", "rr_depth", "hide_emitters", "counters",
-         "residual_ratio_tracking", "decomposition_tracking", "mode", "brightness"}
+         "residual_ratio_tracking", "decomposition_tracking", "mode", "brightness", "step_scale", "shading"}
+#: The ray marcher's shadings (``shading``): the TF colour as it is, or
+#: Blinn-Phong on the reconstruction's gradient (docs/design.md section 14).
+SHADINGS = ("flat", "gradient")
+#: The ray marcher's default step, in finest cells under each segment.
+DEFAULT_STEP_SCALE = 0.5
 #: The lighting modes (``mode``; docs/design.md section 6d), the default last:
 #: what a real collision in a medium does.
 MODES = tuple(LIGHTING_MODES)
@@ -142,10 +147,30 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
          the collision, a ray that leaves the media sees the emitters and
          the background as usual, and surfaces are lit as in ``multi``.
          Default: ``multi``.
+         ``ray_march``: the sci-vis ray marcher (ExaBricks' renderer): each
+         amr medium is marched front to back in steps of ``step_scale``
+         times the finest cell under each traversal leaf (empty leaves
+         skipped; with ``nearest`` reconstruction the steps end on cell
+         faces and the integral is exact), compositing the TF colour times
+         ``brightness`` with each step's exact absorption: the integral
+         ``emission_absorption`` estimates, without its noise; the ray then
+         goes on with the medium's transmittance.
      * - brightness
        - |float|
        - The constant that multiplies the TF colour of ``emission_absorption``
-         (>= 0; other modes ignore it). Default: 1.
+         and ``ray_march`` (>= 0; other modes ignore it). Default: 1.
+     * - step_scale
+       - |float|
+       - ``ray_march``: the step, in cells of the finest level under each
+         traversal leaf (> 0; smaller is more accurate and slower; one
+         jittered offset per ray). Default: 0.5.
+     * - shading
+       - |string|
+       - ``ray_march``: ``flat`` (the TF colour) or ``gradient`` (the
+         sci-vis style: Blinn-Phong with the normalised gradient of the
+         reconstruction, lit by the scene's first directional or point
+         light, or a headlight when it has none; no shadow rays).
+         Default: ``flat``.
     """
 
     def __init__(self, props: mi.Properties):
@@ -159,8 +184,9 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         self.decomposition = get_bool(props, "amrvolpath", "decomposition_tracking", None)
         self._counter_array = dr.zeros(mi.UInt64, len(COUNTER_NAMES))
 
-    def _parse_path_options(self, props, plugin: str):
-        """``max_depth``, ``rr_depth``, ``hide_emitters`` and ``mode``."""
+    def _parse_path_options(self, props, plugin: str, modes: tuple = MODES):
+        """``max_depth``, ``rr_depth``, ``hide_emitters``, ``mode`` (one of
+        ``modes``) and the ray marcher's ``step_scale`` and ``shading``."""
         md = get_int(props, plugin, "max_depth", -1)
         if md < -1:
             raise ParameterError(f"{plugin}: max_depth must be -1 (infinite) or >= 0, got {md}")
@@ -168,9 +194,14 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         self.rr_depth = get_int(props, plugin, "rr_depth", 5, minimum=1)
         self.hide_emitters = get_bool(props, plugin, "hide_emitters", False)
         # a Python constant: it shapes the kernel (docs/design.md section 6d)
-        self.mode = get_string(props, plugin, "mode", "multi", choices=MODES)
-        # opaque: another brightness compiles nothing
+        self.mode = get_string(props, plugin, "mode", "multi", choices=modes)
+        # opaque: another brightness or step compiles nothing
         self.brightness = dr.opaque(mi.Float, get_float(props, plugin, "brightness", 1.0, minimum=0.0))
+        step = get_float(props, plugin, "step_scale", DEFAULT_STEP_SCALE)
+        if not step > 0.0:
+            raise ParameterError(f"{plugin}: step_scale must be > 0, got {step}")
+        self.step_scale = dr.opaque(mi.Float, step)
+        self.shading = get_string(props, plugin, "shading", "flat", choices=SHADINGS)
 
     # ---- Counters ------------------------------------------------------------
     def reset_counters(self):
@@ -306,8 +337,20 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             act_null = mi.Bool(False)
             mei = dr.zeros(mi.MediumInteraction3f)
 
+            # ---- amr media: the ray marcher's steps (docs/design.md section 14) ----
+            if dr.hint(lighting.marches, mode="scalar"):
+                light = self._march_light(scene, ray)
+                for k in range(len(amr_media)):
+                    is_k = active_medium & (medium == amr_ptrs[k])
+                    marched = amr_media[k].march(ray, si.t, rng, is_k, self.step_scale, self.brightness, light,
+                                                 self.counters_enabled)
+                    if dr.hint(self.counters_enabled, mode="scalar"):
+                        counts = counts + marched.counts
+                    L = accumulate(L, is_k, throughput * marched.L, adjoint)
+                    throughput[is_k] *= marched.T
+
             # ---- amr media: delta tracking through local majorants ----
-            for k in range(len(amr_media)):
+            for k in range(len(amr_media) if not lighting.marches else 0):
                 is_k = active_medium & (medium == amr_ptrs[k])
                 control = self._uses_minorants(self.decomposition, amr_media[k])
                 replay = None
@@ -452,6 +495,26 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
 
         self._count(counts, shadow_counts)
         return L, valid_ray, dL
+
+    def _march_light(self, scene, ray):
+        """The light of ``shading="gradient"``: ``light(p, active) -> unit
+        direction towards it`` from world points, for the scene's first
+        directional or point emitter (its delta sample), else a headlight
+        along ``-ray.d``; None for flat shading."""
+        if self.shading != "gradient":
+            return None
+        delta = mi.EmitterFlags.DeltaDirection | mi.EmitterFlags.DeltaPosition
+        emitter = next((e for e in scene.emitters() if mi.has_flag(e.flags(), delta)), None)
+        if emitter is None:
+            head = -dr.normalize(ray.d)
+            return lambda p, active: head
+
+        def light(p, active):
+            it = dr.zeros(mi.Interaction3f)
+            it.p = p
+            ds, _ = emitter.sample_direction(it, mi.Point2f(0.5), active)
+            return ds.d
+        return light
 
     @staticmethod
     def _medium_interaction(ray, flight, ptr):

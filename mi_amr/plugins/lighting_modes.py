@@ -13,7 +13,12 @@ consumer of that one walk's events (docs/design.md section 6d):
   the phase function alone (no phase sampling follows, so no MIS weight),
   then stop;
 * `MultipleScattering`: volpath's estimator (NEE with MIS, then phase
-  sampling on).
+  sampling on);
+* `RayMarch`: no free flight at all: the ray marches through each amr
+  medium (`AMRMedium.march`, deterministic steps of the one walk,
+  docs/design.md section 14), collects its self-lit colour and leaves it
+  with the transmittance as the throughput's factor; the same integral as
+  `EmissionAbsorption` without its noise.
 
 Each mode is a Python object of the kernel's shape (the mode is a Python
 constant of the kernel): its methods add Dr.Jit operations at fixed places
@@ -39,6 +44,8 @@ class MultipleScattering:
 
     #: whether the path goes on from a medium collision after its light sample
     continues = True
+    #: whether amr media are ray-marched rather than tracked (`RayMarch`)
+    marches = False
 
     def collided(self, L, act_scatter, throughput, brightness, adjoint):
         """``(L, act_scatter)`` after the walk's real collisions
@@ -69,6 +76,14 @@ class EmissionAbsorption(MultipleScattering):
         return L, act_scatter & False
 
 
+class RayMarch(EmissionAbsorption):
+    """The sci-vis ray marcher: amr media are marched, never collided in
+    (no collision reaches `collided`); the ray goes on through them with
+    their transmittance."""
+
+    marches = True
+
+
 #: The modes by name (``mode``), the default last.
-LIGHTING_MODES = {"emission_absorption": EmissionAbsorption(), "single": SingleScattering(),
-                  "multi": MultipleScattering()}
+LIGHTING_MODES = {"ray_march": RayMarch(), "emission_absorption": EmissionAbsorption(),
+                  "single": SingleScattering(), "multi": MultipleScattering()}

@@ -16,6 +16,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..device.grid import DeviceTwoLevelGrid
+from ..device.marching import GradientShading, Marched, RayMarch
 from ..device.ray import clip_to_half_space, flush_tiny, intersect_unit_cube, safe_rcp
 from ..device.tracking import (GRADIENT_FLOOR, GRADIENT_MARGIN, DecompositionTracking, DeltaTracking,
                                FreeFlight, LocalRay, MajorantMargin, RatioTracking, Replay, ResidualRatioTracking,
@@ -387,8 +388,9 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
 
         # ---- Dr.Jit state (direct attributes and structs: dr.freeze sees them) ----
         self._to_local = mi.Transform4f(options.to_world.inverse())
+        self._to_world = mi.Transform4f(options.to_world)
         self._max_iterations = mi.UInt32(options.max_iterations)
-        dr.make_opaque(self._to_local, self._max_iterations)
+        dr.make_opaque(self._to_local, self._to_world, self._max_iterations)
         self.set_clip_plane(*(options.clip or (None,)))
         # the one owner of the TF and the density scale: every change goes
         # through it and then reclassifies the structures
@@ -638,6 +640,44 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
             self.value_local, sampler, count=count, replay=replay, margin=margin, thin=self._thinning(replay, margin))
         return self._track(ray, t_max, active, tracking)
 
+    def march(self, ray: mi.Ray3f, t_max, sampler, active, step_scale, brightness, light=None,
+              count: bool = True) -> Marched:
+        """The sci-vis ray march along ``ray`` up to ``t_max`` through the
+        traversal's segments (docs/design.md section 14; `RayMarch`): a
+        `Marched` with the radiance collected and the transmittance past
+        it. ``step_scale``: steps in finest cells under each segment
+        (``tent``; ``nearest`` walks cell faces exactly); ``brightness``:
+        the TF colour's factor; ``light(p, active) -> unit direction towards
+        the light`` at world points: shade each sample with Blinn-Phong on
+        the reconstruction's gradient (`GradientShading`), or None: the TF
+        colour as it is. ``sampler`` seeds the jitter and the roulette."""
+        carries = self._carried is not None
+        wavelengths = ray.wavelengths
+        lookup = self.point_query if carries else self.value_local
+        s = self.structures
+
+        def colour_of(value, active):
+            return self.albedo_of(value, active, wavelengths)
+
+        emission_of = None
+        if self.glows:
+            def emission_of(value, carried, active):
+                return self.classification.emitted_radiance(value if carried is None else carried, active,
+                                                            wavelengths)
+        shading = None
+        if light is not None:
+            def value_at(u, active):
+                return self.value_local(u, active)[0]
+            # half the finest cell of the data, in local units, per axis
+            eps = 0.5 * dr.rcp(dr.max(s.extent))
+            shading = GradientShading(value_at, eps, lambda g: dr.normalize(self._to_world @ mi.Normal3f(g)),
+                                      lambda u, active: light(self._to_world @ mi.Point3f(u), active),
+                                      dr.normalize(ray.d))
+        tracking = RayMarch(lookup, colour_of, sampler, s.extent, s.offset, step_scale, brightness,
+                            exact=self.reconstruction == "nearest", emission_of=emission_of, shading=shading,
+                            carries=carries, count=count)
+        return self._track(ray, t_max, active, tracking, levels=True)
+
     def _thinning(self, replay, margin):
         """The finer majorant a walk thins by (`Structures.thinning`), or
         None: differentiable walks (a ``replay`` or a ``margin``) do not thin
@@ -681,17 +721,17 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         """``(t_lo, t_hi)`` narrowed to the clip plane's kept side (local units)."""
         return clip_to_half_space(o, d, t_lo, t_hi, self._clip_normal, self._clip_offset)
 
-    def _track(self, ray, t_max, active, tracking):
+    def _track(self, ray, t_max, active, tracking, levels: bool = False):
         """The result of the estimator ``tracking`` walked along ``ray`` in
         the unit cube up to ``t_max`` (`walk_segments`), on the clip plane's
-        kept side."""
+        kept side; ``levels``: its segments carry their finest level."""
         o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
         t_lo, t_hi = self._clipped(o, d, dr.maximum(t0, 0.0), dr.minimum(t1, t_max * s))
         local = LocalRay(o=o, d=d, t_lo=t_lo, t_hi=t_hi, scale=s)
         active = (mi.Bool(active) & hit & (s > 0.0) & (local.t_lo < local.t_hi)
                   & (self.structures.global_majorant > 0.0))
-        return walk_segments(self.structures.segments(), local, active, tracking, self._max_iterations)
+        return walk_segments(self.structures.segments(levels), local, active, tracking, self._max_iterations)
 
     # ---- Mitsuba medium interface -------------------------------------------
     def intersect_aabb(self, ray: mi.Ray3f):

@@ -41,6 +41,9 @@ from .medium import require_jit_rgb_variant
 from .variant_class import VariantPlugin
 
 #: The parameters ``amrprbvolpath`` accepts.
+#: The lighting modes path replay differentiates: every mode but the ray
+#: marcher, which has no collision weights to replay.
+REPLAYED_MODES = tuple(m for m in MODES if m != "ray_march")
 KNOWN = {"max_depth", "rr_depth", "hide_emitters", "mode", "brightness", "majorant_margin", "majorant_floor"}
 
 
@@ -120,7 +123,8 @@ class AMRPRBVolpathIntegrator(AMRVolpathIntegrator, metaclass=VariantPlugin, bas
      * - mode
        - |string|
        - ``emission_absorption``, ``single`` or ``multi``, as in
-         ``amrvolpath``. Default: ``multi``.
+         ``amrvolpath`` (not ``ray_march``, which has no collision weights to
+         replay). Default: ``multi``.
      * - brightness
        - |float|
        - The constant on the TF colour of ``emission_absorption``, as in
@@ -145,7 +149,7 @@ class AMRPRBVolpathIntegrator(AMRVolpathIntegrator, metaclass=VariantPlugin, bas
         check_known(props, "amrprbvolpath", KNOWN)
         # validated before Mitsuba's base reads max_depth and rr_depth its way
         options = SimpleNamespace()
-        AMRVolpathIntegrator._parse_path_options(options, props, "amrprbvolpath")
+        AMRVolpathIntegrator._parse_path_options(options, props, "amrprbvolpath", REPLAYED_MODES)
         margin = get_float(props, "amrprbvolpath", "majorant_margin", GRADIENT_MARGIN)
         floor = get_float(props, "amrprbvolpath", "majorant_floor", GRADIENT_FLOOR)
         if not margin > 1.0 or not 0.0 < floor <= 1.0:

@@ -51,6 +51,28 @@ def default_resolution(cells: BlockVolume) -> np.ndarray:
     return np.minimum(res, np.maximum(1, ext.astype(np.int64)))
 
 
+def finest_levels_in_boxes(level_bits: np.ndarray, tree) -> np.ndarray:
+    """The finest level set in the level masks ``level_bits`` (indexed
+    ``[x, y, z]``) over each leaf box ``[leaf_lo, leaf_hi)`` of ``tree``
+    (macrocell units): uint32 per leaf, 31 where no bit is set. One summed
+    table per level present, so the cost is per macrocell and per leaf, not
+    per (leaf, macrocell) pair."""
+    lo = np.asarray(tree.leaf_lo, np.int64)
+    hi = np.asarray(tree.leaf_hi, np.int64)
+    out = np.full(len(lo), 31, np.uint32)
+    present = int(np.bitwise_or.reduce(level_bits, axis=None)) if level_bits.size else 0
+    for L in reversed(range(32)):                 # coarsest first: finer levels overwrite
+        if not present >> L & 1:
+            continue
+        s = np.zeros(tuple(n + 1 for n in level_bits.shape), np.int64)
+        s[1:, 1:, 1:] = ((level_bits >> np.uint32(L)) & np.uint32(1)).astype(np.int64).cumsum(0).cumsum(1).cumsum(2)
+        x0, y0, z0, x1, y1, z1 = lo[:, 0], lo[:, 1], lo[:, 2], hi[:, 0], hi[:, 1], hi[:, 2]
+        count = (s[x1, y1, z1] - s[x0, y1, z1] - s[x1, y0, z1] - s[x1, y1, z0]
+                 + s[x0, y0, z1] + s[x0, y1, z0] + s[x1, y0, z0] - s[x0, y0, z0])
+        out[count > 0] = L
+    return out
+
+
 #: Host bytes of `MacrocellGrid.incidence`'s temporaries: per present cell
 #: (its slot, block, level, six macrocell bounds and counts, int64) and per
 #: (cell, macrocell) pair (owner, offset, three coordinates and the results).

@@ -350,11 +350,7 @@ def exact_value_ranges(tree: RegionTree, bricks, method: Reconstruction = DEFAUL
     reach the leaf is read."""
     below, above = _support_half_cells(method)
     n = tree.n_leaves
-    if own_lists:
-        li, b = np.repeat(np.arange(n, dtype=np.uint32), tree.list_count), tree.items
-    else:
-        dlo, dhi = bricks.domains(method)
-        b, li = tree.overlapping_leaves(np.floor(2 * dlo).astype(np.int64), np.ceil(2 * dhi).astype(np.int64))
+    li, b = _leaf_brick_pairs(tree, bricks, method, own_lists)
     values = device_values(bricks.volume)
     Float = type(values)
     Int64, Int32, UInt32 = dr.int64_array_t(Float), dr.int32_array_t(Float), dr.uint32_array_t(Float)
@@ -380,6 +376,30 @@ def exact_value_ranges(tree: RegionTree, bricks, method: Reconstruction = DEFAUL
             dr.eval(out_min, out_max)
             bar.update(len(li[s:s + chunk]))
     return _from_order_keys(out_min.numpy()), _from_order_keys(out_max.numpy())
+
+
+def _leaf_brick_pairs(tree: RegionTree, bricks, method, own_lists: bool):
+    """``(leaf, brick)`` index arrays of the bricks whose domain under
+    ``method`` overlaps each leaf (`exact_value_ranges` says when the
+    leaves' own lists are those)."""
+    if own_lists:
+        return np.repeat(np.arange(tree.n_leaves, dtype=np.uint32), tree.list_count), tree.items
+    dlo, dhi = bricks.domains(method)
+    b, li = tree.overlapping_leaves(np.floor(2 * dlo).astype(np.int64), np.ceil(2 * dhi).astype(np.int64))
+    return li, b
+
+
+def finest_levels(tree: RegionTree, bricks, method: Reconstruction = DEFAULT_METHOD,
+                  own_lists: bool = False) -> np.ndarray:
+    """The finest level whose cells' supports reach each leaf (uint32 per
+    leaf; 31 where none does): the ray marcher's step under the leaf
+    (docs/design.md section 14). The candidate bricks are those of
+    `exact_value_ranges`, so a leaf's level is never coarser than a cell
+    that reaches it."""
+    li, b = _leaf_brick_pairs(tree, bricks, method, own_lists)
+    out = np.full(tree.n_leaves, 31, np.int64)
+    np.minimum.at(out, np.asarray(li, np.int64), bricks.level[np.asarray(b, np.int64)].astype(np.int64))
+    return out.astype(np.uint32)
 
 
 def _support_half_cells(method) -> tuple[int, int]:
