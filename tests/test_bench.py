@@ -185,23 +185,39 @@ def test06_frames_are_timed_alternating_one_scene_at_a_time(llvm, monkeypatch):
         assert len(times) == 3 and all(t > 0 for t in times) and all(m > 0 for m in mses)
 
 
-def test07_timing_waits_until_the_process_is_idle():
+def test07_timing_waits_until_the_process_is_idle(capsys, monkeypatch):
     """`wait_idle` holds a timed frame back while a thread of the process
-    spins (as OpenBLAS's workers do after a BLAS call), and not otherwise."""
+    spins (as OpenBLAS's workers do after a BLAS call), and not otherwise.
+    Without the clock deciding: `process_cpu_seconds` counts every
+    thread's CPU (a thread spins until its own CPU time rose 0.2 s, however
+    long that takes here); `wait_idle` on a process whose CPU time grows as
+    fast as the wall clock (a spinning thread) waits up to its limit and
+    warns, on one whose CPU time stands still returns after its two idle
+    slices, long before its limit."""
     import threading
     import time
-    from mi_amr.bench import protocol as bench
-    stop = time.perf_counter() + 0.3
+    from conftest import HANG_S
+    from mi_amr.bench import harness
 
     def spin():
-        while time.perf_counter() < stop:
+        t0 = time.thread_time()
+        while time.thread_time() - t0 < 0.2:
             pass
+    c0 = harness.process_cpu_seconds()
     thread = threading.Thread(target=spin)
     thread.start()
-    waited = bench.wait_idle()
-    thread.join()
-    assert waited >= 0.2, f"waited {waited:.3f} s while a thread spun for 0.3 s"
-    assert bench.wait_idle() < 0.15
+    thread.join(HANG_S)
+    assert not thread.is_alive() and harness.process_cpu_seconds() - c0 >= 0.2
+
+    spinning = True
+    start = time.perf_counter()
+    monkeypatch.setattr(harness, "process_cpu_seconds",
+                        lambda: time.perf_counter() - start if spinning else 1.0)
+    waited = harness.wait_idle(limit_s=0.5)
+    assert waited >= 0.5 and "stayed busy" in capsys.readouterr().err
+    spinning = False
+    waited = harness.wait_idle(limit_s=HANG_S)
+    assert waited < HANG_S and "stayed busy" not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("config", ["reference", "amrvolpath/default"])

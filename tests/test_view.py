@@ -21,7 +21,11 @@ from mi_amr.view.camera import OrbitCamera
 from mi_amr.view.protocol import safe_name
 from mi_amr.view.tf_spec import TABLE_SIZE, TFSpec, spiky_points
 
+from conftest import HANG_S, wait_until
+
 pytest.importorskip("starlette")
+#: Playwright's deadlines, in milliseconds: only a hang reaches them.
+HANG_MS = HANG_S * 1000
 
 
 # ---- the editor's state ------------------------------------------------------------
@@ -84,7 +88,7 @@ def served(tmp_path_factory):
     src = save_cells(make_dataset("cloud", cells=20000, seed=0), root / "cloud.cells")
     engine = ViewEngine(src, res=32, max_spp=16).start()
     server = ViewServer(engine, out_dir=root / "snapshots", quiet=True).start()
-    assert engine.ready.wait(120) and engine.error is None, engine.error
+    assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
     yield server, root
     server.stop()
     engine.stop()
@@ -92,13 +96,13 @@ def served(tmp_path_factory):
 
 def _get(url):
     try:
-        with urllib.request.urlopen(url, timeout=30) as r:
+        with urllib.request.urlopen(url, timeout=HANG_S) as r:
             return r.status, r.read().decode(errors="replace")
     except urllib.error.HTTPError as e:
         return e.code, e.read().decode(errors="replace")
 
 
-def _frame(ws, timeout=30):
+def _frame(ws, timeout=HANG_S):
     """The next binary frame's header (JSON replies before it are returned too)."""
     replies, deadline = [], time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -125,7 +129,7 @@ def test04_every_request_needs_the_token(served):
     assert status == 200 and 'data-testid="view"' in body and f'content="{server.token}"' in body
     with pytest.raises((ConnectionClosed, InvalidStatus)):
         with connect(f"ws://127.0.0.1:{server.port}/ws?token=wrong") as ws:
-            ws.recv(timeout=10)
+            ws.recv(timeout=HANG_S)
 
 
 def test05_hostile_messages_get_errors_and_the_server_goes_on(served):
@@ -147,7 +151,7 @@ def test05_hostile_messages_get_errors_and_the_server_goes_on(served):
         for h in hostile:
             ws.send(h)
             while True:
-                m = ws.recv(timeout=30)
+                m = ws.recv(timeout=HANG_S)
                 if isinstance(m, bytes):
                     ws.send(json.dumps({"type": "ack"}))
                     continue
@@ -158,9 +162,9 @@ def test05_hostile_messages_get_errors_and_the_server_goes_on(served):
         assert not (root / "escape.xml").exists() and not Path("/tmp/abs.xml").exists()
         version_before = header["version"]
         ws.send(json.dumps({"type": "camera", "azimuth": hello["camera"]["azimuth"] + 20}))
-        while header["version"] == version_before:
-            header, _ = _frame(ws)
-        assert header["version"] == version_before + 1
+        newer = wait_until(lambda: [h for h in [_frame(ws)[0]] if h["version"] != version_before],
+                           "frame of the new camera")
+        assert newer[0]["version"] == version_before + 1
 
 
 # ---- the page in a real browser ----------------------------------------------------------
@@ -176,22 +180,21 @@ def _stats(page):
     return page.evaluate("window.viewerStats")
 
 
-def _changes_within(page, action, seconds=2.0):
-    """Run ``action``; return (seconds until a frame of the new state is on
-    screen, how much the picture changed: mean |delta| in 8-bit units)."""
+def _changes(page, action):
+    """Run ``action``; once a frame of the new state is on screen, how much
+    the picture changed: mean |delta| in 8-bit units. (How soon it came is
+    ``python -m mi_amr.bench --view``'s "change -> frame of it".)"""
     before, version0 = _canvas(page), _stats(page)["lastFrame"]["version"]
-    t0 = time.monotonic()
     action()
-    page.wait_for_function(f"window.viewerStats.lastFrame.version > {version0}", timeout=seconds * 1000 + 5000)
-    took = time.monotonic() - t0
+    page.wait_for_function(f"window.viewerStats.lastFrame.version > {version0}", timeout=HANG_MS)
     page.wait_for_timeout(50)
-    return took, float(np.abs(_canvas(page) - before).mean())
+    return float(np.abs(_canvas(page) - before).mean())
 
 
 def test06_the_page_in_a_browser(served, browser):
     """Refused without the token; with it an image appears and refines (the
-    spp counter rises); a TF-editor drag and an orbit each change the
-    picture within 2 s; a snapshot writes EXR, PNG and XML, and the XML
+    spp counter rises); a TF-editor drag and an orbit each bring a frame
+    of the new state that changes the picture; a snapshot writes EXR, PNG and XML, and the XML
     renders to the same picture within noise."""
     server, root = served
     page = browser.new_page()
@@ -200,10 +203,10 @@ def test06_the_page_in_a_browser(served, browser):
     page.goto(f"http://127.0.0.1:{server.port}/")
     assert "403" in page.content()
     page.goto(server.url)
-    page.wait_for_function("window.viewerStats && window.viewerStats.frames > 0", timeout=60000)
+    page.wait_for_function("window.viewerStats && window.viewerStats.frames > 0", timeout=HANG_MS)
     assert _canvas(page).mean() > 1.0                      # not black: an image appeared
     page.wait_for_function("window.viewerStats.lastFrame.spp >= 8 && !window.viewerStats.lastFrame.preview",
-                           timeout=60000)
+                           timeout=HANG_MS)
     assert "spp" in page.get_by_test_id("spp").inner_text()
     for testid in ("tf-editor", "density", "colormap", "log", "snapshot"):
         assert page.get_by_test_id(testid).count() == 1
@@ -217,8 +220,8 @@ def test06_the_page_in_a_browser(served, browser):
         page.mouse.down()
         page.mouse.move(x, y_peak + 0.6 * editor["height"], steps=5)
         page.mouse.up()
-    took, delta = _changes_within(page, drag_tf_point)
-    assert took < 2.0 and delta > 0.5, (took, delta)
+    delta = _changes(page, drag_tf_point)
+    assert delta > 0.5, delta
 
     view = page.get_by_test_id("view").bounding_box()
 
@@ -227,14 +230,14 @@ def test06_the_page_in_a_browser(served, browser):
         page.mouse.down()
         page.mouse.move(view["x"] + 220, view["y"] + 120, steps=6)
         page.mouse.up()
-    took, delta = _changes_within(page, orbit)
-    assert took < 2.0 and delta > 0.5, (took, delta)
+    delta = _changes(page, orbit)
+    assert delta > 0.5, delta
 
     page.wait_for_function("window.viewerStats.lastFrame.spp >= 16 && !window.viewerStats.lastFrame.preview",
-                           timeout=60000)
+                           timeout=HANG_MS)
     page.get_by_test_id("snapshot-name").fill("shot")
     page.get_by_test_id("snapshot").click()
-    page.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=60000)
+    page.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=HANG_MS)
     snap = _stats(page)["snapshots"][0]
     out = root / "snapshots"
     for ext in (".exr", ".png", ".xml", ".tf.json"):
@@ -281,20 +284,20 @@ def test07_two_tabs_keep_their_own_views(served, browser):
     a, b = browser.new_page(), browser.new_page()
     for p in (a, b):
         p.goto(server.url)
-        p.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview", timeout=60000)
+        p.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview", timeout=HANG_MS)
     b_version = _stats(b)["lastFrame"]["version"]
     box = a.get_by_test_id("view").bounding_box()
     a.mouse.move(box["x"] + 50, box["y"] + 50)
     a.mouse.down()
     a.mouse.move(box["x"] + 250, box["y"] + 60, steps=8)
     a.mouse.up()
-    a.wait_for_function("window.viewerStats.lastFrame.version > 0", timeout=10000)
+    a.wait_for_function("window.viewerStats.lastFrame.version > 0", timeout=HANG_MS)
     b.wait_for_function("window.viewerStats.lastFrame.spp >= 16 && !window.viewerStats.lastFrame.preview",
-                        timeout=60000)
+                        timeout=HANG_MS)
     assert _stats(b)["lastFrame"]["version"] == b_version
     b.get_by_test_id("snapshot-name").fill("tab-b")
     b.get_by_test_id("snapshot").click()
-    b.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=60000)
+    b.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=HANG_MS)
     spp = _stats(b)["snapshots"][0]["spp"]
     a.close()
     b.close()
@@ -303,13 +306,11 @@ def test07_two_tabs_keep_their_own_views(served, browser):
 
 def _refined_snapshot(engine, spp: int, out, name: str):
     """``(files, frame headers)``: a view of ``engine`` (loaded) refined to
-    ``spp`` (60 s at most), then its snapshot's four files."""
-    assert engine.ready.wait(120) and engine.error is None, engine.error
+    ``spp``, then its snapshot's four files."""
+    assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
     frames = []
     view = engine.open_view(lambda header, jpeg: frames.append(header))
-    deadline = time.monotonic() + 60
-    while not (frames and frames[-1]["spp"] >= spp) and time.monotonic() < deadline:
-        time.sleep(0.05)
+    wait_until(lambda: frames and frames[-1]["spp"] >= spp, f"frame of {spp} spp")
     return engine.snapshot(view, out, name), frames
 
 
@@ -347,7 +348,7 @@ def test09_notebook_frame_and_command_line(served, tmp_path, capsys):
     _, root = served
     frame = notebook(root / "cloud.cells", res=32, out_dir=tmp_path)
     try:
-        assert frame.engine.ready.wait(120)
+        assert frame.engine.ready.wait(HANG_S)
         status, body = _get(frame.src)
         assert status == 200 and 'data-testid="tf-editor"' in body and "127.0.0.1" in frame.src
     finally:
@@ -378,16 +379,14 @@ def test10_an_xml_scene_in_the_viewer(tmp_path):
     scene = Path(__file__).parents[1] / "scenes" / "blocks.xml"
     engine = ViewEngine(scene, res=32, max_spp=16).start()
     try:
-        assert engine.ready.wait(120) and engine.error is None, engine.error
+        assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
         assert "scene" in engine.colormaps and engine.initial_spec.colormap == "scene"
         frames = []
         view = engine.open_view(lambda header, jpeg: frames.append(header))
         engine.change(view, {"type": "camera", "azimuth": view.camera.azimuth + 40, "elevation": 20})
         engine.change(view, {"type": "tf", "density": view.spec.density * 0.5, "colormap": "viridis"})
-        deadline = time.monotonic() + 60
-        while not (frames and frames[-1]["spp"] >= 16 and frames[-1]["version"] == 2) \
-                and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: frames and frames[-1]["spp"] >= 16 and frames[-1]["version"] == 2,
+                   "frame of 16 spp of the new view")
         assert frames[-1]["spp"] == 16
         files = engine.snapshot(view, tmp_path, "blocks")
     finally:
@@ -576,7 +575,7 @@ def test15_an_xml_scene_keeps_its_own_tf(tmp_path):
     source = TransferFunction(rgba, (0.015, 1.7))
     engine = ViewEngine(tmp_path / "s.xml", res=16, max_spp=2).start()
     try:
-        assert engine.ready.wait(120) and engine.error is None, engine.error
+        assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
         spec = engine.initial_spec
         assert spec.points == list(zip(np.linspace(0, 1, 7).tolist(), source.rgba[:, 3].tolist()))
         assert spec.range == (0.015, 1.7) and spec.colormap == "scene"
@@ -587,10 +586,8 @@ def test15_an_xml_scene_keeps_its_own_tf(tmp_path):
         text = json.dumps({"type": "tf", **json.loads(p.dumps(hello))["tf"], "density": 7.5})
         assert engine.change(view, p.parse(text)) is False
         assert view.spec.density == 7.5 and engine.loaded.table(view.spec) is engine.loaded.scene_tf
-        deadline = time.monotonic() + 60
-        while not (frames and frames[-1]["spp"] >= 2 and frames[-1]["version"] == 1) \
-                and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: frames and frames[-1]["spp"] >= 2 and frames[-1]["version"] == 1,
+                   "frame of 2 spp of the new density")
         with JIT_LOCK:
             np.testing.assert_array_equal(engine.loaded.medium.tf.rgba, source.rgba)
             assert engine.loaded.medium.tf.domain == source.domain
@@ -627,7 +624,7 @@ def test16_the_log10_toggle_plans_range_and_density_again(tmp_path):
     path, _ = write_exabricks(mi_amr.dense_to_amr(v.astype(np.float32), 0.0, 1), tmp_path / "waves.cells")
     engine = ViewEngine(path, res=16, max_spp=2).start()
     try:
-        assert engine.ready.wait(120) and engine.error is None, engine.error
+        assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
         view = engine.open_view(lambda header, jpeg: None)
         linear = view.spec
         assert not linear.log and engine.loaded.stored_log
@@ -663,7 +660,7 @@ def test17_the_field_selector_shows_the_field_the_user_named(tmp_path):
     path = write_enzo(tmp_path / "DD0003", "DD0003", 1.0 + np.exp(-((x - 4) ** 2 + (y - 3) ** 2 + z ** 2) / 9.0), [])
     engine = ViewEngine(path, "density", res=16, max_spp=2).start()
     try:
-        assert engine.ready.wait(120) and engine.error is None, engine.error
+        assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
         extras = engine._editor_extras()
         assert extras["field"] == "enzo,Density" and extras["field"] in extras["fields"]
     finally:

@@ -21,7 +21,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import HANG_S, wait_until
+
 pytest.importorskip("starlette")
+#: Playwright's deadlines, in milliseconds: only a hang reaches them.
+HANG_MS = HANG_S * 1000
 
 ROOT = Path(__file__).resolve().parents[1]
 MAX_SPP = 48
@@ -38,7 +42,7 @@ def served(tmp_path_factory):
     src = save_cells(make_dataset("cloud", cells=20000, seed=0), root / "cloud.cells")
     engine = ViewEngine(src, res=32, max_spp=MAX_SPP).start()
     server = ViewServer(engine, out_dir=root / "snapshots", quiet=True).start()
-    assert engine.ready.wait(120) and engine.error is None, engine.error
+    assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
     yield server, root
     server.stop()
     engine.stop()
@@ -51,7 +55,7 @@ def _ws(server, **kw):
     return connect(f"ws://127.0.0.1:{server.port}/ws?token={server.token}", max_size=2**24, **kw)
 
 
-def _next(ws, kind, timeout=30, frames=None):
+def _next(ws, kind, timeout=HANG_S, frames=None):
     """The next reply of ``kind`` ("frame": a binary frame's header), acking
     frames on the way (their headers appended to ``frames``)."""
     deadline = time.monotonic() + timeout
@@ -75,7 +79,7 @@ def _next(ws, kind, timeout=30, frames=None):
 def _open(browser, url):
     page = browser.new_page()
     page.goto(url)
-    page.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview", timeout=60000)
+    page.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview", timeout=HANG_MS)
     return page
 
 
@@ -97,7 +101,7 @@ def test01_a_bad_range_in_one_tab_while_another_renders(served, browser):
         a.get_by_test_id("range-lo").fill(lo)
         a.get_by_test_id("range-hi").fill(hi)
         a.get_by_test_id("range-hi").press("Enter")
-        a.wait_for_function(f"window.viewerStats.errors.length > {n}", timeout=10000)
+        a.wait_for_function(f"window.viewerStats.errors.length > {n}", timeout=HANG_MS)
         assert "float32" in _stats(a)["errors"][-1]["message"]
         assert "cannot be rendered" in a.get_by_test_id("message").inner_text()
     with _ws(server) as ws:
@@ -112,7 +116,7 @@ def test01_a_bad_range_in_one_tab_while_another_renders(served, browser):
     b.mouse.move(box["x"] + 160, box["y"] + 110, steps=4)
     b.mouse.up()
     b.wait_for_function(f"window.viewerStats.frames > {frames_b} && window.viewerStats.lastFrame.spp >= 8 "
-                        "&& !window.viewerStats.lastFrame.preview", timeout=30000)
+                        "&& !window.viewerStats.lastFrame.preview", timeout=HANG_MS)
     assert _stats(b)["errors"] == [] and _stats(b)["fatal"] is None
     # A is alive: an orbit gives a new frame
     version = _stats(a)["lastFrame"]["version"]
@@ -121,7 +125,7 @@ def test01_a_bad_range_in_one_tab_while_another_renders(served, browser):
     a.mouse.down()
     a.mouse.move(box["x"] + 150, box["y"] + 100, steps=4)
     a.mouse.up()
-    a.wait_for_function(f"window.viewerStats.lastFrame.version > {version}", timeout=30000)
+    a.wait_for_function(f"window.viewerStats.lastFrame.version > {version}", timeout=HANG_MS)
     a.close()
     b.close()
 
@@ -144,21 +148,15 @@ def test02_a_failing_pass_goes_back_to_the_last_picture(served):
     bystander = engine.open_view(lambda h, j: None, told_other.append)
     loaded.apply = failing
     try:
-        deadline = time.monotonic() + 30
-        while not any(h.spp >= 2 and not h.preview for h in frames) and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_until(lambda: any(h.spp >= 2 and not h.preview for h in frames), "refined frame")
         good = view.spec
         engine.change(view, {"type": "tf", "density": 12345.0})
-        deadline = time.monotonic() + 30
-        while not told and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_until(lambda: told, "error told to the view")
         error = told[0]
         assert error.TYPE == "error" and "made-up failure" in error.message, told
         assert error.tf == good and view.spec == good
         n = len(frames)
-        deadline = time.monotonic() + 30
-        while not (len(frames) > n and frames[-1].spp >= 4) and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_until(lambda: len(frames) > n and frames[-1].spp >= 4, "frame of 4 spp after the failure")
         assert frames[-1].spp >= 4 and engine._thread.is_alive()
         assert told_other == [] and len(told) == 1
     finally:
@@ -185,9 +183,7 @@ def test03_a_failed_load_is_shown_in_the_page_and_exits_2(served, browser, tmp_p
     proc = subprocess.Popen([sys.executable, "-m", "mi_amr.tools.cli", "view", str(bad), "--out", str(tmp_path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
     try:
-        deadline = time.monotonic() + 60
-        while not (record.exists() and record.read_text().strip()) and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: record.exists() and record.read_text().strip(), "browser opened")
         uri = record.read_text().strip()
         assert uri.startswith("file://") and "token" not in uri, uri
         opened = Path(uri[len("file://"):])
@@ -195,9 +191,9 @@ def test03_a_failed_load_is_shown_in_the_page_and_exits_2(served, browser, tmp_p
         page = browser.new_page()
         page.goto(uri)
         fatal = page.get_by_test_id("fatal")
-        fatal.wait_for(state="visible", timeout=30000)
+        fatal.wait_for(state="visible", timeout=HANG_MS)
         assert "bad.cells" in fatal.inner_text() and "disconnected" not in page.get_by_test_id("status").inner_text()
-        out, err = proc.communicate(timeout=60)
+        out, err = proc.communicate(timeout=HANG_S)
         page.close()
     finally:
         if proc.poll() is None:
@@ -238,7 +234,7 @@ def test04_every_load_failure_is_one_line(served, tmp_path, monkeypatch, capsys)
     for name, field in cases:
         engine = ViewEngine(tmp_path / name, field, res=16).start()
         try:
-            assert engine.ready.wait(120)
+            assert engine.ready.wait(HANG_S)
         finally:
             engine.stop()
         assert engine.error and "\n" not in engine.error and "Traceback" not in engine.error, (name, engine.error)
@@ -344,7 +340,7 @@ def test06_malformed_messages_name_the_field_and_disconnects_are_quiet(served):
     assert not loud, [r.getMessage() for r in loud]
     fresh = ViewServer(server.engine, quiet=True)            # made, not yet serving
     try:
-        socket.create_connection(("127.0.0.1", fresh.port), timeout=2).close()
+        socket.create_connection(("127.0.0.1", fresh.port), timeout=HANG_S).close()
     finally:
         fresh.stop()
 
@@ -383,23 +379,23 @@ def test07_the_denoiser_switch_keeps_the_samples(served, browser):
     server, _ = served
     page = _open(browser, server.url)
     page.wait_for_function("window.viewerStats.lastFrame.spp >= 6 && !window.viewerStats.lastFrame.preview",
-                           timeout=30000)
+                           timeout=HANG_MS)
     for on in (False, True):
         before = _stats(page)["lastFrame"]
         page.get_by_test_id("denoise").set_checked(on)
         page.wait_for_function(f"window.viewerStats.lastFrame.version > {before['version']} "
-                               f"&& window.viewerStats.lastFrame.denoised === {json.dumps(on)}", timeout=10000)
+                               f"&& window.viewerStats.lastFrame.denoised === {json.dumps(on)}", timeout=HANG_MS)
         after = _stats(page)["lastFrame"]
         assert not after["preview"] and after["spp"] >= before["spp"], (before, after)
-    page.wait_for_function(f"window.viewerStats.lastFrame.spp >= {MAX_SPP}", timeout=30000)
+    page.wait_for_function(f"window.viewerStats.lastFrame.spp >= {MAX_SPP}", timeout=HANG_MS)
     page.wait_for_function("document.querySelector('[data-testid=spp]').textContent.includes('done')",
-                           timeout=10000)
+                           timeout=HANG_MS)
     assert f"{MAX_SPP} spp" in page.get_by_test_id("spp").inner_text()
     page.close()
     with _ws(server) as ws:                       # denoised on: every spp counted, images now and then
         frames = []
-        while not (frames and frames[-1]["spp"] >= MAX_SPP and not frames[-1]["preview"]):
-            _next(ws, "frame", frames=frames)
+        wait_until(lambda: _next(ws, "frame", frames=frames)["spp"] >= MAX_SPP and not frames[-1]["preview"],
+                   f"full frame of {MAX_SPP} spp")
     full = [f for f in frames if not f["preview"]]
     spps = [f["spp"] for f in full]
     assert spps == sorted(spps) and any(s & (s - 1) for s in spps), spps     # not only 1, 2, 4, 8, ...
@@ -421,9 +417,7 @@ def test08_a_snapshot_png_and_exr_come_from_the_same_samples(served, tmp_path):
     frames = []
     view = engine.open_view(lambda h, j: frames.append(h))
     try:
-        deadline = time.monotonic() + 30
-        while not (frames and frames[-1]["spp"] >= 19) and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_until(lambda: frames and frames[-1]["spp"] >= 19, "frame of 19 spp")
         shot = engine.take_snapshot(view, tmp_path, "same")
     finally:
         engine.close_view(view)
@@ -451,11 +445,11 @@ def test09_snapshots_never_overwrite_nor_follow_links(served, browser, tmp_path)
     page.get_by_test_id("snapshot-name").fill("trap")
     page.get_by_test_id("snapshot").click()
     page.wait_for_function("document.querySelector('[data-testid=snapshot-result]').textContent.includes('link')",
-                           timeout=30000)
+                           timeout=HANG_MS)
     assert outside.read_text() == "keep me" and not (out / "trap.exr").exists()
     page.get_by_test_id("snapshot-name").fill("taken")
     page.get_by_test_id("snapshot").click()
-    page.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=30000)
+    page.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=HANG_MS)
     snap = _stats(page)["snapshots"][-1]
     assert [Path(f).name for f in snap["files"]][:4] == ["taken-1.exr", "taken-1.png", "taken-1.xml",
                                                           "taken-1.tf.json"]
@@ -465,8 +459,7 @@ def test09_snapshots_never_overwrite_nor_follow_links(served, browser, tmp_path)
     engine = server.engine
     view = engine.open_view(lambda h, j: None)
     try:
-        while view.accum_epoch != view.epoch:
-            time.sleep(0.02)
+        wait_until(lambda: view.accum_epoch == view.epoch, "full frame of the view")
         budget = SnapshotBudget(count=1)
         engine.take_snapshot(view, tmp_path, "one", budget)
         with pytest.raises(ValueError, match="1 snapshots"):
@@ -503,8 +496,7 @@ def test10_render_takes_the_scenes_own_spp(served, tmp_path, capsys):
     engine = server.engine
     view = engine.open_view(lambda h, j: None)
     try:
-        while view.spp < 5:
-            time.sleep(0.02)
+        wait_until(lambda: view.spp >= 5, "frame of 5 spp")
         shot = engine.take_snapshot(view, tmp_path, "s")
     finally:
         engine.close_view(view)
@@ -564,7 +556,7 @@ def test11_another_local_page_gets_neither_socket_nor_token(served, browser):
         context = browser.new_context()
         viewer = context.new_page()
         viewer.goto(server.url)                   # the viewer open in the same browser
-        viewer.wait_for_function("window.viewerStats.frames > 0", timeout=30000)
+        viewer.wait_for_function("window.viewerStats.frames > 0", timeout=HANG_MS)
         page = context.new_page()
         page.goto(f"http://127.0.0.1:{other.server_address[1]}/")
         page.evaluate(f"window.attack({json.dumps(server.token)})")

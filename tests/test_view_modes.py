@@ -30,7 +30,11 @@ from mi_amr.view.scene import LoadedScene, integrator_props, mode_integrators
 from mi_amr.view.server import ViewServer
 from mi_amr.view.tf_spec import TFSpec
 
+from conftest import HANG_S, wait_until
+
 pytest.importorskip("starlette")
+#: Playwright's deadlines, in milliseconds: only a hang reaches them.
+HANG_MS = HANG_S * 1000
 
 RES = 64
 MAX_SPP = 16
@@ -43,20 +47,10 @@ def served(tmp_path_factory):
     src = save_cells(make_dataset("cloud", cells=20000, seed=0), root / "cloud.cells")
     engine = ViewEngine(src, res=RES, max_spp=MAX_SPP, preview_scale=0.5, fast_ladder=(1.0,)).start()
     server = ViewServer(engine, out_dir=root / "snapshots", quiet=True).start()
-    assert engine.ready.wait(120) and engine.error is None, engine.error
+    assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
     yield server, root
     server.stop()
     engine.stop()
-
-
-
-
-def _wait(predicate, timeout=60.0, what="condition"):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"no {what} within {timeout} s")
-        time.sleep(0.01)
 
 
 # ---- without a browser ------------------------------------------------------------------------
@@ -88,39 +82,46 @@ def test01_an_integrator_per_mode_and_the_mode_message(llvm):
 
 
 def test02_a_drag_renders_fast_frames_then_the_mode_refines(served):
-    """Camera changes every 20 ms: each is answered by a fast frame
-    (emission_absorption, 1 spp, at a fast size, raw) showing a newer state;
-    the view's mode (multi) renders only once the changes rested for SETTLE;
-    after the last change its first pass starts within SETTLE plus the pass
-    in flight, first at a fast size, then full size, accumulating."""
+    """Camera changes, each the next once the last one's frame came (a hand
+    that waits for the screen, however loaded the machine): each is
+    answered by a fast frame (emission_absorption, 1 spp, at a fast size,
+    raw) of that state; the view's mode (multi) renders a state only once
+    the changes rested for SETTLE; after the last change its first pass
+    starts no sooner than SETTLE, first at a fast size, then full size,
+    accumulating. (How soon: ``python -m mi_amr.bench --view``, "last
+    change -> mode's first"; how many fast frames a drag gets: its
+    "frames/s".)"""
     server, _ = served
     engine = server.engine
     frames = []
     view = engine.open_view(lambda h, jpeg: frames.append((time.monotonic(), h, jpeg)))
     try:
         assert view.mode == engine.mode == "multi"
-        _wait(lambda: any(h.spp >= 2 and not h.preview for _, h, _ in frames), what="a refined frame")
+        wait_until(lambda: any(h.spp >= 2 and not h.preview for _, h, _ in frames), "refined frame")
         changed_at = {view.version: view.changed_at}
         frames.clear()
         az = view.camera.azimuth
+        drag = []
         for k in range(1, 26):
             engine.change(view, p.CameraChange(azimuth=az + 3 * k))
-            changed_at[view.version] = view.changed_at
-            time.sleep(0.02)
+            version = view.version
+            changed_at[version] = view.changed_at
+            drag.append(version)
+            wait_until(lambda: any(h.fast and h.rendered >= version for _, h, _ in list(frames)),
+                       f"fast frame of change {k}")
         last_version, last = view.version, view.changed_at
-        _wait(lambda: any(h.rendered == last_version and h.spp >= 3 and not h.preview for _, h, _ in frames),
-              what="refined frames after the drag")
+        wait_until(lambda: any(h.rendered == last_version and h.spp >= 3 and not h.preview for _, h, _ in frames),
+                   "refined frames after the drag")
     finally:
         engine.close_view(view)
     fast = [(t, h, j) for t, h, j in frames if h.fast]
-    assert len(fast) >= 5, [h for _, h, _ in frames]
     ladder = [tuple(q) for q in engine._ladder()]
     assert ladder == [(RES // 2, RES // 2)]
     assert all(h.mode == FAST_MODE and h.spp == 1 and h.preview and not h.denoised and (h.width, h.height) in ladder
                for _, h, _ in fast)
     shown = [h.rendered for _, h, _ in fast]
-    assert shown == sorted(shown) and len(set(shown)) >= 5          # each a newer state of the drag
-    assert len({j for _, _, j in fast}) >= 5                         # ... and a different picture
+    assert shown == sorted(shown) and set(drag) <= set(shown), (drag, shown)    # each change, in order
+    assert len({j for _, _, j in fast}) >= 5                         # ... and different pictures
     # the view's own mode rendered a state of the drag only after the next change was SETTLE away
     for _, h, _ in frames:
         if not h.fast and h.rendered in changed_at and h.rendered + 1 in changed_at:
@@ -130,9 +131,8 @@ def test02_a_drag_renders_fast_frames_then_the_mode_refines(served):
     assert after[0][1].mode == "multi" and after[0][1].preview and (after[0][1].width, after[0][1].height) in ladder
     full = [h for _, h in after if not h.preview]
     assert all(h.mode == "multi" and h.width == RES for h in full) and [h.spp for h in full[:3]] == [1, 2, 3]
-    in_flight = max((h.render_ms for t, h, _ in frames if t - h.render_ms / 1e3 <= last), default=0.0) / 1e3
-    start = after[0][0] - after[0][1].render_ms / 1e3
-    assert start - last <= SETTLE + in_flight + 0.15, (start - last, in_flight)
+    start = after[0][0] - after[0][1].render_ms / 1e3             # at the latest: arrival less the pass
+    assert start >= last + SETTLE - 0.005, (start - last, SETTLE)
 
 
 def test03_fast_passes_keep_to_their_budget():
@@ -213,17 +213,23 @@ def _closest(picture, refs, mode, other):
 
 def _refined(page, mode, spp=12):
     page.wait_for_function(f"""() => {{ const f = window.viewerStats.lastFrame;
-        return f && f.mode === {json.dumps(mode)} && !f.fast && !f.preview && f.spp >= {spp}; }}""", timeout=60000)
+        return f && f.mode === {json.dumps(mode)} && !f.fast && !f.preview && f.spp >= {spp}; }}""", timeout=HANG_MS)
 
 
 def _drag(page, testid, x0, y0, dx, dy, steps=20):
+    """Drag over ``testid`` by (dx, dy) pixels a step; each step once the
+    page shows a frame of the last one's change (every 5 steps its
+    picture is kept), the hand waiting for the screen however loaded the
+    machine; returns the pictures."""
     box = page.get_by_test_id(testid).bounding_box()
     page.mouse.move(box["x"] + x0, box["y"] + y0)
     page.mouse.down()
     pictures = []
     for k in range(1, steps + 1):
+        changes = page.evaluate("window.viewerStats.changes")
         page.mouse.move(box["x"] + x0 + dx * k, box["y"] + y0 + dy * k)
-        page.wait_for_timeout(40)
+        page.wait_for_function(f"""() => {{ const s = window.viewerStats;
+            return s.changes > {changes} && s.lastFrame.rendered >= s.changes; }}""", timeout=HANG_MS)
         if k % 5 == 0:
             pictures.append(_canvas(page))
     page.mouse.up()
@@ -243,7 +249,7 @@ def test04_the_page_drags_fast_refines_in_its_mode_and_snapshots_it(served, brow
     errors = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(server.url)
-    page.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview", timeout=60000)
+    page.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview", timeout=HANG_MS)
     select = page.get_by_test_id("mode")
     assert select.evaluate("s => Array.from(s.options).map(o => o.value)") == list(MODES)
     assert select.input_value() == "multi" and FAST_MODE in page.get_by_test_id("mode-note").inner_text()
@@ -282,7 +288,7 @@ def test04_the_page_drags_fast_refines_in_its_mode_and_snapshots_it(served, brow
     # its snapshot: the XML names the mode and renders the picture the page showed
     page.get_by_test_id("snapshot-name").fill("ea")
     page.get_by_test_id("snapshot").click()
-    page.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=30000)
+    page.wait_for_function("window.viewerStats.snapshots.length > 0", timeout=HANG_MS)
     shot = page.evaluate("window.viewerStats.snapshots[0]")
     xml = next(f for f in shot["files"] if f.endswith(".xml"))
     modes = [e.get("value") for e in ET.parse(xml).getroot().iter("string") if e.get("name") == "mode"]
