@@ -144,40 +144,120 @@ def test04_outline_and_axes_in_physical_units():
     assert list(nice_ticks(10.0, 18.0, 4)) == [10.0, 12.0, 14.0, 16.0, 18.0]
 
 
+def legend_colours(leg: np.ndarray, tf, values, tol: float = 6.0):
+    """The legend image ``leg`` (`legend_image`, its colour bar on the axes
+    at [0.04, 0.48, 0.92, 0.44] of the figure) shows ``tf``'s colour at
+    each of ``values``: the median over the bar's rows of the pixel column
+    where the value lies (the opacity curve crosses a row or two) within
+    ``tol`` of 255 x the TF's colour there (8-bit units)."""
+    h, w = leg.shape[:2]
+    lo, hi = tf.domain
+    rows = slice(int(h * (1 - 0.92)) + 2, int(h * (1 - 0.48)) - 2)
+    for v in values:
+        x = int(0.04 * w + (v - lo) / (hi - lo) * 0.92 * w)
+        u = (x + 0.5 - 0.04 * w) / (0.92 * w)                 # the value at the pixel's centre
+        shown = np.median(leg[rows, x, :3].astype(np.float64), axis=0)
+        want = 255 * np.asarray(tf(np.array([lo + u * (hi - lo)]))[0, :3], np.float64)
+        assert np.abs(shown - want).max() <= tol, (v, shown, want)
+
+
+def _line_points(camera, segs, n=50):
+    """Points along the projected segments, n per segment (pixel coordinates)."""
+    px = camera.project_segments(segs)
+    t = np.linspace(0, 1, n)
+    return (px[:, None, 0] * (1 - t[:, None]) + px[:, None, 1] * t[:, None]).reshape(-1, 2)
+
+
+def _distance(points, h, w) -> np.ndarray:
+    """(h, w): each pixel centre's distance to the nearest of ``points``."""
+    from scipy.spatial import cKDTree
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    return cKDTree(np.asarray(points, np.float64)).query(np.stack([xx.ravel(), yy.ravel()], axis=1))[0].reshape(h, w)
+
+
+def levels_drawn(with_levels, without, camera, p, vol, legend_box):
+    """``with_levels`` has the level boxes burnt in where only they can be:
+    at points of the projected level edges more than 3 px from the outline
+    and outside the legend's box (x0, y0), 90% are lit where ``without`` is
+    black; more than 3 px from any level edge the two pictures agree."""
+    h, w = with_levels.shape[:2]
+    edges = np.concatenate([_line_points(camera, p.finest_to_world(box_edges(lb.lo, lb.hi)))
+                            for lb in level_boxes(vol)])
+    d_outline = _distance(_line_points(camera, outline(p)), h, w)
+    q = edges[(edges[:, 0] >= 1) & (edges[:, 0] < w - 1) & (edges[:, 1] >= 1) & (edges[:, 1] < h - 1)].astype(int)
+    x0, y0 = legend_box
+    q = q[(d_outline[q[:, 1], q[:, 0]] > 3) & ~((q[:, 0] >= x0 - 1) & (q[:, 1] >= y0 - 1))]
+    assert len(q) > 100
+    assert np.mean(with_levels[q[:, 1], q[:, 0]].max(axis=1) > 30) > 0.9
+    assert without[q[:, 1], q[:, 0]].max() == 0
+    far = _distance(edges, h, w) > 3
+    assert np.array_equal(with_levels[far], without[far])
+
+
 def test05_legend_and_burn_in():
-    """The legend shows the TF's colours (its middle column is the TF's
-    colour at mid-range); the burn-in changes the pixels along the
-    projected outline and leaves those far from it; bad input is one
-    clear error."""
+    """The legend shows the TF's colours (at three values, its colour
+    there); the burn-in changes the pixels along the projected outline and
+    leaves those far from it; the level boxes are drawn where only they can
+    be (away from the outline and the legend), nothing else changed; bad
+    input is one clear error. Both checks fail on a wrong input (another
+    TF's legend, a picture without the levels)."""
     tf = TransferFunction.load("viridis", (-2.0, 3.0))
     leg = legend_image(tf, "log10 density", log=True, size=(300, 60))
     assert leg.shape == (60, 300, 4)
+    legend_colours(leg, tf, (-1.5, 0.5, 2.5))
+    with pytest.raises(AssertionError):                         # the check tells another TF's colours
+        legend_colours(legend_image(TransferFunction.load("plasma", (-2.0, 3.0)), log=True, size=(300, 60)),
+                       tf, (-1.5, 0.5, 2.5))
     vol = BlockVolume.from_dense(np.ones((8, 8, 8), np.float32), block=4)
     p = Placement.of(vol)
     cam = PinholeCamera.looking((1.5, -1.8, 1.2), (0, 0, 0), (0, 0, 1), 40.0, (64, 48))
     black = np.zeros((48, 64, 3), np.uint8)
     out = burn_in(black, cam, p, vol, Annotations(outline=True, legend=False))
-    px = cam.project_segments(outline(p))
-    t = np.linspace(0, 1, 50)
-    line = (px[:, None, 0] * (1 - t[:, None]) + px[:, None, 1] * t[:, None]).reshape(-1, 2)
+    line = _line_points(cam, outline(p))
     on = line[(line[:, 0] >= 1) & (line[:, 0] < 63) & (line[:, 1] >= 1) & (line[:, 1] < 47)]
     assert np.mean(out[on[:, 1].astype(int), on[:, 0].astype(int)].max(axis=1) > 60) > 0.9
-    yy, xx = np.mgrid[0:48, 0:64] + 0.5
-    dist = np.min(np.hypot(xx[..., None] - line[:, 0], yy[..., None] - line[:, 1]), axis=2)
-    assert out[dist > 3].max() == 0
-    levels = burn_in(black, cam, p, vol, Annotations(outline=False, levels=True, legend=True), tf=tf)
-    assert levels[-20:, -60:].max() > 0                      # the legend, in the lower right corner
+    assert out[_distance(line, 48, 64) > 3].max() == 0
+    # the level boxes of three levels, with the outline and the legend drawn too
+    vol = BlockVolume.from_cells(random_amr(2, 16, 3), block=2)
+    assert len(level_boxes(vol)) == 3
+    p = Placement.of(vol)
+    w, h = 240, 180
+    cam = PinholeCamera.looking((1.5, -1.8, 1.2), (0, 0, 0), (0, 0, 1), 40.0, (w, h))
+    black = np.zeros((h, w, 3), np.uint8)
+    levels = burn_in(black, cam, p, vol, Annotations(outline=True, levels=True, legend=True), tf=tf)
+    plain = burn_in(black, cam, p, vol, Annotations(outline=True, levels=False, legend=True), tf=tf)
+    legend_box = (w - min(300, max(160, 2 * w // 3)), h - min(60, max(40, h // 6)))     # burn_in's legend size
+    assert plain[legend_box[1]:, legend_box[0]:].max() > 0                              # the legend is there
+    levels_drawn(levels, plain, cam, p, vol, legend_box)
+    with pytest.raises(AssertionError):                          # the check tells a picture without them
+        levels_drawn(plain, plain, cam, p, vol, legend_box)
     with pytest.raises(ValueError, match="film is 64x48"):
-        burn_in(np.zeros((10, 10, 3), np.uint8), cam, p, vol)
+        burn_in(np.zeros((10, 10, 3), np.uint8), PinholeCamera.looking((1.5, -1.8, 1.2), (0, 0, 0), (0, 0, 1),
+                                                                        40.0, (64, 48)), p, vol)
     with pytest.raises(ValueError, match="annotate"):
         Annotations.parse("outline,grid")
     assert Annotations.parse("levels,legend").levels and not Annotations.parse("levels").outline
 
 
+def png_is_exr_with_lines(png, exr, distance):
+    """The 8-bit PNG is the EXR tone-mapped (`srgb8`) more than 3 px from
+    the burnt-in lines (``distance``: each pixel's, (H, W)), and differs
+    from it on them (within half a pixel)."""
+    from mi_amr.images import srgb8
+    toned = srgb8(np.asarray(exr, np.float32)[..., :3]).astype(np.int64)
+    assert png.shape == toned.shape
+    far, on = distance > 3, distance < 0.5
+    assert far.sum() >= 8 and on.sum() >= 8, (far.sum(), on.sum())
+    assert np.abs(png[far].astype(np.int64) - toned[far]).max() <= 1
+    assert np.mean(np.abs(png[on].astype(np.int64) - toned[on]).max(axis=1) > 8) > 0.5
+
+
 def test06_data_scene_annotates_pngs_and_slices(llvm, tmp_path):
     """`DataScene`: ``render(annotate=...)`` keeps the float picture as
     rendered and shows the annotated one inline; ``save(annotate=...)``
-    draws into the PNG only; ``slice`` at a world position is the slice of
+    draws into the PNG only (read back: the EXR tone-mapped away from the
+    outline, other pixels on it; a PNG without lines or of another picture
+    fails the check); ``slice`` at a world position is the slice of
     the data at that unit-cube coordinate, as the medium holds the values."""
     import mi_amr
     from mi_amr.data.io import write_exabricks
@@ -186,15 +266,23 @@ def test06_data_scene_annotates_pngs_and_slices(llvm, tmp_path):
     from mi_amr.slicing import slice_volume
     path = tmp_path / "d.cells"
     write_exabricks(random_amr(1, 8, 2), path)
-    sc = mi_amr.scene(str(path), res=12, spp=4)
+    sc = mi_amr.scene(str(path), res=32, spp=4)
     plain = sc.render(seed=1)
     img = sc.render(seed=1, annotate="outline")
     np.testing.assert_array_equal(np.asarray(img), np.asarray(plain))
-    assert img.annotated_srgb.shape == (12, 12, 3) and img._repr_png_()[:4] == b"\x89PNG"
+    assert img.annotated_srgb.shape == (32, 32, 3) and img._repr_png_()[:4] == b"\x89PNG"
     assert not np.array_equal(img.annotated_srgb, srgb8(plain))
     np.testing.assert_array_equal(img.annotated("outline"), img.annotated_srgb)
     written = sc.save(tmp_path / "a.exr", seed=1, annotate="outline")
-    np.testing.assert_allclose(read_exr(written["exr"]), plain, rtol=1e-6)
+    exr = read_exr(written["exr"])
+    np.testing.assert_allclose(exr, plain, rtol=1e-6)
+    png = np.asarray(mi.Bitmap(str(written["png"])), np.uint8)[..., :3]
+    line = _line_points(sc.camera, outline(sc.placement))
+    png_is_exr_with_lines(png, exr, _distance(line, *png.shape[:2]))
+    with pytest.raises(AssertionError):                 # the check tells a PNG without the lines ...
+        png_is_exr_with_lines(srgb8(exr), exr, _distance(line, *png.shape[:2]))
+    with pytest.raises(AssertionError):                 # ... and one of another picture
+        png_is_exr_with_lines(png, sc.render(seed=2), _distance(line, *png.shape[:2]))
     s = sc.slice("z", 0.0, 16)
     ref = slice_volume(as_volume(sc.plan.data), 2, 0.5, 16, transform="log10" if sc.log else None)
     np.testing.assert_array_equal(s.values, ref.values)

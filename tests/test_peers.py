@@ -60,15 +60,46 @@ def test01_job_round_trip(tmp_path):
                         rounds=1)
 
 
-def test02_job_grids_are_the_references(llvm):
-    """The job's grids are exactly what `reference_medium` gives Mitsuba."""
+def job_is_reference(job: dict, cells, tf, scale: float, method: str):
+    """A peer job holds what `reference_medium` gives Mitsuba for the same
+    cells, TF, scale and reconstruction: the same grids, bit for bit, its
+    density scale and its ``gridvolume`` filter."""
+    med = reference_medium(cells, tf, scale, method)
+    assert np.array_equal(job["sigma_t"], np.array(med["sigma_t"]["data"]))
+    assert np.array_equal(job["albedo"], np.array(med["albedo"]["data"]))
+    assert job["density_scale"] == med["scale"] and job["filter_type"] == med["sigma_t"]["filter_type"]
+
+
+def test02_job_grids_are_the_references(llvm, tmp_path, monkeypatch):
+    """The job `peers.run_peers` builds for the fork (read back as the
+    peer reads it) holds the reference's grids, scale and filter and the
+    benchmark's settings; a failed peer run costs its rows, each with the
+    reason. The peer itself is not run here (its launcher hands the job
+    back; test06 runs it end to end): the check fails on a job of another
+    TF or another reconstruction."""
+    pe = load_peer_script()
     cells = random_amr(2, n=8, levels=2)
     tf = mi_amr.TransferFunction.preset("spiky", cells.value_range)
-    s, a = baked_grids(cells, tf, "nearest")
-    med = reference_medium(cells, tf, 10.0, "nearest")
-    assert np.array_equal(s, np.array(med["sigma_t"]["data"]))
-    assert np.array_equal(a, np.array(med["albedo"]["data"]))
-    assert med["sigma_t"]["filter_type"] == "nearest"
+    jobs = []
+
+    def launcher(job, out, timeout, venv=None):
+        jobs.append(pe.read_job(job))
+        raise RuntimeError("eradiate peer failed (not run in this test)")
+    monkeypatch.setattr(peers, "eradiate_python", lambda venv=None: Path("/no/such/python"))
+    monkeypatch.setattr(peers, "run_eradiate", launcher)
+    args = argparse.Namespace(reconstruction="nearest", memory_limit=1.0, frozen=True, res=24, spp=3,
+                              max_depth=17, repeats=2)
+    rows = peers.run_peers(["eradiate"], "d", "spiky", cells, tf, 10.0, args, np.zeros((24, 24, 3)), [], tmp_path)
+    assert [r["config"] for r in rows] == [f"eradiate/{c}" for c in peers.ERADIATE_CONFIGS]
+    assert all("not run in this test" in r["skipped"] for r in rows)
+    (job,) = jobs
+    job_is_reference(job, cells, tf, 10.0, "nearest")
+    assert (job["resolution"], job["spp"], job["max_depth"], job["rounds"], job["frozen"]) == (24, 3, 17, 2, True)
+    assert job["configs"] == list(peers.ERADIATE_CONFIGS) and job["scene"] == peers.SCENE
+    with pytest.raises(AssertionError):                  # another TF's grids
+        job_is_reference(job, cells, mi_amr.TransferFunction.preset("foggy", cells.value_range), 10.0, "nearest")
+    with pytest.raises(AssertionError):                  # another reconstruction's
+        job_is_reference(job, cells, tf, 10.0, "tent")
 
 
 def test03_scene_matches_bench_scene(llvm):

@@ -10,9 +10,9 @@ Python does, the toggles, the level filter, the clip control and the slice
 panel work (screenshots in docs/images/)."""
 
 import base64
+import dataclasses
 import os
 import threading
-import time
 from pathlib import Path
 
 import mitsuba as mi
@@ -27,8 +27,12 @@ from mi_amr.view import protocol as p
 from mi_amr.view.engine import ViewEngine
 from mi_amr.view.view_annotations import placement
 
+from conftest import HANG_S, wait_until
+
 pytest.importorskip("starlette")
 pytest.importorskip("yt")
+#: Playwright's deadlines, in milliseconds: only a hang reaches them.
+HANG_MS = HANG_S * 1000
 
 IMAGES = Path(__file__).resolve().parents[1] / "docs" / "images"
 
@@ -61,20 +65,17 @@ def enzo(tmp_path_factory):
     path = write_enzo(root / "DD0003", "DD0003", top, [((8, 8, 8), child)],
                       extra={"Temperature": lambda d: 100.0 * d ** 3})
     engine = ViewEngine(path, "Density", res=48, max_spp=2, preview_scale=1.0, mode="emission_absorption").start()
-    assert engine.ready.wait(120) and engine.error is None, engine.error
+    assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
     yield engine, root
     engine.stop()
 
 
-def _settle(engine, view, timeout=60):
+def _settle(engine, view):
     """Wait for the view's full frame of its newest state."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    def settled():
         with engine._wake:
-            if view.accum_epoch == view.epoch and view.spp >= engine.max_spp:
-                return
-        time.sleep(0.02)
-    raise AssertionError("no settled frame")
+            return view.accum_epoch == view.epoch and view.spp >= engine.max_spp
+    wait_until(settled, "settled frame")
 
 
 def test02_the_engine_answers_geometry_and_slices(enzo):
@@ -124,7 +125,9 @@ def test03_snapshots_burn_in_and_wait_for_a_reload(enzo, monkeypatch):
     camera projects it (pixels more than 3 px from it unchanged) and its
     EXR is the plain accumulation; a snapshot asked for while a field
     reloads is written after the reload, of the new field; one that would
-    wait too long is refused with a message."""
+    wait longer than it may is refused with a message (the reload held
+    back until then: it cannot end while the test holds the lock its load
+    takes)."""
     engine, root = enzo
     view = engine.open_view(lambda h, j: None)
     try:
@@ -161,24 +164,29 @@ def test03_snapshots_burn_in_and_wait_for_a_reload(enzo, monkeypatch):
         # a snapshot asked for during a field reload: written once it ends, of the new field
         worker = threading.Thread(target=engine.switch_field, args=("enzo,Temperature",))
         worker.start()
-        deadline = time.monotonic() + 10
-        while not engine._reloads and time.monotonic() < deadline:
-            time.sleep(0.001)
-        assert engine._reloads
+        wait_until(lambda: engine._reloads or not worker.is_alive(), "field reload under way", poll=0.001)
         shot = engine.take_snapshot(view, root / "shots", "during")
-        worker.join(120)
+        worker.join(HANG_S)
         assert "Temperature" in Path(shot.files[2]).read_text() and engine.field == "enzo,Temperature"
-        # ... refused with a message when the reload takes too long
+        # ... refused with a message when the reload outlasts the wait (0.01 s here): the reload
+        # cannot end while this thread holds JIT_LOCK, which its load takes
+        from mi_amr.view.engine import JIT_LOCK
         monkeypatch.setattr(engine_module, "SNAPSHOT_WAIT", 0.01)
         worker = threading.Thread(target=engine.switch_field, args=("enzo,Density",))
-        worker.start()
-        while not engine._reloads and worker.is_alive():
-            time.sleep(0.001)
-        with pytest.raises(ValueError, match="still reloading"):
-            engine.take_snapshot(view, root / "shots", "refused")
-        worker.join(120)
+        with JIT_LOCK:
+            worker.start()
+            wait_until(lambda: engine._reloads, "field reload under way")
+            with pytest.raises(ValueError, match="still reloading"):
+                engine.take_snapshot(view, root / "shots", "refused")
+        worker.join(HANG_S)
+        assert not worker.is_alive() and engine.field == "enzo,Density"
     finally:
         engine.close_view(view)
+
+
+#: The overlay canvas's pixels drawn on (alpha > 0), counted in the page.
+DRAWN = ("() => { const c = document.getElementById('overlay'), d = c.getContext('2d').getImageData(0, 0, c.width, "
+         "c.height).data; let n = 0; for (let k = 3; k < d.length; k += 4) n += d[k] > 0; return n; }")
 
 
 def _alpha(page) -> np.ndarray:
@@ -209,7 +217,7 @@ def test04_the_page_draws_annotations_clips_and_slices(enzo, browser):
     try:
         page.goto(server.url)
         page.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview "
-                               "&& window.viewerStats.annotations >= 1", timeout=60000)
+                               "&& window.viewerStats.annotations >= 1", timeout=HANG_MS)
         view = next(iter(engine._views.values()))
         geometry = engine.request(view, p.AnnotationsRequest())
         corners = np.asarray(geometry.corners, np.float64).reshape(8, 3)
@@ -232,11 +240,11 @@ def test04_the_page_draws_annotations_clips_and_slices(enzo, browser):
         assert inside and all(alpha[int(y) - 1:int(y) + 2, int(x) - 1:int(x) + 2].max() > 0 for x, y in inside)
         outline_only = (alpha > 0).sum()
         page.get_by_test_id("show-levels").check()
-        page.wait_for_function("document.querySelector('[data-testid=level-1]') !== null", timeout=10000)
-        page.wait_for_timeout(100)
+        page.wait_for_function("document.querySelector('[data-testid=level-1]') !== null", timeout=HANG_MS)
+        page.wait_for_function(f"({DRAWN})() > {outline_only}", timeout=HANG_MS)      # the levels drawn
         with_levels = (_alpha(page) > 0).sum()
         page.get_by_test_id("level-1").uncheck()
-        page.wait_for_timeout(100)
+        page.wait_for_function(f"({DRAWN})() < {with_levels}", timeout=HANG_MS)       # the finer one gone
         coarse_only = (_alpha(page) > 0).sum()
         assert with_levels > coarse_only >= outline_only, (outline_only, coarse_only, with_levels)
         page.get_by_test_id("level-1").check()
@@ -250,41 +258,28 @@ def test04_the_page_draws_annotations_clips_and_slices(enzo, browser):
         table = engine.loaded.table(view.spec).rgba[:, :3] * 255
         assert np.abs(np.array(ends[0][:3]) - table[0]).max() <= 5
         assert np.abs(np.array(ends[1][:3]) - table[-1]).max() <= 5
-        deadline = time.monotonic() + 5
-        while view.annotate is None or not view.annotate.levels:
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
+        wait_until(lambda: view.annotate is not None and view.annotate.levels, "levels in the view's annotations")
         # the clip plane, and the slice panel following it
         page.get_by_test_id("show-slice").check()
         page.get_by_test_id("clip-axis").select_option("x")
         page.eval_on_selector("#clip-offset", "s => { s.value = '400'; s.dispatchEvent(new Event('input')); }")
         lo, hi = geometry.box[0][0], geometry.box[1][0]
         offset = lo + 0.4 * (hi - lo)
-        deadline = time.monotonic() + 10
-        while view.clip is None or abs(view.clip[1] - offset) > 1e-9:
-            assert time.monotonic() < deadline, view.clip
-            time.sleep(0.02)
+        wait_until(lambda: view.clip is not None and abs(view.clip[1] - offset) <= 1e-9, "clip offset of the page")
         assert view.clip[0] == (1.0, 0.0, 0.0)
         page.get_by_test_id("clip-axis").select_option("free")          # a free normal, then back to x
         page.get_by_test_id("clip-nz").fill("2")
         page.get_by_test_id("clip-nz").dispatch_event("change")
-        deadline = time.monotonic() + 10
-        while view.clip is None or view.clip[0] != (1.0, 1.0, 2.0):
-            assert time.monotonic() < deadline, view.clip
-            time.sleep(0.02)
+        wait_until(lambda: view.clip is not None and view.clip[0] == (1.0, 1.0, 2.0), "free clip normal")
         page.get_by_test_id("clip-axis").select_option("x")
-        deadline = time.monotonic() + 10
-        while view.clip is None or view.clip[0] != (1.0, 0.0, 0.0):
-            assert time.monotonic() < deadline, view.clip
-            time.sleep(0.02)
+        wait_until(lambda: view.clip is not None and view.clip[0] == (1.0, 0.0, 0.0), "x clip normal again")
         assert view.clip[1] == pytest.approx(offset, rel=1e-9)
-        deadline = time.monotonic() + 5                 # the page counts the change messages the view counts
-        while page.evaluate("window.viewerStats.changes") != view.version:
-            assert time.monotonic() < deadline, (page.evaluate("window.viewerStats.changes"), view.version,
-                                                 page.evaluate("window.viewerStats.errors"))
-            time.sleep(0.05)
+        # the page counts the change messages the view counts
+        wait_until(lambda: page.evaluate("window.viewerStats.changes") == view.version,
+                   "page's change count equal to the view's version", poll=0.05)
+        assert page.evaluate("window.viewerStats.errors") == []
         page.wait_for_function(f"window.viewerStats.lastSlice && window.viewerStats.lastSlice.axis === 'x' && "
-                               f"Math.abs(window.viewerStats.lastSlice.position - {offset}) < 1e-9", timeout=20000)
+                               f"Math.abs(window.viewerStats.lastSlice.position - {offset}) < 1e-9", timeout=HANG_MS)
         _settle(engine, view)
         box = page.get_by_test_id("slice").bounding_box()
         page.mouse.move(box["x"] + 0.3 * box["width"], box["y"] + 0.7 * box["height"])
@@ -306,11 +301,41 @@ def test04_the_page_draws_annotations_clips_and_slices(enzo, browser):
         server.stop()
 
 
+def same_numbers(widget_geometry: dict, widget_slice: dict, server_geometry, server_slice):
+    """The widget's replies (JSON over the comm channel) hold the server's
+    numbers: the domain's corners and box, each level's boxes (1e-6 of the
+    domain), a slice's window, values and levels (NaN where none)."""
+    size = float(np.ptp(np.asarray(server_geometry.corners, np.float64).reshape(8, 3), axis=0).max())
+    np.testing.assert_allclose(widget_geometry["corners"], server_geometry.corners, atol=1e-6 * size)
+    np.testing.assert_allclose(np.asarray(widget_geometry["box"], np.float64), np.asarray(server_geometry.box),
+                               atol=1e-6 * size)
+    levels = {lv["refinement"]: lv for lv in server_geometry.levels}
+    assert sorted(lv["refinement"] for lv in widget_geometry["levels"]) == sorted(levels)
+    for lv in widget_geometry["levels"]:
+        np.testing.assert_allclose(np.asarray(lv["boxes"], np.float64),
+                                   np.asarray(levels[lv["refinement"]]["boxes"], np.float64), atol=1e-6 * size)
+    assert (widget_slice["width"], widget_slice["height"], tuple(widget_slice["axes"])) == \
+        (server_slice.width, server_slice.height, tuple(server_slice.axes))
+    np.testing.assert_allclose(widget_slice["window"], server_slice.window, atol=1e-6 * size)
+
+    def arrays(values, lv, w, h):
+        return (np.frombuffer(base64.b64decode(values), "<f4").reshape(h, w),
+                np.frombuffer(base64.b64decode(lv), np.int8).reshape(h, w))
+    wv, wl = arrays(widget_slice["values"], widget_slice["levels"], widget_slice["width"], widget_slice["height"])
+    sv, sl = arrays(server_slice.values, server_slice.levels, server_slice.width, server_slice.height)
+    np.testing.assert_allclose(wv, sv, rtol=1e-6)                   # NaN where the other has NaN
+    np.testing.assert_array_equal(wl, sl)
+    assert np.isfinite(sv).sum() > 0.5 * sv.size and set(np.unique(sl)) >= {0, 1}      # a slice through both levels
+
+
 def test05_the_notebook_widget_answers_the_same_requests(enzo, llvm):
     """The notebook widget (the same page code and markup) routes the
     annotations, clip and slice messages to its engine as the server does:
-    the geometry and the slice come back over the comm channel, the clip
-    plane reaches its view, a bad plane is one clear error."""
+    its geometry (corners, box, each level's boxes) and its slice (window,
+    values, levels) are the server's numbers for the same data; the clip
+    plane reaches its view, a bad plane is one clear error. The comparison
+    fails on the server's slice at another position and on geometry
+    missing a level's box."""
     pytest.importorskip("anywidget")
     import mi_amr
     from test_widget import Recorded, _wait_for
@@ -320,20 +345,31 @@ def test05_the_notebook_widget_answers_the_same_requests(enzo, llvm):
         return _wait_for(w, lambda c: c.get("type") == kind)[-1][0]
 
     engine, _ = enzo
+    server_view = engine.open_view(lambda h, j: None)
+    try:
+        geometry = engine.request(server_view, p.AnnotationsRequest())
+        at = p.SliceRequest("y", -0.1, 16)              # through the child grid (-0.25 .. 0 a side) and the root's
+        server_slice = engine.request(server_view, at)
+        elsewhere = engine.request(server_view, p.SliceRequest("y", 0.2, 16))
+    finally:
+        engine.close_view(server_view)
     sc = mi_amr.scene(str(engine.source), "Density", mode="emission_absorption", res=48, spp=2)
     w = Recorded(sc, res=48, max_spp=2)
     try:
-        w.wait(60)                       # a widget renders once a page or a call needs its view
+        w.wait(HANG_S)                   # a widget renders once a page or a call needs its view
         w._on_page(w, {"type": "annotations"}, [])
         reply = wait_for(w, "annotations")
-        assert len(reply["levels"]) == 2 and reply["box"]
-        w._on_page(w, {"type": "slice", "axis": "y", "position": 0.0, "res": 16}, [])
+        w._on_page(w, {"type": "slice", "axis": at.axis, "position": at.position, "res": at.res}, [])
         s = wait_for(w, "slice")
-        assert (s["width"], s["height"], s["axes"]) == (16, 16, ["z", "x"])
+        assert tuple(s["axes"]) == ("z", "x") and len(reply["levels"]) == 2
+        same_numbers(reply, s, geometry, server_slice)
+        with pytest.raises(AssertionError):                 # the comparison sees another slice ...
+            same_numbers(reply, s, geometry, elsewhere)
+        fewer = [dict(lv, boxes=lv["boxes"][:-1]) if lv["refinement"] == 1 else lv for lv in geometry.levels]
+        with pytest.raises(AssertionError):                 # ... and a box missing
+            same_numbers(reply, s, dataclasses.replace(geometry, levels=tuple(fewer)), server_slice)
         w._on_page(w, {"type": "clip", "normal": [0, 0, 1], "offset": 0.0}, [])
-        deadline = time.monotonic() + 10
-        while w.view.clip is None and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_until(lambda: w.view.clip is not None, "clip plane in the widget's view")
         assert w.view.clip == ((0.0, 0.0, 1.0), 0.0)
         w._on_page(w, {"type": "clip", "normal": [0, 0, 0]}, [])
         assert "clip normal" in wait_for(w, "error")["message"]
