@@ -246,3 +246,28 @@ def test07_ray_march_equals_emission_absorption_in_every_variant(kind):
         b = render_passes(scene("emission_absorption"), 16, 64, seed0=1000)
     z = block_z_scores(a, b, 4)
     assert np.isfinite(a).all() and np.abs(z).max() < Z_MAX, np.abs(z).max()
+
+
+def test08_surfaces_are_shaded_locally_without_noise(llvm):
+    """The marcher's picture has no noise anywhere: a diffuse floor (no
+    medium in front) under a directional light shows ``reflectance *
+    (AMBIENT + DIFFUSE max(n.l, 0))``, the same for two seeds; the light
+    from below the floor leaves the ambient share (power)."""
+    T = mi.ScalarTransform4f
+
+    def floor(direction, seed):
+        scene = mi.load_dict({
+            "type": "scene", "integrator": {"type": "amrvolpath", "mode": "ray_march"},
+            "sensor": {"type": "perspective", "fov": 30, "to_world": T().look_at([0, 0, 3], [0, 0, 0], [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+            "floor": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb",
+                                                                                        "value": [0.5, 0.4, 0.3]}}},
+            "sun": {"type": "directional", "direction": direction, "irradiance": {"type": "rgb", "value": 3.0}}})
+        return np.array(mi.render(scene, spp=2, seed=seed))
+    d = np.array([0.6, 0.0, -0.8])
+    img = floor(d.tolist(), 0)
+    want = np.array([0.5, 0.4, 0.3]) * (AMBIENT + DIFFUSE * 0.8)
+    np.testing.assert_allclose(img, np.broadcast_to(want, img.shape), rtol=1e-5)
+    np.testing.assert_allclose(floor(d.tolist(), 1), img, rtol=1e-5)
+    below = floor((-d).tolist(), 0)
+    np.testing.assert_allclose(below, np.broadcast_to(np.array([0.5, 0.4, 0.3]) * AMBIENT, img.shape), rtol=1e-5)

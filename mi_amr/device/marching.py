@@ -49,6 +49,14 @@ MARCH_RR_THRESHOLD = 1e-3
 AMBIENT, DIFFUSE, SPECULAR, SHININESS = 0.25, 0.75, 0.25, 32.0
 
 
+def _ray_bits(ray):
+    """64 bits of a local ray's origin and direction (a hash seed)."""
+    def bits(v):
+        return mi.UInt64(dr.reinterpret_array(mi.UInt32, v))
+    return ((bits(ray.o.x) ^ (bits(ray.d.y) << 21) ^ (bits(ray.o.z) << 42))
+            + ((bits(ray.d.x) << 11) ^ (bits(ray.o.y) << 32) ^ (bits(ray.d.z) << 53)))
+
+
 def absorbed_fraction(tau):
     """``1 - exp(-tau)`` for optical depths ``tau >= 0``, without the
     cancellation of float32 at small ``tau`` (its series there)."""
@@ -87,7 +95,7 @@ class RayMarch:
     the roulette."""
 
     label = "amr_march"
-    MOVING = ("mu", "a", "b", "h", "w")
+    MOVING = ("mu", "a", "b", "h", "w", "steps")
 
     def __init__(self, lookup, colour_of, sampler, extent, offset, step_scale, brightness, exact: bool,
                  emission_of=None, shading=None, carries: bool = False, count: bool = True):
@@ -97,7 +105,10 @@ class RayMarch:
         self.emission_of, self.shading, self.carries, self.count = emission_of, shading, carries, count
 
     def begin(self, ray, active):
-        rng = Rng.derive(self.sampler, active)
+        # the stream from the sampler and the ray itself: a sampler that
+        # repeats its numbers over pixels (stratified without jitter: yt's
+        # pixel-centre rays) still gives each ray its own jitter
+        rng = Rng.derive(self.sampler, active).mixed(_ray_bits(ray))
         # per ray: the jitter of every step's sample, and finest cells per local t
         self.jitter = mi.Float(0.5) if self.exact else rng.next_1d(active)
         self.cells_per_t = dr.norm(ray.d * self.extent)

@@ -49,6 +49,11 @@ class Rng:
         lo = mi.UInt64(mi.UInt32(source.next_1d(active) * 16777216.0))
         return Rng(_mix64((hi << 24) | lo))
 
+    def mixed(self, bits) -> "Rng":
+        """This stream's state mixed with 64 further ``bits`` per lane (a
+        hash: lanes whose states agree but whose bits differ part)."""
+        return Rng(_mix64(self.state ^ bits))
+
     def next_u32(self, active=True):
         """32 random bits; the state advances on active lanes."""
         old = self.state

@@ -33,7 +33,7 @@ from ..core.jit_struct import jit_struct
 from ..device.tracking import TrackingCounts
 from ..params import ParameterError, check_known, get_bool, get_float, get_int, get_string
 from ..transfer.spectra import variant_kind
-from .lighting_modes import LIGHTING_MODES, accumulate
+from .lighting_modes import LIGHTING_MODES, accumulate, local_surface_shading
 from .medium import AMRMedium, require_jit_rgb_variant, scene_media
 from .variant_class import VariantPlugin
 
@@ -436,6 +436,15 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             ctx = mi.BSDFContext()
             bsdf = si.bsdf(ray)
             nee_s = active_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth + 1 < self.max_depth)
+            if dr.hint(lighting.marches, mode="scalar"):
+                # the ray marcher shades a surface of smooth lobes locally, as
+                # its samples (no light sample, no bounce): a deterministic
+                # picture; null, delta and emitting surfaces are as ever
+                light = self._march_light(scene, ray, local=True)
+                L = accumulate(L, nee_s, throughput * self.brightness * local_surface_shading(
+                    bsdf.eval_diffuse_reflectance(si, nee_s), si.sh_frame.n, light(si.p, nee_s), -ray.d), adjoint)
+                active_surface &= ~nee_s
+                nee_s &= False
 
             # ---- NEE, one call for medium and surface vertices ----
             # (a lane is one or the other: one shadow loop in the kernel and
@@ -496,12 +505,13 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         self._count(counts, shadow_counts)
         return L, valid_ray, dL
 
-    def _march_light(self, scene, ray):
-        """The light of ``shading="gradient"``: ``light(p, active) -> unit
-        direction towards it`` from world points, for the scene's first
-        directional or point emitter (its delta sample), else a headlight
-        along ``-ray.d``; None for flat shading."""
-        if self.shading != "gradient":
+    def _march_light(self, scene, ray, local: bool = False):
+        """The light of the ray marcher's local shading: ``light(p, active)
+        -> unit direction towards it`` from world points, for the scene's
+        first directional or point emitter (its delta sample), else a
+        headlight along ``-ray.d``. None for the samples of flat shading
+        (unless ``local``: the light of the surfaces it shades)."""
+        if self.shading != "gradient" and not local:
             return None
         delta = mi.EmitterFlags.DeltaDirection | mi.EmitterFlags.DeltaPosition
         emitter = next((e for e in scene.emitters() if mi.has_flag(e.flags(), delta)), None)

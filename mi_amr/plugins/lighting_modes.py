@@ -18,7 +18,8 @@ consumer of that one walk's events (docs/design.md section 6d):
   medium (`AMRMedium.march`, deterministic steps of the one walk,
   docs/design.md section 14), collects its self-lit colour and leaves it
   with the transmittance as the throughput's factor; the same integral as
-  `EmissionAbsorption` without its noise.
+  `EmissionAbsorption` without its noise. Surfaces of smooth lobes are
+  shaded locally (`local_surface_shading`), so the picture has no noise.
 
 Each mode is a Python object of the kernel's shape (the mode is a Python
 constant of the kernel): its methods add Dr.Jit operations at fixed places
@@ -28,6 +29,8 @@ of the walk, never a branch on Dr.Jit values.
 from __future__ import annotations
 
 import drjit as dr
+
+from ..device.marching import AMBIENT, DIFFUSE
 
 
 def accumulate(L, where, contribution, adjoint):
@@ -74,6 +77,16 @@ class EmissionAbsorption(MultipleScattering):
     def collided(self, L, act_scatter, throughput, brightness, adjoint):
         L = accumulate(L, act_scatter, throughput * brightness, adjoint)
         return L, act_scatter & False
+
+
+def local_surface_shading(reflectance, normal, light, view):
+    """A surface as the ray marcher shades it (docs/design.md section 14):
+    its diffuse ``reflectance`` times ``AMBIENT + DIFFUSE max(n.l, 0)``,
+    the normal turned towards the viewer (``view``: towards it; ``light``:
+    towards the light), no shadow: the sci-vis shading of its samples on a
+    flat gradient."""
+    n = dr.select(dr.dot(normal, view) < 0.0, -normal, normal)
+    return reflectance * (AMBIENT + DIFFUSE * dr.maximum(dr.dot(n, light), 0.0))
 
 
 class RayMarch(EmissionAbsorption):
