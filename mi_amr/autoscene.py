@@ -33,7 +33,7 @@ from .data.yt_import import field_key
 from .transfer.function import PRESETS, TransferFunction
 from .transfer.layers import Layers, is_layers
 from .transfer.spectra import blackbody_luminance
-from .visibility import (OPAQUE_OPACITY, PREDICT_RES, LayersSeen, Visibility, camera_rays, layer_weights,
+from .visibility import (OPAQUE_OPACITY, PREDICT_RES, LayersSeen, Visibility, camera_rays, layer_weights, layers_opacity,
                          layers_seen, max_grid, opacity_grid, projected_depth, ray_samples, scale_for_opacity,
                          visibility_of_depths)
 
@@ -348,16 +348,19 @@ def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = No
     plan = ScenePlan(volume, transform, tf, value_range, float(density_scale), world, origin, notes=notes,
                      emission=glow, optical_depth=float(depth), peak_depth=float(peak_depth),
                      value_range=value_range)
+    alpha_grid = None
     if is_layers(tf):
-        scale_given |= _planned_layers(plan, stats, vs, tf_given, scale_given, range_given)
-    return _checked(plan, stats, vs, tf_given, scale_given)
+        planned, alpha_grid = _planned_layers(plan, stats, vs, tf_given, scale_given, range_given)
+        scale_given |= planned
+    return _checked(plan, stats, vs, tf_given, scale_given, alpha_grid)
 
 
 #: The first layer's opacities (relative to the last's, 1) the plan tries for
 #: the default layered TF ...
-LAYER_LOWS = np.logspace(-3.5, 0.0, 15)
-#: ... and the density scales, times the one of `_planned_density_scale`.
-LAYER_SCALES = np.exp2(np.arange(-6.0, 6.01, 0.5))
+LAYER_LOWS = np.logspace(-3.5, 0.0, 8)
+#: ... and the density scales, times the one that gives `TARGET_DEPTH` at
+#: the layers' mean opacity.
+LAYER_SCALES = np.exp2(np.arange(-6.0, 6.01, 1.0))
 #: A plan whose layers tint less than this share of the footprint shows
 #: none of them.
 MIN_TINTED = 0.2
@@ -397,7 +400,7 @@ def _pixel_range(plan: ScenePlan, log: bool):
 
 
 def _planned_layers(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scale_given: bool,
-                    range_given: bool = False) -> bool:
+                    range_given: bool = False) -> tuple:
     """Plan a layered TF so that light crosses the outer layers to the inner
     ones: the layers' unit-peak profiles are averaged into the check's
     voxel grid (`opacity_grid`, one channel a layer) and the camera's rays
@@ -406,8 +409,11 @@ def _planned_layers(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scal
     `LAYER_SCALES` (unless given, within the `MAX_DEPTH` bound) the share
     of each pixel's light that each layer gives is predicted
     (`layer_weights`), and the plan takes the pair that shows the most
-    layers (`layers_seen`), the most evenly. Notes say which layers the
-    picture is predicted to show. Returns whether it set the density scale."""
+    layers (`layers_seen`), the most evenly (never a flat opaque block).
+    Notes say which layers the picture is predicted to show. Where at most
+    one layer would be seen (the values do not spread over the range: a
+    field of zeros and ones) a default TF becomes `FALLBACK_TF`. Returns whether it set the density scale,
+    and the TF's opacity over the check's voxel grid (None if not made)."""
     log = plan.transform == "log10"
     layers = Layers.parse(plan.tf)
     if not range_given:
@@ -422,11 +428,12 @@ def _planned_layers(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scal
 
     def u(v):
         return ((_log_or_floor(v) if log else v) - lo) / (hi - lo)
-    grid = opacity_grid(plan.data, lambda v: layers.profiles(u(v)))
+    grid = opacity_grid(plan.data, lambda v: layers.profiles_fast(u(v)))
     search = camera_rays(plan.origin, plan.target, plan.up, plan.fov, LAYER_SEARCH_RES)
-    samples, dt, hits = ray_samples(grid, plan.extent, *search, LAYER_SEARCH_STEPS)
+    samples, dt, hits = ray_samples(grid.astype(np.float32), plan.extent, *search, LAYER_SEARCH_STEPS)
     if not hits.any():
-        return False
+        return False, None
+    dt = dt.astype(np.float32)
     lows = [layers.low] if tf_given else LAYER_LOWS
     best = None
     for low in lows:
@@ -435,19 +442,29 @@ def _planned_layers(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scal
         base = TARGET_DEPTH / max(float(alpha[alpha > 0].mean()) if (alpha > 0).any() else 0.0, 1e-6)
         scales = [plan.density_scale] if scale_given else np.minimum(base * LAYER_SCALES, MAX_DEPTH / opac.max())
         for scale in np.unique(scales):
-            seen = layers_seen(layer_weights(samples, dt, opac, scale), int(hits.sum()))
+            weights = layer_weights(samples, dt, opac, scale)
+            seen, block = layers_seen(weights, int(hits.sum())), layers_opacity(weights)
             p = seen.shares[list(seen.seen)]
             even = float(np.exp(-(p / p.sum() * np.log(p / p.sum())).sum())) if len(p) else 0.0
-            score = (len(seen.seen) if seen.tinted >= MIN_TINTED else 0, seen.tinted, even)
+            flat = block.opaque >= MAX_OPAQUE * block.shown        # a flat opaque block: the check's rule
+            score = (not flat, len(seen.seen) if seen.tinted >= MIN_TINTED else 0, seen.tinted, even)
             if best is None or score > best[0]:
                 best = (score, low, float(scale))
-    _, low, scale = best
+    (_, count, *_), low, scale = best
+    if count < 2 and not tf_given:              # the values do not spread over layers (a field of two values)
+        mean = _mean_alpha(stats, FALLBACK_TF, plan.tf_range, log)
+        peak = _peak_alpha(FALLBACK_TF, plan.tf_range, log, vs)
+        new = plan.density_scale if scale_given else _planned_density_scale(mean, peak)[0]
+        plan.notes.append(f"layers: at most {count} of {layers.n} layers would be seen (the values do not spread "
+                          f"over the range): TF '{FALLBACK_TF}' instead, density_scale {new:.3g}")
+        plan.tf, plan.density_scale, plan.optical_depth, plan.peak_depth = FALLBACK_TF, float(new), new * mean, new * peak
+        return False, None
     chosen = layers if tf_given else layers.with_low(low)
     if not tf_given:
         plan.tf = chosen.spec()
     ratio = scale / plan.density_scale
     plan.density_scale = scale
-    mean = _mean_alpha(stats, plan.tf, plan.tf_range, log)
+    mean = float((grid @ chosen.opacities()).mean())          # the voxels' mean: the cells' volume-weighted one
     plan.optical_depth, plan.peak_depth = scale * mean, scale * _peak_alpha(plan.tf, plan.tf_range, log, vs)
     rays = camera_rays(plan.origin, plan.target, plan.up, plan.fov, PREDICT_RES)
     samples, dt, hits = ray_samples(grid, plan.extent, *rays)
@@ -455,7 +472,7 @@ def _planned_layers(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scal
     plan.notes.append(f"layers: TF '{plan.tf}' (first layer's opacity {chosen.low:.3g} of the last's), "
                       f"density_scale {scale:.3g}{'' if scale_given else f' ({ratio:.3g}x the mean-opacity one)'}: "
                       f"optical depth {plan.optical_depth:.3g} at the mean opacity; predicted {plan.layers}")
-    return not scale_given
+    return not scale_given, (grid * chosen.opacities()).max(axis=-1)
 
 
 #: The plan's check: a predicted picture showing the data in less than this
@@ -472,18 +489,23 @@ REPLAN_SHARE = 0.5
 FALLBACK_TF = "ramp"
 
 
-def _checked(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scale_given: bool) -> ScenePlan:
+def _checked(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scale_given: bool,
+             alpha_grid=None) -> ScenePlan:
     """``plan`` after its check (docs/manual/data.md "Default pictures"):
     predict the picture (`mi_amr.visibility`); when it shows the data in
     under `MIN_SHOWN` of the footprint, take `FALLBACK_TF` if the TF is
     transparent at every value the data hold (and was not given), then
     raise the density scale (if not given) within the `MAX_DEPTH` bound;
     when at least `MAX_OPAQUE` of what shows is opaque, lower it. Each
-    change is a note; the last prediction is ``plan.visibility``."""
+    change is a note; the last prediction is ``plan.visibility``.
+    ``alpha_grid``: the TF's opacity over the voxel grid, when the plan
+    made it already (`_planned_layers`)."""
     log = plan.transform == "log10"
     rays = camera_rays(plan.origin, plan.target, plan.up, plan.fov, PREDICT_RES)
 
     def depths(tf):
+        if alpha_grid is not None and tf == plan.tf:      # the layers' grid, made already
+            return projected_depth(alpha_grid, plan.extent, *rays)
         fn = TransferFunction.load(tf, plan.tf_range)
         grid = opacity_grid(plan.data, lambda v: fn(_log_or_floor(v) if log else v)[:, 3])
         return projected_depth(grid, plan.extent, *rays)

@@ -101,12 +101,12 @@ def _grid_shape(data, grid: int):
     return lo, size / shape, shape
 
 
-def _voxel_cover(data, grid: int):
+def _voxel_cover(data, lo, voxel, shape):
     """Yield ``(flat voxel index (k,), values (k,), volume weight (k,))``
-    for a sample of the cells of ``data`` (`sampled_cells`): a cell within
-    one voxel once, a cell larger than a voxel once per voxel it covers,
-    its weight shared among them."""
-    lo, voxel, shape = _grid_shape(data, grid)
+    for a sample of the cells of ``data`` (`sampled_cells`) on the grid
+    ``lo, voxel, shape`` (`_grid_shape`): a cell within one voxel once, a
+    cell larger than a voxel once per voxel it covers, its weight shared
+    among them."""
     for pos, width, v, weight in sampled_cells(data):
         w = weight * width ** 3
         i0 = np.clip(np.floor((pos - lo) / voxel + 1e-9), 0, shape - 1).astype(np.int64)
@@ -133,10 +133,10 @@ def opacity_grid(data, opacity, grid: int = GRID) -> np.ndarray:
     side). Voxels no sampled cell reaches are 0 (no data: empty space).
     ``opacity`` may give several channels per value ((m, c): each layer's
     opacity of a layered TF); the grid then has them as its last axis."""
-    shape = tuple(_grid_shape(data, grid)[2])
+    lo, voxel, shape = _grid_shape(data, grid)
     size = int(np.prod(shape))
     num, den, channels = None, np.zeros(size), ()
-    for flat, v, w in _voxel_cover(data, grid):
+    for flat, v, w in _voxel_cover(data, lo, voxel, shape):
         a = np.asarray(opacity(v), np.float64)
         channels = a.shape[1:]
         a = a.reshape(a.shape[0], int(np.prod(a.shape[1:])))
@@ -146,20 +146,20 @@ def opacity_grid(data, opacity, grid: int = GRID) -> np.ndarray:
             num[:, c] += np.bincount(flat, weights=a[:, c] * w, minlength=size)
         den += np.bincount(flat, weights=w, minlength=size)
     if num is None:
-        return np.zeros(shape)
+        return np.zeros(tuple(shape))
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where(den[:, None] > 0, num / np.where(den > 0, den, 1.0)[:, None], 0.0)
-    return out.reshape(shape + tuple(channels))
+    return out.reshape(tuple(shape) + tuple(channels))
 
 
 def max_grid(data, transform=None, grid: int = GRID) -> np.ndarray:
     """The largest of the (``transform``-ed) values of a sample of the cells
     per voxel of the grid of `opacity_grid`; -inf where no cell reaches."""
-    shape = tuple(_grid_shape(data, grid)[2])
+    lo, voxel, shape = _grid_shape(data, grid)
     out = np.full(int(np.prod(shape)), -np.inf)
-    for flat, v, _ in _voxel_cover(data, grid):
+    for flat, v, _ in _voxel_cover(data, lo, voxel, shape):
         np.maximum.at(out, flat, v if transform is None else transform(v))
-    return out.reshape(shape)
+    return out.reshape(tuple(shape))
 
 
 def camera_rays(origin, target, up, fov: float, res: int) -> tuple[np.ndarray, np.ndarray]:
@@ -261,7 +261,7 @@ def layer_weights(samples, dt, opacities, scale: float) -> np.ndarray:
     from ``samples`` (h, steps, n) of the layers' unit-peak profiles along
     the rays (`ray_samples`), steps ``dt`` (h,), layer opacities
     ``opacities`` (n,) and the density scale."""
-    sig_k = scale * samples * np.asarray(opacities, np.float64)[None, None, :]
+    sig_k = samples * (scale * np.asarray(opacities, samples.dtype))[None, None, :]
     sig = sig_k.sum(axis=2)
     depth = sig * dt[:, None]
     before = np.exp(-(np.cumsum(depth, axis=1) - depth))
@@ -269,6 +269,16 @@ def layer_weights(samples, dt, opacities, scale: float) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         frac = np.where(sig[..., None] > 0, sig_k / np.where(sig > 0, sig, 1.0)[..., None], 0.0)
     return (absorbed[..., None] * frac).sum(axis=1)
+
+
+def layers_opacity(weights) -> Visibility:
+    """`Visibility` of per-ray layer weights (h, n) (`layer_weights`; a
+    ray's opacity is their sum, ``1 - T``), the footprint being the rays."""
+    opacity = np.asarray(weights).sum(axis=1)
+    if not len(opacity):
+        return Visibility(0.0, 0.0, 0)
+    return Visibility(float((opacity > VISIBLE_OPACITY).mean()), float((opacity > OPAQUE_OPACITY).mean()),
+                      len(opacity))
 
 
 def layers_seen(weights, footprint: int) -> LayersSeen:
@@ -388,6 +398,8 @@ LIGHTNESS_RANGE = (5.0, 95.0)
 HUE_RADIUS = 15.0
 #: A colour layer holds at least this share of the pixels that carry colour.
 MIN_LAYER_SHARE = 0.03
+#: Pixels a side of the box the picture is averaged over first.
+SMOOTH = 3
 #: Bin width (degrees) of the hue histogram the layers are made from.
 HUE_BIN = 1.0
 
@@ -422,13 +434,27 @@ class ColourLayers:
                 f"({100 * self.coloured / max(self.pixels, 1):.3g}% of the pixels carry colour)")
 
 
+def _box_mean(img, size: int) -> np.ndarray:
+    """``img`` (H, W, C) averaged over ``size`` x ``size`` pixels (edges
+    repeated)."""
+    if size <= 1:
+        return img
+    r = size // 2
+    pad = np.pad(img, ((r, size - 1 - r), (r, size - 1 - r), (0, 0)), mode="edge")
+    h, w = img.shape[:2]
+    return sum(pad[i:i + h, j:j + w] for i in range(size) for j in range(size)) / size ** 2
+
+
 def colour_layers(image, mask=None, *, radius: float = HUE_RADIUS, min_share: float = MIN_LAYER_SHARE,
-                  min_chroma: float = MIN_CHROMA, lightness=LIGHTNESS_RANGE) -> ColourLayers:
+                  min_chroma: float = MIN_CHROMA, lightness=LIGHTNESS_RANGE, smooth: int = SMOOTH) -> ColourLayers:
     """The number of colour layers an eye can tell apart in ``image`` (H, W,
     3+; sRGB uint8 or floats in [0, 1] as displayed: `mi_amr.images.srgb8`
     of a rendered one; docs/design.md section 16).
 
-    The pixels that carry colour (within ``mask`` (H, W) bool when given;
+    The picture is first averaged over ``smooth`` x ``smooth`` pixels (as
+    an eye averages a Monte Carlo picture's grain: the noise of a grey
+    ground is no colour). The pixels that carry colour (within ``mask``
+    (H, W) bool when given;
     CIELAB chroma at least ``min_chroma`` and lightness within
     ``lightness``: the grey ground, the pale sky and a black background are
     left out) are clustered by their chromaticity's direction in the (a*,
@@ -441,7 +467,8 @@ def colour_layers(image, mask=None, *, radius: float = HUE_RADIUS, min_share: fl
     img = np.asarray(image)[..., :3]
     if img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"colour_layers needs an (H, W, 3) image, got shape {np.shape(image)}")
-    lab = srgb_to_lab(img).reshape(-1, 3)
+    lab = srgb_to_lab(_box_mean(img.astype(np.float64) / (255.0 if img.dtype == np.uint8 else 1.0),
+                                smooth)).reshape(-1, 3)
     keep = np.ones(len(lab), bool) if mask is None else np.asarray(mask, bool).reshape(-1).copy()
     if keep.size != len(lab):
         raise ValueError(f"colour_layers: the mask's shape {np.shape(mask)} is not the image's {img.shape[:2]}")

@@ -65,20 +65,24 @@ def test02_the_five_decade_density_is_log10_over_its_web(llvm, plans):
     values and a range at the TF's transparent bottom)."""
     plan = plans["cosmology"]
     assert plan.transform == "log10"
-    assert plan.tf_range[0] < -29.0 and plan.tf_range[1] > -26.5
+    assert plan.value_range[0] < -29.0 and plan.value_range[1] > -26.5
+    # the default layers span the values the picture's pixels reach, from the voids into the filaments
+    assert plan.value_range[0] <= plan.tf_range[0] < -28.5 and -28.5 < plan.tf_range[1] <= plan.value_range[1]
     assert "mass up to" in plan.notes[1]
     assert plan.optical_depth > 0.5 and plan.visibility.shown > 0.2
 
 
 def test03_a_tf_transparent_at_every_value_is_replanned(llvm, outputs, monkeypatch):
-    """The sheet (values 0 and 1 only): the default layers put 1 on a layer
-    and show it; a default transparent at both ('spiky') is replanned to
-    'ramp', which says why; a TF the user names is kept, and its (empty)
-    prediction is reported."""
+    """The sheet (values 0 and 1 only): the default layers would show one
+    layer at most (the values do not spread over layers), so the plan takes
+    'ramp' and says why; so does a default transparent at both values
+    ('spiky'); a TF the user names is kept, and its (empty) prediction is
+    reported."""
     import mi_amr.autoscene as autoscene
     path, field = outputs["sheet"]
     layered = plan_scene(str(path), field)
-    assert layered.tf.startswith("layers") and layered.visibility.shown >= MIN_SHOWN, layered.notes
+    assert layered.tf == "ramp" and layered.visibility.shown >= MIN_SHOWN, layered.notes
+    assert any("layers would be seen" in n and "TF 'ramp' instead" in n for n in layered.notes), layered.notes
     monkeypatch.setattr(autoscene, "DEFAULT_TF", "spiky")
     plan = plan_scene(str(path), field)
     assert plan.tf == "ramp" and any("transparent at every value" in n for n in plan.notes), plan.notes
@@ -128,20 +132,28 @@ def test05_every_default_picture_shows_its_data(llvm, plans, mode):
 def test06_render_and_info_print_the_plan_and_its_check(llvm, outputs, plans, tmp_path, capsys):
     """``mi-amr info DATA --field F --plan`` gives the plan and its
     predicted picture (the numbers `plan_scene` gives); ``mi-amr render``
-    prints the same check and the layers it predicts, and the scene it
-    writes keeps the planned layers (the sheet: its value 1 on a layer)."""
+    prints the same check, and lets it replace the default TF (the sheet:
+    'ramp', its two values spread over no layers), which the scene it
+    writes keeps; the cosmology's printout says which layers it shows, and
+    its scene names the planned layers."""
     import json
     from mi_amr.tools.cli import main
     path, field = outputs["sheet"]
     main(["info", str(path), "--field", field, "--plan", "--json"])
     got = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["plan"]
     plan = plans["sheet"]
-    assert got["tf"] == plan.tf and plan.tf.startswith("layers") and got["tf_range"] == pytest.approx(plan.tf_range)
+    assert got["tf"] == plan.tf == "ramp" and got["tf_range"] == pytest.approx(plan.tf_range)
     assert got["predicted"]["shown"] == pytest.approx(plan.visibility.shown)
     main(["render", str(path), "--field", field, "--res", "8", "--spp", "1", "-o", str(tmp_path / "sheet.exr")])
     out = capsys.readouterr().out
-    assert "predicted picture:" in out and f"predicted {plan.layers}" in out
-    assert f'name="transfer_function" value="{plan.tf}"' in (tmp_path / "sheet.xml").read_text()
+    assert "predicted picture:" in out and "TF 'ramp' instead" in out
+    assert 'name="transfer_function" value="ramp"' in (tmp_path / "sheet.xml").read_text()
+    path, field = outputs["cosmology"]
+    plan = plans["cosmology"]
+    main(["render", str(path), "--field", field, "--res", "8", "--spp", "1", "-o", str(tmp_path / "cosmo.exr")])
+    out = capsys.readouterr().out
+    assert plan.tf.startswith("layers") and f"predicted {plan.layers}" in out
+    assert f'name="transfer_function" value="{plan.tf}"' in (tmp_path / "cosmo.xml").read_text()
 
 
 def test07_the_opacity_grid_is_the_cells_volume_mean(llvm):

@@ -153,8 +153,9 @@ def _yt_default_picture(path, field, res):
 
 
 def _deep_pictures(tmp_path, case, res, spp):
-    """The default plan of a gallery output, its colour layers in ``multi``
-    and ``emission_absorption`` (``res`` pixels a side, ``spp``) and yt's
+    """The default plan of a gallery output, its colour layers in ``multi``,
+    ``emission_absorption`` and ``ray_march`` (``res`` pixels a side,
+    ``spp``) and yt's
     ``create_scene`` default's (128 pixels a side)."""
     import gallery_outputs
     from mi_amr.autoscene import plan_scene
@@ -163,7 +164,7 @@ def _deep_pictures(tmp_path, case, res, spp):
     path, field = gallery_outputs.CASES[case](tmp_path)
     plan = plan_scene(str(path), field)
     ours = {}
-    for mode in ("multi", "emission_absorption"):
+    for mode in ("multi", "emission_absorption", "ray_march"):
         scene = mi.load_dict(scene_for(plan, res=res, spp=spp, mode=mode))
         ours[mode] = colour_layers(srgb8(np.array(mi.render(scene, spp=spp, seed=0))))
         del scene
@@ -180,8 +181,8 @@ def _check_deep(plan, ours, yt_count, case):
 def test03_an_eight_level_collapse_shows_five_colour_layers(llvm, tmp_path):
     """On an eight-level AMReX collapse (tests/gallery_outputs.py ``deep``,
     read by yt) the default plan predicts at least five layers seen (its
-    notes say which), and its picture in ``multi`` and
-    ``emission_absorption`` (64 x 64, 64 spp) shows at least five colour
+    notes say which), and its picture in ``multi``, ``emission_absorption``
+    and ``ray_march`` (64 x 64, 64 spp) shows at least five colour
     layers by `colour_layers`, and never fewer than yt's ``create_scene``
     default on the same output minus two (the fast sibling of test04)."""
     _check_deep(*_deep_pictures(tmp_path, "deep", 64, 64), "deep")

@@ -15,11 +15,14 @@ of the TF's domain (`mi_amr.transfer.function`).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
+from functools import lru_cache
 
 import numpy as np
 
 #: The spec string's name.
 NAME = "layers"
+#: A layer's profile reaches 0 this many standard deviations off its centre.
+CUT = 2.5
 
 
 @dataclass(frozen=True)
@@ -30,7 +33,8 @@ class Layers:
     perceptually uniform one by default), opacity ``low ** (1 - k / (n -
     1))``: from ``low`` at the first (thinnest) layer to 1 at the last,
     which holds its opacity above its centre (values above the range, the
-    densest structure, stay seen in the last colour)."""
+    densest structure, stay seen in the last colour); 0 between layers and
+    at the range's bottom (`profiles`)."""
     n: int = 7
     width: float = 0.18
     colormap: str = "viridis"
@@ -116,13 +120,27 @@ class Layers:
         return np.asarray(matplotlib.colormaps[self.colormap](t), np.float64)[:, :3]
 
     def profiles(self, u) -> np.ndarray:
-        """``(len(u), n)``: each layer's Gaussian at normalised values ``u``
-        (clamped to [0, 1], as the table is), peak 1."""
+        """``(len(u), n)``: each layer's profile at normalised values ``u``
+        (clamped to [0, 1], as the table is), peak 1: a Gaussian lowered
+        to end at 0 `CUT` standard deviations off its centre, the first one
+        at u = 0 at the latest (values at or below the range's bottom,
+        empty space, stay transparent)."""
         u = np.clip(np.asarray(u, np.float64).reshape(-1), 0.0, 1.0)
         sigma = self.width / self.n
-        d = u[:, None] - self.centres()[None, :]
+        c = self.centres()
+        d = u[:, None] - c[None, :]
         d[:, -1] = np.minimum(d[:, -1], 0.0)          # the last layer holds its opacity above its centre
-        return np.exp(-0.5 * (d / sigma) ** 2)
+        cut = np.full(d.shape, CUT * sigma)           # each side ends at CUT deviations ...
+        cut[:, 0] = np.where(d[:, 0] < 0, min(CUT * sigma, c[0]), cut[:, 0])    # ... the first at u = 0 below
+        g, g_cut = np.exp(-0.5 * (d / sigma) ** 2), np.exp(-0.5 * (cut / sigma) ** 2)
+        return np.clip((g - g_cut) / (1.0 - g_cut), 0.0, 1.0)
+
+    def profiles_fast(self, u) -> np.ndarray:
+        """`profiles` looked up in a table of `PROFILE_TABLE` entries over
+        [0, 1] (nearest entry): for millions of values at once."""
+        table = _profile_table(self)
+        i = np.rint(np.clip(np.asarray(u, np.float64).reshape(-1), 0.0, 1.0) * (len(table) - 1)).astype(np.int64)
+        return table[i]
 
     def layer_opacity(self, u) -> np.ndarray:
         """``(len(u), n)``: each layer's opacity at normalised values ``u``
@@ -145,6 +163,15 @@ class Layers:
         out[:, :3] = w @ self.colours()
         out[:, 3] = a.max(axis=1)
         return np.clip(out, 0.0, 1.0)
+
+
+#: Entries of the table `Layers.profiles_fast` looks profiles up in.
+PROFILE_TABLE = 4096
+
+
+@lru_cache(maxsize=16)
+def _profile_table(layers: Layers) -> np.ndarray:
+    return layers.profiles(np.linspace(0.0, 1.0, PROFILE_TABLE))
 
 
 def is_layers(spec) -> bool:

@@ -57,8 +57,8 @@ def spiky_points() -> list[tuple[float, float]]:
 def layer_points(layers: Layers | str = "layers") -> list:
     """A layered TF (`mi_amr.transfer.layers.Layers`, or its name) as the
     editor's points: per layer a peak at its centre, its shoulders one
-    standard deviation off (``exp(-1/2)`` of the peak) and its feet at
-    zero 2.5 deviations off (the last layer holds its peak up to u = 1),
+    standard deviation off (the profile's value there: `Layers.profiles`)
+    and its feet at zero 2.5 deviations off (the last layer holds its peak up to u = 1),
     each point in its layer's colour; what the editor's "add layers"
     builds over the range shown (tf_editor.js ``layerPoints``)."""
     layers = Layers.parse(layers) if isinstance(layers, str) else layers
@@ -68,8 +68,9 @@ def layer_points(layers: Layers | str = "layers") -> list:
     pts = [(0.0, 0.0)]
     for k, (c, a, colour) in enumerate(zip(layers.centres(), layers.opacities(), rgb_hex(layers.colours()))):
         last = k == layers.n - 1
-        side = [(c - foot, 0.0), (c - shoulder, a * float(np.exp(-0.5 * (shoulder / sigma) ** 2))), (c, a)]
-        side += [(1.0, a)] if last else [(c + shoulder, side[1][1]), (c + foot, 0.0)]
+        below, above = layers.profiles([c - shoulder, c + shoulder])[:, k]
+        side = [(c - foot, 0.0), (c - shoulder, a * below), (c, a)]
+        side += [(1.0, a)] if last else [(c + shoulder, a * above), (c + foot, 0.0)]
         pts += [(float(u), float(v), colour) for u, v in side]
     if pts[-1][0] < 1.0:
         pts.append((1.0, 0.0))

@@ -38,14 +38,14 @@ export function colourAt(points, stops, u) {
 
 // N layers over u in [0, 1] as opacity points (tf_spec.layer_points): per layer
 // a peak at (k + 1/2) / n, shoulders one deviation (width / n) off, feet at 0
-// 2.5 deviations off, opacity low^(1 - k / (n - 1)) rising to 1 (the last layer
+// 2.5 deviations off (a Gaussian lowered to end there), opacity low^(1 - k / (n - 1)) rising to 1 (the last layer
 // holds it up to u = 1), each point in its layer's colour from the colormap.
 export function layerPoints(n, stops, width = 0.18, low = 0.02) {
   const sigma = width / n, foot = Math.min(2.5 * sigma, 0.5 / n - 1e-4), shoulder = Math.min(sigma, 0.8 * foot);
   const pts = [[0, 0]];
   for (let k = 0; k < n; k++) {
     const c = (k + 0.5) / n, t = n > 1 ? k / (n - 1) : 1, a = Math.pow(low, 1 - t), colour = rgbHex(stopColour(stops, t));
-    const s = a * Math.exp(-0.5 * (shoulder / sigma) ** 2);
+    const gCut = Math.exp(-0.5 * 2.5 * 2.5), s = a * (Math.exp(-0.5 * (shoulder / sigma) ** 2) - gCut) / (1 - gCut);
     pts.push([c - foot, 0, colour], [c - shoulder, s, colour], [c, a, colour]);
     if (k === n - 1) pts.push([1, a, colour]); else pts.push([c + shoulder, s, colour], [c + foot, 0, colour]);
   }
