@@ -39,7 +39,7 @@ from .slicing import Slice, Slicer, axis_index
 from .native_file import save_data
 from .plugins.integrator import MODES
 from .plugins.medium import AMRMedium, scene_media
-from .rendering import DEFAULT_SPP, chunk_for, use_variant
+from .rendering import chunk_for, default_spp, use_variant
 from .scene_xml import dict_with_integrator_parameters
 from .transfer.function import TransferFunction
 
@@ -84,20 +84,22 @@ class DataScene:
     a path of any kind mi-amr opens, a yt data set, `AMRCells`, a
     `BlockVolume` or a `ScenePlan`; ``field``: the field (yt data);
     ``mode``: the ``amrvolpath`` lighting mode (None: ``multi``); ``res``,
-    ``spp``: the picture's width and height (pixels) and samples per pixel;
+    ``spp``: the picture's width and height (pixels) and samples per pixel
+    (None: `mi_amr.rendering.default_spp` of the mode);
     ``variant``: the Mitsuba variant, set for the process (None: the one
     set, else ``mi-amr render``'s choice, `mi_amr.rendering.use_variant`);
     ``plan``: `mi_amr.autoscene.plan_scene` options (``tf``, ``log``,
     ``value_range``, ``density_scale``, ``emission``...)."""
 
     def __init__(self, data, field: str | None = None, *, mode: str | None = None, res: int = 400,
-                 spp: int = DEFAULT_SPP, variant: str | None = None, **plan):
+                 spp: int | None = None, variant: str | None = None, **plan):
         if mode is not None and mode not in MODES:
             raise ValueError(f"mode: one of {', '.join(MODES)}, got {mode!r}")
         use_variant(variant)                         # before the data are read: a refused variant is one line
         self.source, self.field = data, field
         self.plan: ScenePlan = data if isinstance(data, ScenePlan) else plan_scene(data, field, **plan)
-        self.mode, self.res, self.spp = mode, int(res), int(spp)
+        self.mode, self.res = mode, int(res)
+        self.spp = default_spp(mode) if spp is None else int(spp)
         #: A clip plane ``(normal, offset)`` in world space (the domain
         #: centred at 0, its longest side 1): the medium is kept where
         #: ``normal . x <= offset``; None: none (`AMRMedium.set_clip_plane`).

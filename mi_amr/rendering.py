@@ -41,6 +41,15 @@ from .transfer.spectra import refusal
 
 #: Samples per pixel when neither the job nor its XML scene says.
 DEFAULT_SPP = 64
+#: Samples per pixel of data rendered in ``ray_march`` by default: its
+#: picture has no noise (docs/design.md section 14), the samples only
+#: antialias the pixel's footprint.
+MARCH_SPP = 4
+
+
+def default_spp(mode: str | None) -> int:
+    """Samples per pixel of data when none is asked for, in lighting ``mode``."""
+    return MARCH_SPP if mode == "ray_march" else DEFAULT_SPP
 #: The plan options a data job takes (`mi_amr.autoscene.plan_scene`).
 PLAN_OPTIONS = ("tf", "log", "value_range", "density_scale", "emission", "emission_field", "emission_log",
                 "emission_range", "emission_scale")
@@ -93,7 +102,7 @@ class RenderJob:
     docstring); ``field``: the data's field (yt data); ``plan_options``:
     `PLAN_OPTIONS` for data; ``mode``: the ``amrvolpath`` lighting mode
     (None: the scene's own, ``multi`` for data); ``spp``: samples per pixel
-    (None: the XML scene's ``sample_count``, else `DEFAULT_SPP`); ``res``:
+    (None: the XML scene's ``sample_count``, else `default_spp` of the mode); ``res``:
     width and height of a data scene, pixels; ``defines``: an XML scene's
     ``<default>`` values (``-D NAME=VALUE``); ``seed``: of the first chunk."""
     source: object
@@ -176,7 +185,7 @@ def job_spp(job: RenderJob) -> int:
         return int(job.spp)
     if job.is_xml:
         return scene_spp(job.source, job.defines) or DEFAULT_SPP
-    return int(job.defines.get("spp", DEFAULT_SPP))
+    return int(job.defines.get("spp", default_spp(job.mode)))
 
 
 def render_jobs(jobs, cluster=None, *, chunk_spp: int | None = None, progress: bool = False,

@@ -216,9 +216,10 @@ def build_parser():
                    help="also write OUT-denoised.exr/.png: Intel Open Image Denoise (mi-amr[view] extra)")
     _render_flags(r, None)
     r.add_argument("--mode", choices=MODES, default=None,
-                   help="the amrvolpath integrator's lighting mode: emission_absorption (the TF colour, "
-                        "self-lit), single (single scattering) or multi (default: the scene's own; "
-                        "data scenes: multi); a data scene's OUT.xml keeps it")
+                   help="the amrvolpath integrator's lighting mode: ray_march (the sci-vis ray marcher: "
+                        "the TF colour, self-lit, no noise; data: 4 spp unless --spp), emission_absorption "
+                        "(the same integral, path traced), single (single scattering) or multi (default: the "
+                        "scene's own; data scenes: multi); a data scene's OUT.xml keeps it")
     r.add_argument("--chunk-spp", type=_positive, default=None,
                    help="samples per chunk (default: spp / max(8, 2 x workers), rounded up)")
     r.add_argument("--workers", type=_positive, default=None,

@@ -33,7 +33,7 @@ from ..scene_writer import write_scene_xml
 from ..data.opening import field_scalars, is_native
 from ..native_file import save_data
 from ..images import write_exr, write_png
-from ..rendering import DEFAULT_SPP, RenderJob, render_jobs, scene_spp, use_variant
+from ..rendering import RenderJob, default_spp, render_jobs, scene_spp, use_variant
 
 DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
                       "not XML scenes (set those in the scene)")
@@ -221,7 +221,7 @@ def render(args):
     if is_xml and data_flags:
         raise SystemExit(DATA_FLAGS_MESSAGE)
     if args.spp is None:                      # the scene's own sample count, as Mitsuba would take it
-        args.spp = (scene_spp(args.scene, frames(args)[0][0]) if is_xml else None) or DEFAULT_SPP
+        args.spp = (scene_spp(args.scene, frames(args)[0][0]) if is_xml else None) or default_spp(args.mode)
     if args.spp < 1:
         raise ValueError(f"--spp {args.spp}: at least 1")
     if is_xml and args.movie:
