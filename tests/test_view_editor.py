@@ -19,7 +19,11 @@ from mi_amr.view.camera import OrbitCamera, floor_height, world_up
 from mi_amr.view.engine import ViewEngine
 from mi_amr.view.tf_spec import TFSpec, point_colours
 
+from conftest import HANG_S
+
 pytest.importorskip("starlette")
+#: Playwright's deadlines, in milliseconds: only a hang reaches them.
+HANG_MS = HANG_S * 1000
 
 # ---- without a browser ---------------------------------------------------------------------
 
@@ -84,7 +88,7 @@ def test02_point_colours_and_files():
 def _serve(engine, out):
     from mi_amr.view.server import ViewServer
     server = ViewServer(engine.start(), out_dir=out, quiet=True).start()
-    assert engine.ready.wait(120) and engine.error is None, engine.error
+    assert engine.ready.wait(HANG_S) and engine.error is None, engine.error
     return server
 
 
@@ -93,17 +97,17 @@ def _open(browser, server):
     errors = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(server.url)
-    page.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview", timeout=60000)
+    page.wait_for_function("window.viewerStats.lastFrame && !window.viewerStats.lastFrame.preview", timeout=HANG_MS)
     return page, errors
 
 
 def _settled(page, spp):
     """Wait for a full frame of the newest state with ``spp`` samples."""
     page.wait_for_function(f"""() => {{ const s = window.viewerStats, f = s.lastFrame;
-        return f && !f.preview && f.spp >= {spp} && performance.now() - s.lastChange > 100; }}""", timeout=60000)
+        return f && !f.preview && f.spp >= {spp} && performance.now() - s.lastChange > 100; }}""", timeout=HANG_MS)
     page.wait_for_timeout(150)
     page.wait_for_function(f"window.viewerStats.lastFrame.spp >= {spp} && !window.viewerStats.lastFrame.preview",
-                           timeout=60000)
+                           timeout=HANG_MS)
 
 
 def _canvas(page) -> np.ndarray:
@@ -260,7 +264,7 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
     linear = view.spec
     page.get_by_test_id("log").check()
     page.wait_for_function(f"+document.getElementById('density-number').value !== {linear.density!r} && "
-                           "document.getElementById('log').checked", timeout=20000)
+                           "document.getElementById('log').checked", timeout=HANG_MS)
     assert view.spec.log and abs(np.log(view.spec.density / linear.density)) > 0.1
     shown = float(page.get_by_test_id("density-number").input_value())
     assert shown == pytest.approx(view.spec.density, rel=1e-5)
@@ -268,7 +272,7 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
     page.get_by_test_id("log").uncheck()
     page.wait_for_function("!document.getElementById('log').checked && "
                            f"Math.abs(+document.getElementById('density-number').value / {linear.density!r} - 1) < 0.03",
-                           timeout=20000)
+                           timeout=HANG_MS)
     assert not view.spec.log and view.spec.range == pytest.approx(linear.range, rel=1e-6)
 
     # the range, then the shares under the histogram
@@ -276,11 +280,11 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
     page.get_by_test_id("range-hi").fill("3.25")
     page.get_by_test_id("range-hi").dispatch_event("change")
     page.wait_for_function("document.getElementById('tf-shares').dataset.below !== undefined && "
-                           "Math.abs(+document.getElementById('range-hi').value - 3.25) < 1e-9", timeout=10000)
-    page.wait_for_function("window.viewerStats.lastFrame.version >= 1", timeout=20000)
+                           "Math.abs(+document.getElementById('range-hi').value - 3.25) < 1e-9", timeout=HANG_MS)
+    page.wait_for_function("window.viewerStats.lastFrame.version >= 1", timeout=HANG_MS)
     assert view.spec.range == (1.5, 3.25)
     text = page.get_by_test_id("tf-shares").inner_text()
-    page.wait_for_function("document.getElementById('tf-shares').textContent.includes('below')", timeout=10000)
+    page.wait_for_function("document.getElementById('tf-shares').textContent.includes('below')", timeout=HANG_MS)
     text = page.get_by_test_id("tf-shares").inner_text()
     below = float(text.split("below the range: ")[1].split("%")[0]) / 100
     above = float(text.split("above: ")[1].split("%")[0]) / 100
@@ -294,8 +298,8 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
     # density typed in
     page.get_by_test_id("density-number").fill("123.5")
     page.get_by_test_id("density-number").press("Enter")
-    page.wait_for_function("window.viewerStats.lastChange > 0", timeout=5000)
-    deadline = time.monotonic() + 10
+    page.wait_for_function("window.viewerStats.lastChange > 0", timeout=HANG_MS)
+    deadline = time.monotonic() + HANG_S
     while view.spec.density != 123.5 and time.monotonic() < deadline:
         time.sleep(0.05)
     assert view.spec.density == 123.5
@@ -305,7 +309,7 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
     u, a = view.spec.points[1][:2]
     page.mouse.click(editor["x"] + 8 + u * (editor["width"] - 16), editor["y"] + 8 + (1 - a) * (230 - 8 - 58))
     page.get_by_test_id("point-colour").fill("#00ff00")
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + HANG_S
     while len(view.spec.points[1]) < 3 and time.monotonic() < deadline:
         time.sleep(0.05)
     assert view.spec.points[1][2] == "#00ff00"
@@ -323,24 +327,24 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
 
     # a preset, then load the file back
     page.get_by_test_id("preset").select_option("ramp")
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + HANG_S
     while view.spec.points != [(0.0, 0.0), (1.0, 1.0)] and time.monotonic() < deadline:
         time.sleep(0.05)
     assert view.spec.points == [(0.0, 0.0), (1.0, 1.0)]
     page.get_by_test_id("tf-load").set_input_files(str(saved))
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + HANG_S
     while view.spec != saved_spec and time.monotonic() < deadline:
         time.sleep(0.05)
     assert view.spec == saved_spec
-    page.wait_for_function("+document.getElementById('density-number').value === 123.5", timeout=5000)
+    page.wait_for_function("+document.getElementById('density-number').value === 123.5", timeout=HANG_MS)
 
     # another field, the same camera
     camera = view.camera
     version = page.evaluate("window.viewerStats.frames")
     page.get_by_test_id("field").select_option("enzo,Temperature")
     page.wait_for_function("document.getElementById('tf-editor').dataset.axis.startsWith('Temperature')",
-                           timeout=60000)
-    page.wait_for_function(f"window.viewerStats.frames > {version} + 1", timeout=60000)
+                           timeout=HANG_MS)
+    page.wait_for_function(f"window.viewerStats.frames > {version} + 1", timeout=HANG_MS)
     assert engine.loaded.field == "enzo,Temperature" and view.camera == camera
     assert "Temperature" in page.get_by_test_id("field").input_value()
     assert errors == [] and page.evaluate("window.viewerStats.errors") == []
