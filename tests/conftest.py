@@ -83,6 +83,32 @@ NO_LLVM = "the LLVM backend is inactive"
 ON_CI = os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
 
 
+#: What the tests skip without (``pytest.importorskip``) and the set-up
+#: installs (the ``dev`` extra, tools/setup.sh): on CI each must be there,
+#: else the suite would pass with whole files skipped.
+CI_NEEDS = ("yt", "h5py", "starlette", "websockets", "anywidget", "nbclient", "IPython", "mitsuba_oidn",
+            "imageio_ffmpeg", "dask.distributed", "playwright")
+CI_COMMANDS = ("node", "chromium")
+
+
+def pytest_sessionstart(session):
+    """On CI, the suite stops at once, naming what the set-up failed to
+    install, rather than skipping the tests that need it."""
+    if not ON_CI:
+        return
+    import importlib.util
+
+    def importable(name):
+        try:
+            return importlib.util.find_spec(name) is not None
+        except ImportError:                     # a parent package missing
+            return False
+    missing = [m for m in CI_NEEDS if not importable(m)] + [c for c in CI_COMMANDS if not shutil.which(c)]
+    if missing:
+        raise pytest.UsageError(f"CI: {', '.join(missing)} missing: make setup installs them (tests would "
+                                f"skip without them)")
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     outcome = yield
