@@ -174,6 +174,8 @@ class LoadedScene:
         gets for data (an XML scene's spec is returned as it is)."""
         if self.plan is None:
             return spec
+        if spec.log == self.initial_spec.log:      # the plan's own units: its range and density (a layered
+            return replace(spec, range=self.initial_spec.range, density=self.initial_spec.density)   # plan's too)
         value_range, density = planned_display(
             self.plan.data, self.medium.volume, spec.log,
             lambda r: replace(spec, range=tuple(r)).table(self.stored_log, self.scene_rgb))
