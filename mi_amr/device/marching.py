@@ -47,6 +47,9 @@ MARCH_RR_THRESHOLD = 1e-3
 #: Blinn-Phong constants of the sci-vis shading (`GradientShading`):
 #: ambient and diffuse shares of the colour, specular weight and exponent.
 AMBIENT, DIFFUSE, SPECULAR, SHININESS = 0.25, 0.75, 0.25, 32.0
+#: A sample whose forward differences all stay within this share of its
+#: value is flat (unshaded): below it they are float32 rounding.
+FLAT_SHARE = 1e-5
 
 
 def _ray_bits(ray):
@@ -86,9 +89,9 @@ class RayMarch:
     ``lookup(u, active) -> (value, sigma_t)`` at local points (or ``(value,
     sigma_t, carried)`` with ``carries``); ``colour_of(value, active)``: the
     TF colour; ``emission_of(value, carried, active)``: ``L_e`` or None (the
-    medium does not glow); ``shading(u, value, active) -> factor`` (a
-    `GradientShading`'s diffuse and specular terms) or None (the TF colour
-    as it is); ``extent``, ``offset``: the data box in finest cells and its
+    medium does not glow); ``shading(u, value, rgb, active)`` (a
+    `GradientShading`: the shaded colour) or None (the TF colour as it
+    is); ``extent``, ``offset``: the data box in finest cells and its
     lower corner relative to the cells' alignment origin (the lattice of
     ``exact``); ``step_scale``: the step in finest cells under a segment;
     ``brightness``: the colour's factor; ``sampler`` seeds the jitter and
@@ -173,7 +176,7 @@ class RayMarch:
         rgb = self.colour_of(value, seen)
         emitted = rgb * self.brightness
         if self.shading is not None:
-            emitted = self.shading(x, rgb, seen) * self.brightness
+            emitted = self.shading(x, value, rgb, seen) * self.brightness
         if self.emission_of is not None:
             emitted += dr.maximum(1.0 - rgb, 0.0) * self.emission_of(value, found[2] if self.carries else None,
                                                                     seen)
@@ -195,12 +198,13 @@ class RayMarch:
 class GradientShading:
     """The sci-vis shading of a sample (docs/design.md section 14):
     Blinn-Phong with the normalised gradient of the reconstruction as the
-    normal (central differences of ``value_at`` over ``eps`` local units
-    per axis), turned to face the viewer, one light direction ``light(x) ->
+    normal (forward differences of ``value_at`` over ``eps`` local units
+    per axis from the sample's own value: three look-ups more, not six),
+    turned to face the viewer, one light direction ``light(x) ->
     unit vector towards the light`` (world space), no shadow rays:
     ``rgb (AMBIENT + DIFFUSE max(n.l, 0)) + SPECULAR max(n.h, 0)^SHININESS``.
-    Where the gradient vanishes the sample is unshaded: ``rgb (AMBIENT +
-    DIFFUSE)``. ``normal_to_world(g)``: a local-space gradient as a world
+    Where the gradient vanishes (every difference within `FLAT_SHARE` of
+    the value) the sample is unshaded: ``rgb (AMBIENT + DIFFUSE)``. ``normal_to_world(g)``: a local-space gradient as a world
     normal (the inverse transpose of the medium's ``to_world``);
     ``view``: the world direction of the ray."""
 
@@ -208,19 +212,21 @@ class GradientShading:
         self.value_at, self.eps, self.normal_to_world = value_at, eps, normal_to_world
         self.light, self.view = light, view
 
-    def gradient(self, x, active):
-        """The local-space central-difference gradient of the value at ``x``."""
+    def differences(self, x, value, active):
+        """The forward differences of the value along the local axes at
+        ``x``, where the reconstruction is ``value`` (a `Vector3f`)."""
         e = self.eps
-        comps = []
-        for axis in range(3):
-            step = mi.Vector3f(*[e if k == axis else 0.0 for k in range(3)])
-            comps.append((self.value_at(x + step, active) - self.value_at(x - step, active)) * dr.rcp(2.0 * e))
-        return mi.Vector3f(*comps)
+        return mi.Vector3f(*[self.value_at(x + mi.Vector3f(*[e if k == axis else 0.0 for k in range(3)]), active)
+                             - value for axis in range(3)])
 
-    def __call__(self, x, rgb, active):
-        g = self.normal_to_world(self.gradient(x, active))
+    def __call__(self, x, value, rgb, active):
+        d = self.differences(x, value, active)
+        # flat: no difference above float32's rounding of the value (whose
+        # noise would otherwise point the normal anywhere)
+        flat = dr.max(dr.abs(d)) <= FLAT_SHARE * dr.abs(value)
+        g = self.normal_to_world(d * dr.rcp(self.eps))
         length = dr.norm(g)
-        flat = ~(length > 1e-20)
+        flat |= ~(length > 0.0)
         n = g * dr.rcp(dr.select(flat, 1.0, length))
         v = -self.view
         n = dr.select(dr.dot(n, v) < 0.0, -n, n)              # facing the viewer
