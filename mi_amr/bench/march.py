@@ -21,6 +21,9 @@ block-structured generator of ``--scale`` at ``--march-cells``, 10^7 and
   measured at ``--march-multi-spp``; for the marcher (its error is the
   pixel footprint and the jitter) the spp are doubled from 1 until the
   estimate is below the target.
+
+With ``--modes-figure PNG`` it draws the three path-traced modes beside the
+marcher on the protocol's ``cloud`` data instead (`march_figure`).
 """
 
 from __future__ import annotations
@@ -35,9 +38,12 @@ import mitsuba as mi
 import numpy as np
 
 import mi_amr
+from ..data.datasets import make_dataset
 from ..data.io import load_volume
+from ..images import write_png
 from .harness import bench_scene, check_alone, frame_function, write_report
 from .modes import LARGE_SCALE, time_passes
+from .protocol import SCALES as PROTOCOL_SCALES
 from .scale import data_file
 
 #: The marcher's finest quality: a quarter of the finest cell under each leaf.
@@ -131,8 +137,41 @@ def report(records: list, command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def march_figure(path: Path, args, spp: int = 64, march_spp: int = 4) -> dict:
+    """The three path-traced modes beside the marcher (flat and gradient
+    shading) on the protocol's ``cloud`` data with the ``spiky`` TF in the
+    benchmark's view, ``args.modes_figure_res`` square: the path-traced
+    ones at ``spp``, the marcher at ``march_spp``; one PNG, left to right
+    emission_absorption, single, multi, ray_march flat, ray_march gradient.
+    Returns each panel's render seconds."""
+    res = args.modes_figure_res
+    cells = make_dataset("cloud", cells=args.cells, levels=4)
+    tf = mi_amr.TransferFunction.preset("spiky", cells.value_range)
+    medium = {"type": "amr", "data": cells, "transfer_function": tf, "density_scale": PROTOCOL_SCALES[("cloud", "spiky")]}
+    panels, seconds = [], {}
+    configs = [(m, {"type": "amrvolpath", "mode": m, "max_depth": 64}, spp) for m in ("emission_absorption", "single",
+                                                                                       "multi")]
+    configs += [(f"ray_march {sh}", {"type": "amrvolpath", "mode": "ray_march", "shading": sh}, march_spp)
+                for sh in ("flat", "gradient")]
+    for name, integrator, n in configs:
+        check_alone(name)
+        scene = mi.load_dict(bench_scene(medium, res, integrator))
+        mi.render(scene, spp=1)                                   # compiled before the clock starts
+        t0 = time.perf_counter()
+        panels.append(np.array(mi.render(scene, spp=n, seed=1)))
+        seconds[name] = {"seconds": time.perf_counter() - t0, "spp": n}
+        del scene
+        gc.collect()
+    write_png(path, np.concatenate(panels, axis=1))
+    return seconds
+
+
 def main_args(args) -> int:
     mi.set_variant(args.variant)
+    if args.modes_figure:
+        seconds = march_figure(Path(args.modes_figure), args)
+        print("\n".join(f"{k}: {v['seconds']:.2f} s at {v['spp']} spp" for k, v in seconds.items()))
+        return 0
     out = Path(args.out or "out/bench-march")
     records = []
     t0 = time.perf_counter()
