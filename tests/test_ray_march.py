@@ -299,3 +299,21 @@ def test09_the_command_line_marches_data_at_a_few_samples(llvm, tmp_path, capsys
     assert 'value="ray_march"' in (tmp_path / "ray_march-0.xml").read_text()
     c, d = run("emission_absorption", 0), run("emission_absorption", 1)
     assert np.isfinite(a).all() and np.abs(a - b).mean() < 0.2 * np.abs(c - d).mean()
+
+
+def test10_glowing_gas_adds_its_emission_as_emission_absorption_does(llvm):
+    """The two halves of tests/test_emission.py test01b (values 0.25 then
+    0.75 along the ray, emission in proportion to the value, sigma
+    constant, black TF colour): the marcher gives ``L_e1 (1 - e^{-s/2}) +
+    e^{-s/2} L_e2 (1 - e^{-s/2})`` exactly (nearest: no noise; 1e-5)."""
+    from test_emission import BLACK, GLOW, ortho_scene, two_level_cells
+    sigma, scale = 1.3, 2.0
+    cells = two_level_cells()
+    glow = TransferFunction(np.array([[*GLOW, 0.0], [*GLOW, 1.0]]), (0.0, 1.0))
+    medium = {"type": "amr", "data": AMRCells(cells.pos, cells.level, cells.value), "transfer_function": BLACK,
+              "density_scale": sigma, "reconstruction": "nearest", "emission": glow, "emission_scale": scale}
+    img = np.array(mi.render(mi.load_dict(ortho_scene(medium, mode="ray_march")), spp=2, seed=5)).reshape(-1, 3)
+    half = np.exp(-sigma / 2)
+    expected = scale * np.asarray(GLOW) * (0.25 * (1 - half) + half * 0.75 * (1 - half))
+    # every pixel's ray crosses the slab over a length within 2.2e-4 of 1
+    np.testing.assert_allclose(img, np.broadcast_to(expected, img.shape), rtol=5e-4)
