@@ -61,14 +61,19 @@ def march(med, o, d, step_scale=0.5, seed=7, light=None):
     return L, np.asarray(out.T)
 
 
-@pytest.mark.parametrize("traversal,sampling", [("grid", "hash"), ("abr", "abr")])
-def test01_nearest_march_is_the_exact_integral(llvm, traversal, sampling):
-    """With ``nearest`` the steps end on cell faces: along 400 rays the
-    march equals an exact host walk over the voxels of the resampled field
-    within 1e-4 of its mean, whatever ``step_scale`` (it only sets the
-    steps of ``tent``), and ``T`` equals the walk's transmittance."""
+@pytest.mark.parametrize("traversal,sampling,extra", [("grid", "hash", {}), ("grid", "hash", {"grid_refinement": 2}),
+                                                      ("abr", "abr", {}), ("brick", "brick", {}),
+                                                      ("kdtree", "hash", {})])
+def test01_nearest_march_is_the_exact_integral(llvm, traversal, sampling, extra):
+    """With ``nearest`` the steps end on the faces of the lattice of the
+    finest level under each leaf: along 400 rays the march equals an exact
+    host walk over the voxels of the resampled field within 1e-4 of its
+    mean, whatever ``step_scale`` (it only sets the steps of ``tent``), and
+    ``T`` equals the walk's transmittance, for every traversal (a leaf
+    whose level were coarser than a cell in it would step over that cell's
+    faces and miss this)."""
     cells = two_level_field()
-    med = mi.load_dict(medium(cells, "nearest", traversal, sampling))
+    med = mi.load_dict(medium(cells, "nearest", traversal, sampling, **extra))
     o, d = rays(400)
     ref = emission_absorption_march(cells, TF, 12.0, o, d, steps=None)
     ref_T = 1.0 - emission_absorption_march(cells, TransferFunction(
