@@ -14,7 +14,14 @@ import numpy as np
 
 from ..structures.cost_model import refine_gain
 from ..structures.footprint import thinning_bytes_per_macrocell
+from ..structures.macrocell_grid import NO_LEVEL
 from ..core.jit_struct import jit_struct
+
+
+def finest_level(level_bits):
+    """The finest level set in per-leaf level masks (bit L: a level-L cell
+    reaches the leaf); `NO_LEVEL` where none is set."""
+    return dr.minimum(dr.tzcnt(level_bits), NO_LEVEL)
 
 
 #: Minorants are scaled by this: an interpolated TF alpha may round one ulp
@@ -161,8 +168,8 @@ assert MAX_SKIP_EDGE.bit_length() - 1 < 1 << SKIP_BITS
 
 
 @jit_struct(res="Vector3i", coarse_res="Vector3i", fine=DeviceMacrocellGrid, coarse_mu="Float",
-            coarse_min="Float", coarse_skip="UInt32", coarse_level="UInt32", fine_inside="Bool", n_fine="Float", keep_step="Float",
-            refine_step="Float", world_scale="Float")
+            coarse_min="Float", coarse_skip="UInt32", coarse_level="UInt32", fine_inside="Bool", n_fine="Float",
+            keep_step="Float", refine_step="Float", world_scale="Float")
 class DeviceTwoLevelGrid:
     """A two-level macrocell grid in Dr.Jit (docs/design.md section 4).
 
@@ -205,15 +212,14 @@ class DeviceTwoLevelGrid:
         self.fine.host = grid
         self.fine_inside = mi.Bool(inside > 0)
         self.n_fine = dr.block_sum(mi.Float(inside), f ** 3)
-        self.coarse_level = dr.block_reduce(dr.ReduceOp.Min, dr.minimum(dr.tzcnt(self.fine.level_bits), 31),
-                                            f ** 3)
+        self.coarse_level = dr.block_reduce(dr.ReduceOp.Min, finest_level(self.fine.level_bits), f ** 3)
         self.coarse_mu = dr.zeros(mi.Float, self.n_coarse)
         self.coarse_min = dr.zeros(mi.Float, self.n_coarse)
         self.coarse_skip = dr.zeros(mi.UInt32, self.n_coarse)
         self.keep_step, self.refine_step = mi.Float(step_costs[0]), mi.Float(step_costs[1])
         self.world_scale = mi.Float(world_scale)
-        dr.make_opaque(self.res, self.coarse_res, self.fine_inside, self.n_fine, self.coarse_level, self.keep_step,
-                       self.refine_step, self.world_scale)
+        dr.make_opaque(self.res, self.coarse_res, self.fine_inside, self.n_fine, self.coarse_level,
+                       self.keep_step, self.refine_step, self.world_scale)
 
     def blocked(self, a, fill):
         """A per-fine-macrocell host array ([z, y, x] order, flat) in the

@@ -31,14 +31,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from .grid import SKIP_BITS
+from .grid import SKIP_BITS, finest_level
 from .ray import safe_rcp
 from ..core.jit_struct import jit_struct
 from .tree import DeviceTree
-
-
-#: `Segment.level` of a leaf that no cell reaches (its majorant is 0 too).
-NO_LEVEL = 31
 
 
 @jit_struct(t0="Float", t1="Float", mu="Float", mu_min="Float", valid="Bool", level="UInt32")
@@ -51,12 +47,6 @@ class Segment:
     def __init__(self, t0=None, t1=None, mu=None, mu_min=None, valid=None, level=None):
         self.t0, self.t1, self.mu, self.mu_min, self.valid = t0, t1, mu, mu_min, valid
         self.level = mi.UInt32(0) if level is None else level
-
-
-def finest_level(level_bits):
-    """The finest level set in per-leaf level masks (bit L: a level-L cell
-    reaches the leaf); `NO_LEVEL` where none is set."""
-    return dr.minimum(dr.tzcnt(level_bits), NO_LEVEL)
 
 
 class GridSegments:

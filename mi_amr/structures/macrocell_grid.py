@@ -51,15 +51,20 @@ def default_resolution(cells: BlockVolume) -> np.ndarray:
     return np.minimum(res, np.maximum(1, ext.astype(np.int64)))
 
 
+#: The finest level of a leaf that no cell reaches (its majorant is 0 too):
+#: `finest_levels_in_boxes`, the region trees' and the device grids' levels.
+NO_LEVEL = 31
+
+
 def finest_levels_in_boxes(level_bits: np.ndarray, tree) -> np.ndarray:
     """The finest level set in the level masks ``level_bits`` (indexed
     ``[x, y, z]``) over each leaf box ``[leaf_lo, leaf_hi)`` of ``tree``
-    (macrocell units): uint32 per leaf, 31 where no bit is set. One summed
+    (macrocell units): uint32 per leaf, `NO_LEVEL` where no bit is set. One summed
     table per level present, so the cost is per macrocell and per leaf, not
     per (leaf, macrocell) pair."""
     lo = np.asarray(tree.leaf_lo, np.int64)
     hi = np.asarray(tree.leaf_hi, np.int64)
-    out = np.full(len(lo), 31, np.uint32)
+    out = np.full(len(lo), NO_LEVEL, np.uint32)
     present = int(np.bitwise_or.reduce(level_bits, axis=None)) if level_bits.size else 0
     for L in reversed(range(32)):                 # coarsest first: finer levels overwrite
         if not present >> L & 1:

@@ -22,6 +22,7 @@ from ..data.device_values import device_values
 from ..memory import BYTES_PER_TREE_ITEM, BYTES_PER_TREE_NODE, BYTES_PER_TREE_PAIR, require
 from ..progress import progress
 from ..reconstruction import DEFAULT_METHOD, Reconstruction
+from .macrocell_grid import NO_LEVEL
 
 
 #: Tent ABR leaves are not split once no side is longer than this many cells
@@ -392,12 +393,12 @@ def _leaf_brick_pairs(tree: RegionTree, bricks, method, own_lists: bool):
 def finest_levels(tree: RegionTree, bricks, method: Reconstruction = DEFAULT_METHOD,
                   own_lists: bool = False) -> np.ndarray:
     """The finest level whose cells' supports reach each leaf (uint32 per
-    leaf; 31 where none does): the ray marcher's step under the leaf
+    leaf; `NO_LEVEL` where none does): the ray marcher's step under the leaf
     (docs/design.md section 14). The candidate bricks are those of
     `exact_value_ranges`, so a leaf's level is never coarser than a cell
     that reaches it."""
     li, b = _leaf_brick_pairs(tree, bricks, method, own_lists)
-    out = np.full(tree.n_leaves, 31, np.int64)
+    out = np.full(tree.n_leaves, NO_LEVEL, np.int64)
     np.minimum.at(out, np.asarray(li, np.int64), bricks.level[np.asarray(b, np.int64)].astype(np.int64))
     return out.astype(np.uint32)
 
