@@ -24,7 +24,7 @@ from mi_amr.images import read_exr, srgb8
 from mi_amr.plugins.integrator import MODES
 from mi_amr.tools.cli import main
 from mi_amr.view import protocol as p
-from mi_amr.view.engine import FAST_BUDGET, FAST_MODE, JIT_LOCK, SETTLE, ViewEngine
+from mi_amr.view.engine import FAST_BUDGET, FAST_MODE, JIT_LOCK, PLAIN_FAST_MODE, SETTLE, ViewEngine
 from mi_amr.view.camera import OrbitCamera
 from mi_amr.view.scene import LoadedScene, integrator_props, mode_integrators
 from mi_amr.view.server import ViewServer
@@ -139,22 +139,23 @@ def test03_fast_passes_keep_to_their_budget():
     """Over `FAST_BUDGET` the fast passes step one size down `FAST_LADDER`
     (only to sizes recorded ahead), and back up once the larger size would
     fit; the recordings ahead are the ones a view needs, in that order."""
-    engine = ViewEngine("unused.cells", res=256, mode="multi")
+    engine = ViewEngine("unused.cells", res=256, mode="multi", hybrid=False)
     engine.loaded = LoadedScene("unused.cells", None, "test", [256, 256],
                                 OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0), TFSpec(), ("plasma",),
                                 stored_log=False, integrators=dict.fromkeys(MODES))
     ladder = engine._ladder()
     assert ladder == [[128, 128], [96, 96], [64, 64]]
-    assert engine._warm_list() == [([128, 128], FAST_MODE), ([128, 128], "multi"), ([256, 256], "multi"),
-                                   ([96, 96], FAST_MODE), ([96, 96], "multi"), ([64, 64], FAST_MODE),
+    fast = PLAIN_FAST_MODE                       # with the hybrid off: down to half the preview size
+    assert engine._warm_list() == [([128, 128], fast), ([128, 128], "multi"), ([256, 256], "multi"),
+                                   ([96, 96], fast), ([96, 96], "multi"), ([64, 64], fast),
                                    ([64, 64], "multi")]
     recorded = engine.loaded.passes._frozen
-    recorded.update({(tuple(q), FAST_MODE): None for q in ladder})
+    recorded.update({(tuple(q), fast): None for q in ladder})
     engine._fast_timed(ladder[0], 0.5 * FAST_BUDGET)
-    assert engine._fast_level == 0 and engine._sizes(FAST_MODE)[0] == ladder[0]
+    assert engine._fast_level == 0 and engine._sizes(fast)[0] == ladder[0]
     for size, k in zip(ladder, (1, 2, 2)):       # slow: one size smaller, down to the last
         engine._fast_timed(size, 3 * FAST_BUDGET)
-        assert engine._fast_level == k and engine._sizes(FAST_MODE)[0] == ladder[k]
+        assert engine._fast_level == k and engine._sizes(fast)[0] == ladder[k]
     engine._fast_timed(ladder[0], 0.01 * FAST_BUDGET)       # another size's time moves nothing
     assert engine._fast_level == 2
     # a preview of the view's mode: at the fast size where recorded for it, else the preview size
@@ -167,7 +168,7 @@ def test03_fast_passes_keep_to_their_budget():
             engine._fast_timed(size, 0.1 * FAST_BUDGET)
             calls += 1
         assert engine._fast_level == k and 1 < calls < 30       # once its running mean came down
-    del recorded[(tuple(ladder[1]), FAST_MODE)]                # a size not recorded is never taken
+    del recorded[(tuple(ladder[1]), fast)]                     # a size not recorded is never taken
     for _ in range(8):
         engine._fast_timed(ladder[0], 3 * FAST_BUDGET)
     assert engine._fast_level == 0

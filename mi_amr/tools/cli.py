@@ -252,12 +252,15 @@ def build_parser():
     v.add_argument("--res", type=_positive, default=256, help="image width (default 256)")
     v.add_argument("--max-spp", type=_positive, default=1024, help="stop refining at this many spp (default 1024)")
     v.add_argument("--preview-scale", type=_above_zero, default=0.5,
-                   help="resolution of the passes while the camera or the TF moves (rendered in "
-                        "emission_absorption) and of the first pass in the page's mode after it stops "
-                        "(default 0.5; 1: full size)")
+                   help="resolution of the passes while the camera or the TF moves (ray-marched, or "
+                        "emission_absorption with --no-hybrid) and of the first pass in the page's mode after "
+                        "it stops (default 0.5; 1: full size)")
     v.add_argument("--mode", choices=MODES, default=None,
                    help="the lighting mode the page refines in, and starts its selector at (default: the "
-                        "scene's amrvolpath mode, multi for data); drags render in emission_absorption")
+                        "scene's amrvolpath mode, multi for data); drags render in ray_march")
+    v.add_argument("--no-hybrid", action="store_true",
+                   help="drags render 1-spp emission_absorption passes instead of the ray marcher's "
+                        "(noise-free) ones; each page can switch it back")
     v.add_argument("--variant", default=None, help=VARIANT_HELP)
     v.set_defaults(func=cmd_view)
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 from . import protocol as p
 
 #: The page messages that change a view (`ViewEngine.change`): quick, applied where they arrive.
-VIEW_CHANGES = (p.CameraChange, p.TFChange, p.DenoiseChange, p.ModeChange)
+VIEW_CHANGES = (p.CameraChange, p.TFChange, p.DenoiseChange, p.ModeChange, p.HybridChange)
 
 
 def answer(engine, view, msg, out_dir, budget=None) -> p.ServerMessage | None:
@@ -27,7 +27,7 @@ def answer(engine, view, msg, out_dir, budget=None) -> p.ServerMessage | None:
     Blocking for a snapshot and a field switch (a worker thread's call). A
     `ValueError` or `OSError` says what is wrong; the view is then unchanged."""
     match msg:
-        case p.CameraChange() | p.TFChange() | p.DenoiseChange() | p.ModeChange():
+        case p.CameraChange() | p.TFChange() | p.DenoiseChange() | p.ModeChange() | p.HybridChange():
             return engine.histogram(view) if engine.change(view, msg) else None     # a new range or units
         case p.HistogramRequest():
             return engine.histogram(view)

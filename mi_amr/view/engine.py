@@ -10,8 +10,9 @@ hold; its parts, one concept each, are mixins over its state:
   mode, clip plane, accumulation): open, describe, change (a change that
   cannot render is refused with a `ValueError`), close;
 * `scheduler.RenderScheduler`: the render thread and its passes (fast
-  passes while the hand moves, the view's mode once it settles, passes
-  recorded ahead, the denoising cadence, failed passes);
+  passes while the hand moves, ray-marched in the hybrid viewer, the
+  view's mode once it settles, passes recorded ahead, the denoising
+  cadence, failed passes);
 * `editor.EditorRequests`: the TF editor's requests, the histogram,
   field switches, the annotations, clip and slice requests;
 * `snapshot.ViewSnapshots`: a view written to files.
@@ -41,16 +42,17 @@ from ..progress import listen
 from .editor import EditorRequests
 from .protocol import Status
 from .scene import LoadedScene, load_scene
-from .scheduler import (DEFAULT_MAX_SPP, DENOISE_INTERVAL, FAST_BUDGET, FAST_LADDER, FAST_MODE, JIT_LOCK, MAX_FAILURES,
-                        SETTLE, RenderScheduler, denoiser, encode_jpeg, one_line)
+from .scheduler import (DEFAULT_MAX_SPP, DENOISE_INTERVAL, FAST_BUDGET, FAST_LADDER, FAST_MODE, FAST_STEP_SCALE,
+                        JIT_LOCK, MAX_FAILURES, PLAIN_FAST_MODE, SETTLE, RenderScheduler, denoiser, encode_jpeg,
+                        one_line)
 from .snapshot import SNAPSHOT_WAIT, Snapshot, SnapshotBudget, ViewSnapshots
 from .tf_spec import TFSpec
 from .views import View, ViewRegistry, check_camera
 
 #: What callers import from here (the parts' names, as before the engine was split).
 __all__ = ["ViewEngine", "View", "check_camera", "denoiser", "encode_jpeg", "one_line", "DEFAULT_MAX_SPP",
-           "DENOISE_INTERVAL", "FAST_BUDGET", "FAST_LADDER", "FAST_MODE", "JIT_LOCK", "MAX_FAILURES", "SETTLE",
-           "SNAPSHOT_WAIT"]
+           "DENOISE_INTERVAL", "FAST_BUDGET", "FAST_LADDER", "FAST_MODE", "FAST_STEP_SCALE", "JIT_LOCK",
+           "MAX_FAILURES", "PLAIN_FAST_MODE", "SETTLE", "SNAPSHOT_WAIT"]
 
 
 class ViewEngine(ViewRegistry, EditorRequests, RenderScheduler, ViewSnapshots):
@@ -64,12 +66,17 @@ class ViewEngine(ViewRegistry, EditorRequests, RenderScheduler, ViewSnapshots):
     after a change (1: full size); ``mode``: the lighting mode views start
     in (None: the scene's integrator's own; a mode needs ``amrvolpath``);
     ``fast_ladder``: the fast passes' sizes as shares of the preview size,
-    largest first (`FAST_LADDER`); ``plan``: the `ScenePlan` of data
-    ``source`` made already (a notebook's `DataScene`), else planned at load."""
+    largest first (`FAST_LADDER`); ``hybrid``: whether views start with
+    ray-marched drag frames (`FAST_MODE`; False: `PLAIN_FAST_MODE`; each view
+    may change its own); ``fast_step_scale``: the ray marcher's step in
+    those frames, finest cells (`FAST_STEP_SCALE`); ``plan``: the
+    `ScenePlan` of data ``source`` made already (a notebook's `DataScene`),
+    else planned at load."""
 
     def __init__(self, source, field: str | None = None, *, res: int = 256, max_spp: int = DEFAULT_MAX_SPP,
                  preview_scale: float = 0.5, variant: str = "llvm_ad_rgb", mode: str | None = None,
-                 fast_ladder=FAST_LADDER, embed_data: bool = False, plan=None):
+                 fast_ladder=FAST_LADDER, embed_data: bool = False, plan=None, hybrid: bool = True,
+                 fast_step_scale: float = FAST_STEP_SCALE):
         if not 16 <= res <= 4096:
             raise ValueError(f"res must lie in [16, 4096], got {res}")
         if not 1 <= max_spp <= 1_000_000:
@@ -83,6 +90,11 @@ class ViewEngine(ViewRegistry, EditorRequests, RenderScheduler, ViewSnapshots):
                                                                                                       reverse=True):
             raise ValueError(f"fast_ladder: shares in (0, 1], largest first, got {fast_ladder!r}")
         self.fast_ladder = tuple(float(f) for f in fast_ladder)
+        if not isinstance(hybrid, bool):
+            raise ValueError(f"hybrid must be True or False, got {hybrid!r}")
+        if not (isinstance(fast_step_scale, (int, float)) and 0 < fast_step_scale <= 1000):
+            raise ValueError(f"fast_step_scale must lie in (0, 1000] finest cells, got {fast_step_scale!r}")
+        self.hybrid, self.fast_step_scale = hybrid, float(fast_step_scale)
         self.source, self.field, self.res, self.max_spp = source, field, int(res), int(max_spp)
         self.preview_scale, self.variant = float(preview_scale), variant
         self.embed_data = bool(embed_data)       # snapshots of yt data: copy them (else name them)

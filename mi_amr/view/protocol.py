@@ -11,6 +11,7 @@ fields}``; a change message's missing fields keep the view's value:
 * ``tf``: `TFChange` (the TF editor's state, display units; `tf_spec`)
 * ``denoise``: `DenoiseChange`
 * ``mode``: `ModeChange` (the lighting mode the view refines in)
+* ``hybrid``: `HybridChange` (drag frames ray-marched, or in emission_absorption)
 * ``histogram``: `HistogramRequest`; ``snapshot``: `SnapshotRequest`
 * ``ack``: `Ack` (the newest frame is on screen)
 * the TF editor's requests (`EditorRequest`): ``tf_save`` (`TFSave`, answered
@@ -135,8 +136,18 @@ class Ack(Message):
     TYPE: ClassVar[str] = "ack"
 
 
-ViewChange = CameraChange | TFChange | DenoiseChange | ModeChange
-PageMessage = CameraChange | TFChange | DenoiseChange | ModeChange | HistogramRequest | SnapshotRequest | Ack
+@dataclass(frozen=True)
+class HybridChange(Message):
+    """The hybrid viewer on or off for this view: the passes that answer a
+    camera or TF change ray-marched (``ray_march``: noise-free) while ``on``,
+    else in ``emission_absorption``; the view refines in its own mode either way."""
+    TYPE: ClassVar[str] = "hybrid"
+    on: bool
+
+
+ViewChange = CameraChange | TFChange | DenoiseChange | ModeChange | HybridChange
+PageMessage = CameraChange | TFChange | DenoiseChange | ModeChange | HybridChange | HistogramRequest \
+    | SnapshotRequest | Ack
 
 
 # ---- Server to page -----------------------------------------------------------------------------
@@ -158,7 +169,10 @@ class Hello(Message):
     colours, ``{name: ["#rrggbb", ...]}`` over u), the film ``size``
     [width, height] in pixels; ``modes``: the lighting modes the view may
     refine in (None: the scene's integrator has none, ``mode_note`` says
-    why), ``mode`` the view's, ``fast_mode`` the one of drag frames."""
+    why), ``mode`` the view's, ``fast_mode`` the one of its drag frames now;
+    ``hybrid``: whether its drag frames are ray-marched (None: the scene
+    has no ``ray_march``), ``fast_modes`` the drag frames' mode with the
+    hybrid ``{"on": ..., "off": ...}``."""
     TYPE: ClassVar[str] = "hello"
     view: int
     camera: object
@@ -178,6 +192,8 @@ class Hello(Message):
     mode: str | None = _optional()
     fast_mode: str | None = _optional()
     mode_note: str | None = _optional()
+    hybrid: bool | None = _optional()
+    fast_modes: dict | None = _optional()
 
 
 @dataclass(frozen=True)
@@ -487,6 +503,12 @@ def _denoise(f: dict) -> DenoiseChange:
     return DenoiseChange(f["on"])
 
 
+def _hybrid(f: dict) -> HybridChange:
+    if not isinstance(f.get("on"), bool):
+        raise ValueError("hybrid: 'on' must be true or false")
+    return HybridChange(f["on"])
+
+
 def _mode(f: dict) -> ModeChange:
     if f.get("mode") not in MODES:
         raise ValueError(f"mode: one of {', '.join(MODES)}")
@@ -548,7 +570,8 @@ def _slice(f: dict) -> SliceRequest:
 #: Each page message type: its class and the parser of its fields.
 _PARSERS = {cls.TYPE: (cls, parse_fields) for cls, parse_fields in (
     (CameraChange, _camera), (TFChange, _tf), (DenoiseChange, _denoise), (ModeChange, _mode),
-    (HistogramRequest, lambda f: HistogramRequest()), (SnapshotRequest, _snapshot), (Ack, lambda f: Ack()),
+    (HybridChange, _hybrid), (HistogramRequest, lambda f: HistogramRequest()), (SnapshotRequest, _snapshot),
+    (Ack, lambda f: Ack()),
     (TFSave, lambda f: TFSave()), (TFLoad, lambda f: TFLoad(_text("text", f.get("text")))),
     (FieldChange, lambda f: FieldChange(_text("name", f.get("name"), MAX_NAME))), (Describe, lambda f: Describe()),
     (ClipChange, _clip), (AnnotateChange, _annotate), (AnnotationsRequest, lambda f: AnnotationsRequest()),

@@ -12,7 +12,20 @@ integrator object per mode (`MODES`; the scene's own serves its mode, the
 others are copies of its parameters with another ``mode``) renders the one
 scene through ``mi.render(scene, integrator=...)``: no second scene, so
 no second medium for Dr.Jit to dispatch over, and each (mode, film size)
-has its frozen recording.
+has its frozen recording. The ray marcher's ``step_scale`` is an opaque
+input of its recordings: a pass may march with another step
+(`LoadedScene.render`'s ``step_scale``: the hybrid viewer's drag frames)
+and the next with the integrator's own, nothing recompiled.
+
+Centred passes (``centred=True``: the hybrid viewer's ray-marched drag
+frames) render through a second sensor, `centre_sensor`: the scene's
+perspective camera (its transform, field of view and film size mirrored
+by `LoadedScene.apply`) with a 1-spp stratified sampler without jitter, so
+each pixel's ray leaves its centre and every random number of the pass is
+its stratum's midpoint: the marcher samples each step's midpoint, and the
+surfaces behind the medium get one fixed light sample. Such a pass is the
+same whatever the seed (noise-free, biased where the path tracer's
+average is not); it never joins an accumulation.
 
 An XML scene's own TF table is kept exactly: the editor starts from its
 entries (or, for a table of more than `MAX_POINTS` entries, from
@@ -35,7 +48,7 @@ from ..data.statistics import positive_share
 from ..scene_writer import scene_for
 from ..data.opening import is_native
 from ..data.yt_import import load_dataset
-from ..plugins.integrator import MODES, AMRVolpathIntegrator
+from ..plugins.integrator import DEFAULT_STEP_SCALE, MODES, AMRVolpathIntegrator
 from ..plugins.medium import amr_media
 from ..transfer.classification import check_density_scale
 from ..transfer.function import TransferFunction
@@ -57,15 +70,16 @@ class FrozenPasses:
     def __init__(self):
         self._frozen = {}
 
-    def render(self, scene, seed: int, size, integrator=None, key=None) -> np.ndarray:
+    def render(self, scene, seed: int, size, integrator=None, key=None, sensor=None) -> np.ndarray:
         """One pass, (height, width, channels) float32, for ``size`` = [width,
-        height] pixels, by ``integrator`` (None: the scene's), whose
-        recordings ``key`` names (the mode)."""
+        height] pixels, by ``integrator`` (None: the scene's) through
+        ``sensor`` (None: the scene's first), whose recordings ``key``
+        names (the mode, and whether centred)."""
         k = (tuple(size), key)
 
         def replay(record: bool) -> np.ndarray:
             if record:
-                self._frozen[k] = self._record(integrator)
+                self._frozen[k] = self._record(integrator, sensor)
             return np.array(self._frozen[k](scene, dr.opaque(mi.UInt32, seed)), dtype=np.float32)
         try:
             image = replay(k not in self._frozen)
@@ -88,9 +102,12 @@ class FrozenPasses:
         return image
 
     @staticmethod
-    def _record(integrator):
+    def _record(integrator, sensor=None):
         if integrator is None:
             return dr.freeze(lambda scene, seed: mi.render(scene, spp=1, seed=seed))
+        if sensor is not None:
+            return dr.freeze(lambda scene, seed: mi.render(scene, sensor=sensor, integrator=integrator, spp=1,
+                                                           seed=seed))
         return dr.freeze(lambda scene, seed: mi.render(scene, integrator=integrator, spp=1, seed=seed))
 
     def clear(self):
@@ -136,6 +153,9 @@ class LoadedScene:
     applied: dict = field(default_factory=dict)  # the camera, size and spec the scene holds now
     histogram: Histogram | None = None
     integrators: dict = field(default_factory=dict)  # lighting mode -> amrvolpath integrator ({}: none)
+    steps: dict = field(default_factory=dict)   # lighting mode -> its integrator's own step_scale
+    centre: object = None                       # `centre_sensor` (None: the scene's camera is not perspective)
+    centre_params: object = None                # mi.traverse(centre)
     scene_mode: str | None = None               # the scene's own integrator's mode
     mode_note: str = ""                         # why there are no modes
 
@@ -203,26 +223,43 @@ class LoadedScene:
         if moved or resized:
             self.params.update()
             self.applied.update(camera=camera, size=size)
+            if self.centre is not None:              # the centred sensor mirrors the scene's
+                mirror(self.params, self.keys["to_world"][:-len("to_world")], self.centre_params)
         if self.applied.get("spec") != spec:
             self.medium.set_transfer_function(self.table(spec), spec.density)
             self.applied["spec"] = spec
 
-    def render(self, seed: int, size, mode: str | None = None) -> np.ndarray:
+    def render(self, seed: int, size, mode: str | None = None, step_scale: float | None = None,
+               centred: bool = False) -> np.ndarray:
         """One 1-spp pass of what `apply` put in, [width, height] = ``size``,
-        in the lighting ``mode`` (None: the scene's integrator as it is)."""
+        in the lighting ``mode`` (None: the scene's integrator as it is);
+        ``step_scale``: the ray marcher's step for this pass (None: its
+        integrator's own), set as an opaque value (the recording replays);
+        ``centred``: through `centre_sensor` (the module docstring; where
+        the scene has one)."""
         if mode is None:
             return self.passes.render(self.scene, seed, size)
         if mode not in self.integrators:
             raise ValueError(f"mode {mode}: {self.mode_note or 'not one of ' + ', '.join(self.modes)}")
-        return self.passes.render(self.scene, seed, size, self.integrators[mode], mode)
+        integrator = self.integrators[mode]
+        step = self.steps.get(mode) if step_scale is None else float(step_scale)
+        if step is not None and self.applied.get(("step", mode)) != step:
+            integrator.step_scale = dr.opaque(mi.Float, step)
+            self.applied[("step", mode)] = step
+        if centred and self.centre is not None:
+            return self.passes.render(self.scene, seed, size, integrator, (mode, "centred"), self.centre)
+        return self.passes.render(self.scene, seed, size, integrator, mode)
 
-    def recorded(self, size, mode: str | None = None) -> bool:
-        """Whether a pass of ``size`` in ``mode`` is recorded (replays compile nothing)."""
-        return self.passes.recorded(size, mode)
+    def _key(self, mode, centred: bool):
+        return (mode, "centred") if centred and mode is not None and self.centre is not None else mode
 
-    def forget(self, size, mode: str | None = None):
+    def recorded(self, size, mode: str | None = None, centred: bool = False) -> bool:
+        """Whether a pass of ``size`` in ``mode`` (``centred``) is recorded (replays compile nothing)."""
+        return self.passes.recorded(size, self._key(mode, centred))
+
+    def forget(self, size, mode: str | None = None, centred: bool = False):
         """After a failed pass: drop its recording, re-apply everything next time."""
-        self.passes.forget(size, mode)
+        self.passes.forget(size, self._key(mode, centred))
         self.applied.clear()
 
     def shares(self, spec: TFSpec) -> list[float]:
@@ -272,15 +309,49 @@ def load_scene(source, field, res: int, say, plan=None) -> LoadedScene:
     params[loaded.keys["size"]] = loaded.size
     params.update()
     loaded.integrators, loaded.scene_mode, loaded.mode_note = mode_integrators(loaded.scene)
+    loaded.steps = {m: float(dr.slice(i.step_scale)) for m, i in loaded.integrators.items()}
+    if loaded.integrators and loaded.scene.sensors()[0].class_name() == "PerspectiveCamera":
+        loaded.centre = centre_sensor(loaded.size)
+        loaded.centre_params = mi.traverse(loaded.centre)
+        mirror(params, prefix, loaded.centre_params)
     return loaded
+
+
+#: The scene sensor's parameters `centre_sensor` mirrors (where it has them).
+MIRRORED = ("to_world", "x_fov", "near_clip", "far_clip", "principal_point_offset_x", "principal_point_offset_y",
+            "film.size")
+
+
+def centre_sensor(size):
+    """A perspective camera of ``size`` = [width, height] pixels whose
+    1-spp stratified sampler has no jitter: each pixel's ray through its
+    centre, every random number a stratum's midpoint (the module docstring)."""
+    return mi.load_dict({"type": "perspective",
+                         "sampler": {"type": "stratified", "jitter": False, "sample_count": 1},
+                         "film": {"type": "hdrfilm", "width": int(size[0]), "height": int(size[1]),
+                                  "pixel_format": "rgb", "rfilter": {"type": "box"}}})
+
+
+def mirror(params, prefix: str, centre_params):
+    """The scene's sensor's (``prefix``) `MIRRORED` parameters into the centred sensor's."""
+    for key in MIRRORED:
+        if prefix + key in params.keys():
+            centre_params[key] = params[prefix + key]
+    centre_params.update()
 
 
 def integrator_props(integrator, mode: str) -> dict:
     """``mi.load_dict`` properties of an ``amrvolpath`` integrator with the
-    parameters of ``integrator`` (one) and the lighting ``mode``."""
+    parameters of ``integrator`` (one) and the lighting ``mode``; its
+    ``brightness``, ``step_scale`` and ``shading`` where not the defaults."""
     props = {"type": "amrvolpath", "mode": mode, "rr_depth": int(integrator.rr_depth),
              "max_depth": -1 if integrator.max_depth == 0xFFFFFFFF else int(integrator.max_depth),
              "hide_emitters": bool(integrator.hide_emitters)}
+    for name, value, default in (("brightness", float(dr.slice(integrator.brightness)), 1.0),
+                                 ("step_scale", float(dr.slice(integrator.step_scale)), DEFAULT_STEP_SCALE),
+                                 ("shading", integrator.shading, "flat")):
+        if value != default:
+            props[name] = value
     for name, value in (("residual_ratio_tracking", integrator.residual),
                         ("decomposition_tracking", integrator.decomposition)):
         if value is not None:                    # None: each medium's own choice

@@ -13,18 +13,26 @@ nothing.
 
 Lighting modes (``amrvolpath``'s ``mode``, docs/design.md section 6d): each
 view refines in its own mode (``mode``, default the scene's), while a
-camera or TF change is answered by a *fast* pass: `FAST_MODE`
-(emission_absorption), 1 spp at ``preview_scale`` of the resolution, shown
-raw. Once no camera or TF change has come for `SETTLE` seconds the view's
-mode takes over: one pass at the fast passes' size (denoised where the
-denoiser is on), then full-size passes that accumulate. The fast
-passes keep to `FAST_BUDGET`: while their running mean takes longer, they
-render at the next smaller size of `FAST_LADDER` (down to half of the
-preview size), and at a larger one again once it fits. Every pass kind is a
-frozen recording of the one scene (`LoadedScene.render`); the ones a view
-needs are recorded ahead while no view waits for a picture (`_warm_up`):
-a page's first picture, and a drag's switch of size, replay instead of
-tracing.
+camera or TF change is answered by a *fast* pass at ``preview_scale`` of
+the resolution, shown raw. The hybrid viewer (docs/design.md sections 11
+and 14; the view's ``hybrid``, on unless the engine's ``hybrid=False``): its fast
+passes are `FAST_MODE` (``ray_march``, the sci-vis ray marcher) through
+the scene's centred sensor (`scene.centre_sensor`: each pixel's ray
+through its centre, each step sampled at its midpoint: the same picture
+whatever the seed, noise-free) with the marcher's step set to the
+engine's ``fast_step_scale`` finest cells (`FAST_STEP_SCALE`; an opaque
+input of the recording: nothing recompiles); with the hybrid off,
+`PLAIN_FAST_MODE` (``emission_absorption``), 1 spp. Once no camera or TF
+change has come for `SETTLE` seconds the view's mode takes over from
+there: one pass at the fast passes' size (denoised where the denoiser is
+on), then full-size passes that accumulate. The fast passes keep to `FAST_BUDGET`: while their
+running mean takes longer, they render at the next smaller size of
+`FAST_LADDER` (down to half of the preview size; the hybrid's never below
+half the view's width), and at a larger one again once it fits. Every pass
+kind is a frozen recording of the one scene (`LoadedScene.render`); the
+ones a view needs are recorded ahead while no view waits for a picture
+(`_warm_up`): a page's first picture, and a drag's switch of size, replay
+instead of tracing.
 
 With the denoiser (`mitsuba_oidn`) on, a view sees denoised previews of
 its mode and denoised images of its accumulation at 1, 2, 4, 8, 16 spp,
@@ -67,8 +75,17 @@ DEFAULT_MAX_SPP = 1024
 DENOISE_INTERVAL = 1.0
 #: Passes of one state that may fail in a row before its view stops rendering (until it changes).
 MAX_FAILURES = 3
-#: The lighting mode of the passes that answer a camera or TF change (drag frames).
-FAST_MODE = "emission_absorption"
+#: The lighting mode of the passes that answer a camera or TF change (drag
+#: frames) in the hybrid viewer (a view's ``hybrid`` on): the ray marcher.
+FAST_MODE = "ray_march"
+#: ... with the hybrid off (``mi-amr view --no-hybrid``, the page's toggle).
+PLAIN_FAST_MODE = "emission_absorption"
+#: The ray marcher's step in the hybrid's drag frames, in finest cells under
+#: each leaf (its ``step_scale``; the view's own ``ray_march`` passes keep the
+#: integrator's): coarser than the marcher's default 0.5 to keep up with the
+#: hand (what it costs in the picture and saves in time on 10^7 cells:
+#: docs/performance/view.md, "The hybrid viewer").
+FAST_STEP_SCALE = 4.0
 #: Seconds without a camera or TF change after which a view's own mode refines.
 SETTLE = 0.1
 #: The fast passes' film sizes, as shares of ``preview_scale`` of the resolution.
@@ -123,8 +140,8 @@ class RenderScheduler:
         self._denoise_lock = threading.Lock()    # one denoise at a time (render thread, snapshots)
         self._thread = threading.Thread(target=self._run, name="mi-amr view", daemon=True)
         self._warm = []                          # (size, mode) recorded ahead (`_warm_up`)
-        self._fast_level = 0                     # the fast passes' size: FAST_LADDER[level]
-        self._fast_ms = {}                       # film size -> running mean of its fast passes (s)
+        self._fast_levels = {}                   # fast mode -> its passes' size: `_ladder(mode)`[level]
+        self._fast_ms = {}                       # (film size, fast mode) -> running mean of its passes (s)
 
     @property
     def warming(self) -> bool:
@@ -212,53 +229,79 @@ class RenderScheduler:
         """A scene was loaded (the first, or another field's under ``_wake``):
         the passes it needs, to record ahead (`_warm_list`), and fast-pass
         times of its own."""
-        self._warm, self._fast_ms, self._fast_level = self._warm_list(), {}, 0
+        self._warm, self._fast_ms, self._fast_levels = self._warm_list(), {}, {}
 
-    def _fast_mode(self) -> str | None:
-        """The mode of the passes that answer a camera or TF change:
-        `FAST_MODE`, or None (the scene's integrator) without modes."""
-        return FAST_MODE if FAST_MODE in self.loaded.modes else None
+    def _fast_mode(self, view: View | None = None) -> str | None:
+        """The mode of the passes that answer a camera or TF change of
+        ``view`` (None: of a view as the engine opens it): `FAST_MODE` while
+        its hybrid is on and the scene has it, else `PLAIN_FAST_MODE`; None
+        (the scene's integrator) without modes."""
+        modes = self.loaded.modes
+        if (self.hybrid if view is None else view.hybrid) and FAST_MODE in modes:
+            return FAST_MODE
+        return PLAIN_FAST_MODE if PLAIN_FAST_MODE in modes else None
 
-    def _ladder(self) -> list:
-        """The fast passes' film sizes, [width, height], largest first (`FAST_LADDER`)."""
+    def _hybrid_modes(self) -> dict | None:
+        """The drag frames' mode with a view's hybrid ``{"on": FAST_MODE,
+        "off": PLAIN_FAST_MODE}``, or None where the scene has no marcher."""
+        return {"on": FAST_MODE, "off": PLAIN_FAST_MODE} if FAST_MODE in self.loaded.modes else None
+
+    @property
+    def _fast_level(self) -> int:
+        """The fast passes' size of a view as the engine opens it: `_ladder`'s index."""
+        return self._fast_levels.get(self._fast_mode(), 0)
+
+    def _ladder(self, fast: str | None = "") -> list:
+        """The film sizes, [width, height], largest first, of the passes in
+        the fast mode ``fast`` (default: a view's as the engine opens it):
+        `FAST_LADDER` of the preview size; the hybrid's (`FAST_MODE`) only
+        those at least half the view's width (the first one always)."""
+        fast = self._fast_mode() if fast == "" else fast
         full = list(self.loaded.size)
         sizes = [[max(8, int(full[0] * self.preview_scale * f)), max(8, int(full[1] * self.preview_scale * f))]
                  for f in self.fast_ladder]
-        return [q for k, q in enumerate(sizes) if q not in sizes[:k]]
+        sizes = [q for k, q in enumerate(sizes) if q not in sizes[:k]]
+        if fast == FAST_MODE:
+            sizes = sizes[:1] + [q for q in sizes[1:] if 2 * q[0] >= full[0]]
+        return sizes
 
-    def _sizes(self, mode=None) -> tuple[list, list]:
-        """(the film size of the fast passes, or of a preview in ``mode``;
-        the full one), [width, height]. A preview takes the fast passes'
-        size where that is recorded for its mode, else the preview size."""
-        ladder = self._ladder()
-        small = ladder[min(self._fast_level, len(ladder) - 1)]
-        if mode is not None and mode != self._fast_mode() and not self.loaded.recorded(small, mode):
+    def _sizes(self, mode=None, view: View | None = None) -> tuple[list, list]:
+        """(the film size of ``view``'s fast passes, or of its preview in
+        ``mode``; the full one), [width, height]. A preview takes the fast
+        passes' size where that is recorded for its mode, else the preview size."""
+        fast = self._fast_mode(view)
+        ladder = self._ladder(fast)
+        small = ladder[min(self._fast_levels.get(fast, 0), len(ladder) - 1)]
+        if mode is not None and mode != fast and not self.loaded.recorded(small, mode):
             small = ladder[0]
         return small, list(self.loaded.size)
 
-    def _fast_timed(self, size, seconds: float):
-        """A fast pass of ``size`` took ``seconds``: update its running mean,
-        then step down the ladder when over `FAST_BUDGET`, or up when the
-        larger size (its time scaled by the pixels) fits in 3/4 of it; only
-        to sizes recorded already (no tracing in the middle of a drag)."""
-        key = tuple(size)
+    def _fast_timed(self, size, seconds: float, fast: str | None = ""):
+        """A fast pass of ``size`` in ``fast`` (default: a view's as the
+        engine opens it) took ``seconds``: update its running mean, then
+        step down its ladder when over `FAST_BUDGET`, or up when the larger
+        size (its time scaled by the pixels) fits in 3/4 of it; only to
+        sizes recorded already (no tracing in the middle of a drag)."""
+        fast = self._fast_mode() if fast == "" else fast
+        key = (tuple(size), fast)
         mean = self._fast_ms.get(key)
         mean = seconds if mean is None else 0.7 * mean + 0.3 * seconds
         self._fast_ms[key] = mean
-        ladder, fast = self._ladder(), self._fast_mode()
-        level = min(self._fast_level, len(ladder) - 1)
+        ladder = self._ladder(fast)
+        level = min(self._fast_levels.get(fast, 0), len(ladder) - 1)
         if list(size) != ladder[level]:
             return
         scaled = lambda q: mean * q[0] * q[1] / (size[0] * size[1])       # noqa: E731
         step = 0
-        if mean > FAST_BUDGET and level + 1 < len(ladder) and self.loaded.recorded(ladder[level + 1], fast):
+        centred = fast == FAST_MODE
+        if mean > FAST_BUDGET and level + 1 < len(ladder) and self.loaded.recorded(ladder[level + 1], fast, centred):
             step = 1
-        elif level > 0 and self.loaded.recorded(ladder[level - 1], fast) and \
+        elif level > 0 and self.loaded.recorded(ladder[level - 1], fast, centred) and \
                 scaled(ladder[level - 1]) < 0.75 * FAST_BUDGET:
             step = -1
         if step:                                 # the new size's mean starts from this one, scaled
-            self._fast_level = level + step
-            self._fast_ms[tuple(ladder[level + step])] = scaled(ladder[level + step])
+            self._fast_levels[fast] = level + step
+            self._fast_ms[(tuple(ladder[level + step]), fast)] = scaled(ladder[level + step])
 
     def _next_pass(self, v: View, now: float) -> tuple[str | None, float]:
         """What ``v`` needs next and when: ``("redisplay" | "fast" |
@@ -280,27 +323,38 @@ class RenderScheduler:
         return "full", now
 
     def _warm_list(self) -> list:
-        """The recordings a view needs, in the order it needs them: the fast
-        pass, the engine's mode at preview size, then at full size; then
-        both at the smaller fast sizes."""
-        ladder, full, fast = self._ladder(), list(self.loaded.size), self._fast_mode()
+        """The recordings a view as the engine opens it needs, in the order
+        it needs them: the fast pass (in the fast mode in use), the engine's
+        mode at preview size, then at full size; then both at the smaller
+        fast sizes. (A view that turns its hybrid off or on, or chooses
+        another mode, asks for its own: `views.ViewRegistry.change`.)"""
+        fast = self._fast_mode()
+        ladder, full = self._ladder(fast), list(self.loaded.size)
         preview = self.preview_scale < 1
-        items = [(ladder[0], fast)] + ([(ladder[0], self.mode)] if preview else []) + [(full, self.mode)]
+        items = [self._fast_item(ladder[0], fast)] + ([(ladder[0], self.mode)] if preview else []) + \
+            [(full, self.mode)]
         for size in ladder[1:]:
-            items += [(size, fast)] + ([(size, self.mode)] if preview else [])
+            items += [self._fast_item(size, fast)] + ([(size, self.mode)] if preview else [])
         return [item for k, item in enumerate(items) if item not in items[:k]]
 
-    def _warm_up(self, size, mode):
-        """Record (and throw away) one pass of ``size`` in ``mode`` with the
-        start camera and TF, so that a view's first such pass replays."""
+    @staticmethod
+    def _fast_item(size, fast) -> tuple:
+        """The recording of a fast pass of ``size`` in ``fast``, as `_warm_up`'s
+        arguments: the hybrid's (`FAST_MODE`) centred."""
+        return (size, fast, True) if fast == FAST_MODE else (size, fast)
+
+    def _warm_up(self, size, mode, centred: bool = False):
+        """Record (and throw away) one pass of ``size`` in ``mode`` (``centred``:
+        `LoadedScene.render`'s) with the start camera and TF, so that a
+        view's first such pass replays."""
         with JIT_LOCK:
-            if self.loaded.recorded(size, mode):
+            if self.loaded.recorded(size, mode, centred):
                 return
             try:
                 self.loaded.apply(self.loaded.initial_camera, self.loaded.initial_spec, size)
-                self.loaded.render(next(self._seeds), size, mode)
+                self.loaded.render(next(self._seeds), size, mode, centred=centred)
             except Exception:                        # a view's own pass will say what is wrong
-                self.loaded.forget(size, mode)
+                self.loaded.forget(size, mode, centred)
 
     def _denoise_due(self, view: View, spp: int) -> bool:
         """Denoise the accumulation now: at 1, 2, 4, 8, 16 spp, then each
@@ -316,22 +370,25 @@ class RenderScheduler:
     def _pass(self, view: View, kind: str, epoch: int, rendered: int, camera, spec, mode):
         """One pass of ``kind`` ("fast", "preview" or "full") for ``view``'s
         state of ``epoch`` (its version ``rendered``), then its frame."""
-        pass_mode = self._fast_mode() if kind == "fast" else mode
-        small, full = self._sizes(pass_mode)
+        pass_mode = self._fast_mode(view) if kind == "fast" else mode
+        small, full = self._sizes(pass_mode, view)
         size = full if kind == "full" else small
+        # the hybrid's drag frames march centred with the fast step; every other pass with the integrator's own
+        centred = kind == "fast" and pass_mode == FAST_MODE
+        step = self.fast_step_scale if centred else None
         t0 = time.perf_counter()
         with JIT_LOCK:
             try:
                 self.loaded.apply(camera, spec, size)
                 self._put_clip(view.clip)
-                image = self.loaded.render(next(self._seeds), size, pass_mode)
+                image = self.loaded.render(next(self._seeds), size, pass_mode, step_scale=step, centred=centred)
             except Exception:
-                self.loaded.forget(size, pass_mode)  # its recording and what the scene holds
+                self.loaded.forget(size, pass_mode, centred)  # its recording and what the scene holds
                 raise
         took = time.perf_counter() - t0
         render_ms = round(1e3 * took, 1)
         if kind == "fast":
-            self._fast_timed(size, took)
+            self._fast_timed(size, took, pass_mode)
         preview = kind != "full"
         with self._wake:
             if view.closed:

@@ -1,6 +1,6 @@
 """The viewer's views: one `View` per browser tab (its camera, transfer
-function, lighting mode, clip plane and accumulated image) and the
-registry of them (`ViewRegistry`: open, close, describe, change).
+function, lighting mode, hybrid toggle, clip plane and accumulated image)
+and the registry of them (`ViewRegistry`: open, close, describe, change).
 
 A change that cannot render never reaches the render thread: `ViewRegistry.change`
 refuses it with a `ValueError` and the view is unchanged. Every change
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import OrbitCamera
-from .protocol import (AnnotateChange, CameraChange, DenoiseChange, Hello, ModeChange, TFChange, ViewChange,
-                       parse_message)
+from .protocol import (AnnotateChange, CameraChange, DenoiseChange, Hello, HybridChange, ModeChange, TFChange,
+                       ViewChange, parse_message)
 from .tf_spec import TFSpec, colormap_stops
 
 
@@ -38,6 +38,7 @@ class View:
     notify: object = None                # notify(protocol message) to the view's page, thread-safe
     denoise: bool = True
     mode: str | None = None              # the lighting mode it refines in (None: the scene's integrator)
+    hybrid: bool = True                  # drag frames ray-marched, else emission_absorption (`scheduler`)
     version: int = 0                     # bumped by every change message (the page counts them too)
     changed_at: float = -1e9             # the last camera or TF change (time.monotonic)
     fast_epoch: int = -1                 # the epoch a fast pass was shown for
@@ -78,7 +79,7 @@ class ViewRegistry:
             raise RuntimeError("the data are still loading")
         with self._wake:
             v = View(next(self._ids), self.loaded.initial_camera, self.loaded.initial_spec, send, notify,
-                     denoise=self._denoise is not None, mode=self.mode)
+                     denoise=self._denoise is not None, mode=self.mode, hybrid=self.hybrid)
             self._views[v.id] = v
             self._wake.notify_all()
             return v
@@ -108,11 +109,13 @@ class ViewRegistry:
     def describe(self, view: View) -> Hello:
         """What a page needs to draw its controls."""
         s = self.loaded
+        marches = self._hybrid_modes()
         return Hello(view.id, view.camera, view.spec, tuple(s.colormaps), s.log_available, self._denoise is not None,
                      self.denoiser_missing, view.denoise, tuple(s.size), self.max_spp, s.description,
                      colormap_stops(s.colormaps, s.scene_rgb), editor=self._editor_extras(),
-                     modes=s.modes or None, mode=view.mode, fast_mode=self._fast_mode(),
-                     mode_note=s.mode_note or None)
+                     modes=s.modes or None, mode=view.mode, fast_mode=self._fast_mode(view),
+                     mode_note=s.mode_note or None, hybrid=view.hybrid if marches else None,
+                     fast_modes=marches)
 
     def place_camera(self, view: View, camera: OrbitCamera):
         """Put ``camera`` into ``view`` as it is (its field of view too: a
@@ -163,10 +166,17 @@ class ViewRegistry:
                     view.version += 1
                     view.epoch += 1
                     view.fast_epoch = view.epoch         # the picture did not move: no fast pass
-                    for size in self._ladder() if mode != self._fast_mode() else ():   # its previews, ahead
-                        if (size, mode) not in self._warm and not self.loaded.recorded(size, mode):
-                            self._warm.append((size, mode))
+                    self._record_ahead(view)             # its previews
                     view.broken = None
+                    self._wake.notify_all()
+                    return False
+                case HybridChange(on=on):
+                    if on and not self._hybrid_modes():
+                        raise ValueError(f"hybrid: the drag frames' ray marcher needs lighting modes: "
+                                         f"{self.loaded.mode_note or 'this scene has none'}")
+                    view.hybrid = on                   # the picture stays; the next drag's frames change
+                    view.version += 1
+                    self._record_ahead(view)             # its fast passes and previews
                     self._wake.notify_all()
                     return False
                 case _:
@@ -177,6 +187,16 @@ class ViewRegistry:
             view.broken = None
             self._wake.notify_all()
             return (before.range, before.log) != (view.spec.range, view.spec.log)
+
+    def _record_ahead(self, view: View):
+        """Ask `scheduler` to record ahead what ``view`` needs now (under
+        ``_wake``): its fast passes' sizes in its fast mode, and in its own
+        mode (its previews)."""
+        fast = self._fast_mode(view)
+        for size in self._ladder(fast):
+            for item in (self._fast_item(size, fast), (size, view.mode)):
+                if item not in self._warm and not self.loaded.recorded(*item):
+                    self._warm.append(item)
 
     # ---- The clip plane ----------------------------------------------------------------
     def set_clip(self, view: View, clip):

@@ -22,8 +22,10 @@ State both ways, as traits: ``camera`` (``{"origin", "target", "up",
 "fov"}``, world units and degrees), ``tf`` (the editor's state: ``points``,
 ``colormap``, ``log``, ``range``, ``density``; set it to that, to some of
 those fields, to a preset or colormap name, or to a TF ``.json`` path),
-``density_scale`` (extinction at opacity 1, inverse world units) and
-``mode`` (the lighting mode the picture refines in). Set from Python, they
+``density_scale`` (extinction at opacity 1, inverse world units),
+``mode`` (the lighting mode the picture refines in) and ``hybrid``
+(drag frames ray-marched, noise-free; False: 1-spp emission_absorption,
+as the page's toggle beside the mode selector). Set from Python, they
 change the picture (a bad value is a `ValueError`, nothing changed); moved
 in the page, they follow (within `PULL_DELAY`; `ViewWidget.sync` at once).
 Every change is also written into the `DataScene` the widget came from (``w.scene``): its camera, lighting mode
@@ -207,16 +209,18 @@ class ViewWidget(anywidget.AnyWidget):
     """The viewer of ``scene`` (a `DataScene`) in a notebook cell (see the
     module docstring). ``res``: the picture's width in pixels;
     ``max_spp``: where refining stops; ``out_dir``: where the snapshot
-    button writes; ``preview_scale``: the fast passes' share of ``res``."""
+    button writes; ``preview_scale``: the fast passes' share of ``res``;
+    ``hybrid``: the drag frames ray-marched (the ``hybrid`` trait's start)."""
 
     _esm = page_module()
     camera = traitlets.Dict().tag(sync=True)
     tf = traitlets.Any(None, allow_none=True).tag(sync=True)
     density_scale = traitlets.Float(0.0).tag(sync=True)
     mode = traitlets.Unicode(None, allow_none=True).tag(sync=True)
+    hybrid = traitlets.Bool(True).tag(sync=True)
 
     def __init__(self, scene, *, res: int = 256, max_spp: int = DEFAULT_MAX_SPP, out_dir=".",
-                 preview_scale: float = 0.5, **kwargs):
+                 preview_scale: float = 0.5, hybrid: bool = True, **kwargs):
         super().__init__(**kwargs)
         self.scene = scene
         self.out_dir = Path(out_dir).resolve()
@@ -232,12 +236,13 @@ class ViewWidget(anywidget.AnyWidget):
         self.view = None
         variant = mi.variant() or "llvm_ad_rgb"
         self.engine = ViewEngine(scene.source, scene.field, res=res, max_spp=max_spp, preview_scale=preview_scale,
-                                 variant=variant, mode=scene.mode, plan=scene.plan)
+                                 variant=variant, mode=scene.mode, plan=scene.plan, hybrid=hybrid)
         scene._lock = JIT_LOCK                   # its renders wait for the engine's passes
         with self._from_view():
             self.camera = {"origin": scene.origin.tolist(), "target": scene.target.tolist(),
                            "up": scene.up.tolist(), "fov": float(scene.fov)}
             self.density_scale, self.mode = float(scene.density_scale), scene.mode
+            self.hybrid = bool(hybrid)
         self._started = False
         self._stop_status = self.engine.on_status(self._send_json)
         self.on_msg(self._on_page)
@@ -409,7 +414,8 @@ class ViewWidget(anywidget.AnyWidget):
         return self
 
     def _pull(self):
-        """The view's camera, TF and mode as the traits and into the scene."""
+        """The view's camera, TF, mode and hybrid toggle as the traits, and
+        into the scene."""
         with self._lock:
             self._pull_timer = None
         view = self.view
@@ -419,6 +425,7 @@ class ViewWidget(anywidget.AnyWidget):
             self.tf = spec.to_json()
             self.density_scale = float(spec.density)
             self.mode = mode
+            self.hybrid = view.hybrid
         self._into_scene(camera, spec, mode)
 
     def _into_scene(self, camera: OrbitCamera, spec, mode):
@@ -495,6 +502,15 @@ class ViewWidget(anywidget.AnyWidget):
         self.engine.change(view, p.parse_message({"type": "mode", "mode": proposal.value}))
         self._changed_from_python()
         return view.mode
+
+    @traitlets.validate("hybrid")
+    def _set_hybrid(self, proposal):
+        if getattr(self._pulling, "on", False):
+            return proposal.value
+        view = self._ready_view()
+        self.engine.change(view, p.HybridChange(bool(proposal.value)))
+        self._changed_from_python()
+        return view.hybrid
 
     @traitlets.validate("camera")
     def _set_camera(self, proposal):

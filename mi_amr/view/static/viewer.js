@@ -1,5 +1,5 @@
 // mi-amr view: the page. One connection to the server: JSON messages out
-// (camera, tf, denoise, mode, snapshot, ack), JSON and frames (a header and a
+// (camera, tf, denoise, mode, hybrid, snapshot, ack), JSON and frames (a header and a
 // JPEG image) in. Every control change is sent at most once per animation
 // frame; the server renders the newest state and drops what went stale. The
 // TF editor: tf_editor.js; the orbit camera's arithmetic: camera.js.
@@ -215,12 +215,16 @@ function sppText(h) {            // the real count; the denoised picture's own w
 }
 
 // ---- lighting mode: what the picture refines in (drags render in the fast one) -------------
-let fastMode = null;
+// The hybrid toggle: drags ray-marched (fastModes.on) or in fastModes.off, for this view alone.
+let fastMode = null, fastModes = null;
 function showModes(msg) {
   const select = $("mode");
   select.replaceChildren(...(msg.modes || []).map((m) => new Option(m, m, false, m === msg.mode)));
   select.disabled = !msg.modes;
   fastMode = msg.fast_mode ?? null;
+  fastModes = msg.fast_modes ?? null;
+  $("hybrid").checked = msg.hybrid === true;
+  $("hybrid").disabled = msg.hybrid == null;
   modeNote(msg.mode ?? null, msg.modes ? "" : msg.mode_note || "");
 }
 
@@ -234,6 +238,12 @@ $("mode").addEventListener("change", () => {
   modeNote($("mode").value, "");
   changed();
   send({ type: "mode", mode: $("mode").value });
+});
+$("hybrid").addEventListener("change", () => {
+  if (fastModes) fastMode = $("hybrid").checked ? fastModes.on : fastModes.off;
+  modeNote(stats.mode, "");
+  changed();
+  send({ type: "hybrid", on: $("hybrid").checked });
 });
 
 // ---- camera: orbit (drag), pan (shift/right drag), zoom (wheel) ---------------------
