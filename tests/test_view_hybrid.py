@@ -25,7 +25,8 @@ from PIL import Image
 from mi_amr.tools.cli import build_parser
 from mi_amr.view import protocol as p
 from mi_amr.view.camera import OrbitCamera
-from mi_amr.view.engine import FAST_MODE, FAST_STEP_SCALE, PLAIN_FAST_MODE, SETTLE, ViewEngine
+from mi_amr.plugins.integrator import MODES
+from mi_amr.view.engine import FAST_BUDGET, FAST_MODE, FAST_STEP_SCALE, FAST_STEPS, PLAIN_FAST_MODE, SETTLE, ViewEngine
 from mi_amr.view.scene import LoadedScene
 from mi_amr.view.server import ViewServer
 from mi_amr.view.tf_spec import TFSpec
@@ -197,7 +198,7 @@ def test04_the_toggle_is_per_view_and_recorded_ahead(served, tmp_path):
     """One view's hybrid off, another's on: each drags in its own fast mode
     and its hello says so; turning it off asks for emission_absorption's
     recordings ahead (the fast mode in use); the marcher's drag frames use
-    the engine's fast step, its refining passes the integrator's own; a
+    a fast step (`FAST_STEPS` of the engine's), its refining passes the integrator's own; a
     snapshot writes the view's own mode, not the drag frames'."""
     server, _ = served
     engine = server.engine
@@ -216,7 +217,8 @@ def test04_the_toggle_is_per_view_and_recorded_ahead(served, tmp_path):
                                    (off, off_frames, PLAIN_FAST_MODE)):
             header, _ = _fast_frame(engine, view, frames, view.camera.azimuth + 15)
             assert header.mode == mode
-        assert engine.loaded.applied[("step", FAST_MODE)] == FAST_STEP_SCALE == engine.fast_step_scale
+        assert engine.fast_step_scale == FAST_STEP_SCALE
+        assert engine.loaded.applied[("step", FAST_MODE)] in {FAST_STEP_SCALE * k for k in FAST_STEPS}
         # the marcher refining: its own step again
         engine.change(on, p.ModeChange(FAST_MODE))
         wait_until(lambda: any(h.mode == FAST_MODE and not h.fast and not h.preview for h, _ in list(on_frames)),
@@ -233,7 +235,53 @@ def test04_the_toggle_is_per_view_and_recorded_ahead(served, tmp_path):
     assert modes == ["multi"]
 
 
-def test05_without_the_marcher_the_toggle_says_why():
+def _stub(res=256, **options) -> ViewEngine:
+    """An engine (never started) over a scene stub that offers every mode."""
+    engine = ViewEngine("unused.cells", res=res, mode="multi", **options)
+    engine.loaded = LoadedScene("unused.cells", None, "test", [res, res],
+                                OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0), TFSpec(), ("plasma",),
+                                stored_log=False, integrators=dict.fromkeys(MODES))
+    engine._new_scene()
+    return engine
+
+
+def test05_the_hybrids_budget_coarsens_the_step_never_the_width():
+    """Ray-marched drag frames keep to `FAST_BUDGET` by their step first
+    (`FAST_STEPS` times ``fast_step_scale``), never below half the view's
+    width: at the default preview scale only the step moves; with a
+    preview at full size the size steps down to half the width, no
+    further, once the coarsest step does not fit; back again (size first,
+    then step) once the finer one would fit. The recordings ahead are the
+    centred fast pass and the engine's mode."""
+    engine = _stub()
+    ladder = engine._ladder()
+    assert ladder == [[128, 128]] and engine._fast_step() == FAST_STEP_SCALE
+    assert engine._warm_list() == [([128, 128], FAST_MODE, True), ([128, 128], "multi"), ([256, 256], "multi")]
+    for k in (1, 2, 2):                              # slow: a coarser step, down to the coarsest
+        engine._fast_timed(ladder[0], 3 * FAST_BUDGET)
+        assert engine._march_level == k and engine._sizes(FAST_MODE)[0] == ladder[0]
+    assert engine._fast_step() == FAST_STEP_SCALE * FAST_STEPS[-1]
+    calls = 0
+    while engine._march_level and calls < 60:       # fast again: finer once its estimate fits
+        engine._fast_timed(ladder[0], 0.1 * FAST_BUDGET)
+        calls += 1
+    assert engine._march_level == 0 and 1 < calls < 60
+
+    engine = _stub(preview_scale=1.0, fast_step_scale=2.0)
+    ladder = engine._ladder()
+    assert ladder == [[256, 256], [192, 192], [128, 128]] and engine._ladder(PLAIN_FAST_MODE)[-1] == [128, 128]
+    engine.loaded.passes._frozen.update({(tuple(q), (FAST_MODE, "centred")): None for q in ladder})
+    engine.loaded.centre = object()                  # the stub's centred passes count as recorded
+    for _ in range(8):
+        engine._fast_timed(engine._sizes(FAST_MODE)[0], 10 * FAST_BUDGET)
+    assert engine._march_level == len(FAST_STEPS) - 1 and engine._sizes(FAST_MODE)[0] == [128, 128]
+    assert engine._fast_step() == 2.0 * FAST_STEPS[-1]
+    for _ in range(200):
+        engine._fast_timed(engine._sizes(FAST_MODE)[0], 0.01 * FAST_BUDGET)
+    assert engine._sizes(FAST_MODE)[0] == [256, 256] and engine._march_level == 0
+
+
+def test06_without_the_marcher_the_toggle_says_why():
     """A scene whose integrator is not amrvolpath has no modes: its hello
     has no toggle (None) and turning it on is one line naming why."""
     engine = ViewEngine("unused.cells", res=64)          # never started: its state alone
@@ -251,7 +299,7 @@ def test05_without_the_marcher_the_toggle_says_why():
     assert view.hybrid is False
 
 
-def test06_the_widgets_trait(llvm, tmp_path):
+def test07_the_widgets_trait(llvm, tmp_path):
     """The widget's ``hybrid`` trait: False at construction or set from
     Python turns the view's toggle off (its drag frames emission_absorption),
     the page's message turns it back and the trait follows; a bad message
@@ -306,7 +354,7 @@ def _fast_frames(page) -> dict:
     return page.evaluate("({...window.viewerStats.frameModes})")
 
 
-def test07_the_page_toggle(served, browser):
+def test08_the_page_toggle(served, browser):
     """The checkbox beside the mode selector starts checked (the engine's
     hybrid) and the note says the drags' mode; a drag shows ray_march
     frames; unchecked, this tab's view drags in emission_absorption while a

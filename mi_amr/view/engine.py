@@ -43,15 +43,15 @@ from .editor import EditorRequests
 from .protocol import Status
 from .scene import LoadedScene, load_scene
 from .scheduler import (DEFAULT_MAX_SPP, DENOISE_INTERVAL, FAST_BUDGET, FAST_LADDER, FAST_MODE, FAST_STEP_SCALE,
-                        JIT_LOCK, MAX_FAILURES, PLAIN_FAST_MODE, SETTLE, RenderScheduler, denoiser, encode_jpeg,
-                        one_line)
+                        FAST_STEPS, JIT_LOCK, MAX_FAILURES, PLAIN_FAST_MODE, SETTLE, RenderScheduler, denoiser,
+                        encode_jpeg, one_line)
 from .snapshot import SNAPSHOT_WAIT, Snapshot, SnapshotBudget, ViewSnapshots
 from .tf_spec import TFSpec
 from .views import View, ViewRegistry, check_camera
 
 #: What callers import from here (the parts' names, as before the engine was split).
 __all__ = ["ViewEngine", "View", "check_camera", "denoiser", "encode_jpeg", "one_line", "DEFAULT_MAX_SPP",
-           "DENOISE_INTERVAL", "FAST_BUDGET", "FAST_LADDER", "FAST_MODE", "FAST_STEP_SCALE", "JIT_LOCK",
+           "DENOISE_INTERVAL", "FAST_BUDGET", "FAST_LADDER", "FAST_MODE", "FAST_STEP_SCALE", "FAST_STEPS", "JIT_LOCK",
            "MAX_FAILURES", "PLAIN_FAST_MODE", "SETTLE", "SNAPSHOT_WAIT"]
 
 
@@ -68,8 +68,9 @@ class ViewEngine(ViewRegistry, EditorRequests, RenderScheduler, ViewSnapshots):
     ``fast_ladder``: the fast passes' sizes as shares of the preview size,
     largest first (`FAST_LADDER`); ``hybrid``: whether views start with
     ray-marched drag frames (`FAST_MODE`; False: `PLAIN_FAST_MODE`; each view
-    may change its own); ``fast_step_scale``: the ray marcher's step in
-    those frames, finest cells (`FAST_STEP_SCALE`); ``plan``: the
+    may change its own); ``fast_step_scale``: the ray marcher's finest
+    step in those frames, finest cells (`FAST_STEP_SCALE`; coarser by
+    `FAST_STEPS` to keep to `FAST_BUDGET`); ``plan``: the
     `ScenePlan` of data ``source`` made already (a notebook's `DataScene`),
     else planned at load."""
 

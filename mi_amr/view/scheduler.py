@@ -26,9 +26,11 @@ input of the recording: nothing recompiles); with the hybrid off,
 change has come for `SETTLE` seconds the view's mode takes over from
 there: one pass at the fast passes' size (denoised where the denoiser is
 on), then full-size passes that accumulate. The fast passes keep to `FAST_BUDGET`: while their
-running mean takes longer, they render at the next smaller size of
+running mean takes longer, the hybrid's march with the next coarser step of
+`FAST_STEPS` first; then they render at the next smaller size of
 `FAST_LADDER` (down to half of the preview size; the hybrid's never below
-half the view's width), and at a larger one again once it fits. Every pass
+half the view's width), and at a larger size, then a finer step, again once
+it fits. Every pass
 kind is a frozen recording of the one scene (`LoadedScene.render`); the
 ones a view needs are recorded ahead while no view waits for a picture
 (`_warm_up`): a page's first picture, and a drag's switch of size, replay
@@ -86,6 +88,12 @@ PLAIN_FAST_MODE = "emission_absorption"
 #: hand (what it costs in the picture and saves in time on 10^7 cells:
 #: docs/performance/view.md, "The hybrid viewer").
 FAST_STEP_SCALE = 4.0
+#: The hybrid's drag frames' steps, as multiples of ``fast_step_scale``,
+#: finest first: over `FAST_BUDGET` they march with the next coarser one.
+FAST_STEPS = (1.0, 2.0, 4.0)
+#: A pass's time at the next coarser step of `FAST_STEPS`, as a share of its
+#: time (on 10^7 cells 0.65 from 4 to 8 finest cells, 0.76 from 8 to 16).
+STEP_GAIN = 0.7
 #: Seconds without a camera or TF change after which a view's own mode refines.
 SETTLE = 0.1
 #: The fast passes' film sizes, as shares of ``preview_scale`` of the resolution.
@@ -142,6 +150,7 @@ class RenderScheduler:
         self._warm = []                          # (size, mode) recorded ahead (`_warm_up`)
         self._fast_levels = {}                   # fast mode -> its passes' size: `_ladder(mode)`[level]
         self._fast_ms = {}                       # (film size, fast mode) -> running mean of its passes (s)
+        self._march_level = 0                    # the hybrid's drag frames' step: FAST_STEPS[level]
 
     @property
     def warming(self) -> bool:
@@ -229,7 +238,12 @@ class RenderScheduler:
         """A scene was loaded (the first, or another field's under ``_wake``):
         the passes it needs, to record ahead (`_warm_list`), and fast-pass
         times of its own."""
-        self._warm, self._fast_ms, self._fast_levels = self._warm_list(), {}, {}
+        self._warm, self._fast_ms, self._fast_levels, self._march_level = self._warm_list(), {}, {}, 0
+
+    def _fast_step(self) -> float:
+        """The ray marcher's step in the hybrid's drag frames now, finest cells
+        (``fast_step_scale`` times `FAST_STEPS`' level kept to the budget)."""
+        return self.fast_step_scale * FAST_STEPS[self._march_level]
 
     def _fast_mode(self, view: View | None = None) -> str | None:
         """The mode of the passes that answer a camera or TF change of
@@ -279,9 +293,12 @@ class RenderScheduler:
     def _fast_timed(self, size, seconds: float, fast: str | None = ""):
         """A fast pass of ``size`` in ``fast`` (default: a view's as the
         engine opens it) took ``seconds``: update its running mean, then
-        step down its ladder when over `FAST_BUDGET`, or up when the larger
-        size (its time scaled by the pixels) fits in 3/4 of it; only to
-        sizes recorded already (no tracing in the middle of a drag)."""
+        when over `FAST_BUDGET` march with a coarser step (the hybrid's,
+        `FAST_STEPS`) or else step down its ladder, and when under it step
+        up the ladder where the larger size (its time scaled by the pixels)
+        fits in 3/4 of it, or else march with a finer step where that (its
+        time over `STEP_GAIN`) fits; only to sizes recorded already (no
+        tracing in the middle of a drag; a step compiles nothing)."""
         fast = self._fast_mode() if fast == "" else fast
         key = (tuple(size), fast)
         mean = self._fast_ms.get(key)
@@ -294,11 +311,20 @@ class RenderScheduler:
         scaled = lambda q: mean * q[0] * q[1] / (size[0] * size[1])       # noqa: E731
         step = 0
         centred = fast == FAST_MODE
-        if mean > FAST_BUDGET and level + 1 < len(ladder) and self.loaded.recorded(ladder[level + 1], fast, centred):
+        coarser = centred and self._march_level + 1 < len(FAST_STEPS)
+        finer = centred and self._march_level > 0
+        if mean > FAST_BUDGET and coarser:       # the hybrid: a coarser step first (no recording needed)
+            self._march_level += 1
+            self._fast_ms[key] = STEP_GAIN * mean
+        elif mean > FAST_BUDGET and level + 1 < len(ladder) and \
+                self.loaded.recorded(ladder[level + 1], fast, centred):
             step = 1
         elif level > 0 and self.loaded.recorded(ladder[level - 1], fast, centred) and \
                 scaled(ladder[level - 1]) < 0.75 * FAST_BUDGET:
             step = -1
+        elif finer and mean / STEP_GAIN < 0.75 * FAST_BUDGET:
+            self._march_level -= 1
+            self._fast_ms[key] = mean / STEP_GAIN
         if step:                                 # the new size's mean starts from this one, scaled
             self._fast_levels[fast] = level + step
             self._fast_ms[(tuple(ladder[level + step]), fast)] = scaled(ladder[level + step])
@@ -375,7 +401,7 @@ class RenderScheduler:
         size = full if kind == "full" else small
         # the hybrid's drag frames march centred with the fast step; every other pass with the integrator's own
         centred = kind == "fast" and pass_mode == FAST_MODE
-        step = self.fast_step_scale if centred else None
+        step = self._fast_step() if centred else None
         t0 = time.perf_counter()
         with JIT_LOCK:
             try:
