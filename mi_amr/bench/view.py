@@ -7,17 +7,22 @@ its selector), ``--repeats`` times each, drags the camera (an orbit) and a
 TF control point for ``seconds``, the pointer moving every 16 ms (a 60-Hz
 pointer: the moves dispatched in the page between a real press and
 release; ``driver="mouse"``: each through Playwright, whose round trips
-cap the moves at about 20 a second on this machine), and lets go. While the hand moves, frames are fast passes (emission_absorption, 1
-spp, ``--view-preview-scale`` of the resolution); once it rests, the mode
-refines. Read in the page (``window.viewerStats``): frames on screen per
+cap the moves at about 20 a second on this machine), and lets go. While
+the hand moves, frames are fast passes at ``--view-preview-scale`` of the
+resolution: with the hybrid viewer (the page's toggle, on by default) the
+ray marcher's (``ray_march``, noise-free, its step the engine's
+``fast_step_scale``), with it off 1-spp ``emission_absorption``
+(``--view-hybrid on,off`` measures both, toggled in the page); once it
+rests, the mode refines. Read in the page (``window.viewerStats``): frames on screen per
 second during the drag; the time from a change to the first frame after it
 and to the first frame rendered from it (median and 90th percentile); the
 fast passes' render time; the time from the last change to the first
 picture in the chosen mode (preview or full size), to the first full-size
 one, and to the first denoised full-size one. Beside them, timed here on
-the loaded scene: the fast pass on the same view and on an empty medium
-(every TF opacity 0: rays, surfaces and the traversal only), the bound of
-the fast frames, and a full-size pass of each mode. The first picture: from
+the loaded scene: the fast pass on the same view (in each fast mode
+measured) and on an empty medium (every TF opacity 0: rays, surfaces and
+the traversal only), the JPEG encoding of a fast frame, the bound of the
+fast frames, and a full-size pass of each mode. The first picture: from
 the start (load included) and, with the viewer loaded and warm, from
 opening a page.
 
@@ -44,10 +49,11 @@ import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 from ..plugins.integrator import MODES
 from .harness import write_report
-from ..view.engine import FAST_MODE, JIT_LOCK, ViewEngine
+from ..view.engine import FAST_MODE, FAST_STEPS, JIT_LOCK, PLAIN_FAST_MODE, ViewEngine, encode_jpeg
 from ..view.server import ViewServer
 
 #: Chromium's flags for a quiet headless run.
@@ -158,10 +164,15 @@ def cli_first_picture(browser, data, field=None, res: int = 256, env=None) -> di
             proc.kill()
 
 
-def pass_times(engine: ViewEngine, camera, spec, size, mode, n: int = 12, tf: bool = False) -> list[float]:
+def pass_times(engine: ViewEngine, camera, spec, size, mode, n: int = 12, tf: bool = False,
+               step_scale: float | None = None, jpeg: list | None = None, centred: bool = False) -> list[float]:
     """Milliseconds of ``n`` frozen passes of ``size`` in ``mode`` (the
     camera turning a degree each, as in a drag; ``tf``: the TF's density
-    changing instead, majorants recomputed each time), on the engine's scene."""
+    changing instead, majorants recomputed each time), on the engine's
+    scene; ``step_scale``: the ray marcher's step and ``centred`` its
+    sensor (the hybrid's drag frames: the engine's ``fast_step_scale``,
+    centred); ``jpeg``: gets the milliseconds of
+    each image's JPEG encoding (as the viewer sends it)."""
     out = []
     loaded = engine.loaded
     with JIT_LOCK:
@@ -171,14 +182,22 @@ def pass_times(engine: ViewEngine, camera, spec, size, mode, n: int = 12, tf: bo
                 loaded.apply(camera, replace(spec, density=spec.density * (1 + 0.01 * (k % 2))), size)
             else:
                 loaded.apply(replace(camera, azimuth=camera.azimuth + k), spec, size)
-            loaded.render(90_000 + k, size, mode)
+            image = loaded.render(90_000 + k, size, mode, step_scale=step_scale, centred=centred)
             if k >= 2:                            # the first may record
                 out.append(1e3 * (time.perf_counter() - t))
+                if jpeg is not None:
+                    t = time.perf_counter()
+                    encode_jpeg(image)
+                    jpeg.append(1e3 * (time.perf_counter() - t))
+        loaded.render(90_000, size, mode)         # the integrator's own step again
     return out
 
 
 def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int = 3,
-            preview_scale: float = 0.5, modes=None, move_ms: float = 16, driver: str = "page") -> dict:
+            preview_scale: float = 0.5, modes=None, move_ms: float = 16, driver: str = "page",
+            hybrids=(True,)) -> dict:
+    """The figures of the module docstring; ``hybrids``: the page's hybrid
+    toggle in each round of drags (True: ray-marched drag frames)."""
     from playwright.sync_api import sync_playwright   # lazy: a benchmark dependency
     exe = shutil.which("chromium")
     if exe is None:
@@ -194,7 +213,7 @@ def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int
     engine.start()
     server = ViewServer(engine, quiet=True, out_dir="/tmp").start()
     out = {"data": str(data), "res": res, "preview_scale": preview_scale, "fast_mode": FAST_MODE, "move_ms": move_ms,
-           "driver": driver,
+           "driver": driver, "hybrids": list(hybrids), "fast_step_scale": engine.fast_step_scale,
            "cpus": os.cpu_count(), "load_average_start": os.getloadavg(), "runs": [], "passes": {}, "cli": cli}
     try:
         with sync_playwright() as p:
@@ -219,14 +238,20 @@ def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int
                 page.get_by_test_id("mode").select_option(mode)
                 page.wait_for_function(f"""() => {{ const f = window.viewerStats.lastFrame;
                     return f && f.mode === {json.dumps(mode)} && !f.preview; }}""", timeout=600_000)
-                deadline = time.monotonic() + 120
-                while engine._warm and time.monotonic() < deadline:      # its passes recorded ahead
-                    time.sleep(0.1)
-                for r in range(repeats):
+                for hybrid, r in ((h, r) for h in hybrids for r in range(repeats)):
+                    if page.get_by_test_id("hybrid").is_checked() != hybrid:
+                        page.get_by_test_id("hybrid").set_checked(hybrid)
+                    deadline = time.monotonic() + 120
+                    while any(v.hybrid != hybrid for v in list(engine._views.values())) and \
+                            time.monotonic() < deadline:                     # the toggle reached the engine
+                        time.sleep(0.05)
+                    while engine._warm and time.monotonic() < deadline:      # its passes recorded ahead
+                        time.sleep(0.1)
                     for kind, testid in (("camera", "view"), ("tf", "tf-editor")):
                         page.wait_for_timeout(1500)
                         box = page.get_by_test_id(testid).bounding_box()
                         page.evaluate(RESET)
+                        modes0 = page.evaluate("({...window.viewerStats.frameModes})")
                         start, changes0 = page.evaluate("[performance.now(), window.viewerStats.changes]")
                         took = _drag(page, box, kind, seconds, move_ms, driver)
                         end, changes1 = page.evaluate("[performance.now(), window.viewerStats.changes]")
@@ -234,8 +259,11 @@ def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int
                         page.wait_for_timeout(600)
                         s = page.evaluate("window.viewerStats")
                         shown = [t for t in s["frameTimes"] if start <= t <= end]
+                        fast = engine._fast_mode(next(iter(engine._views.values())))
                         out["runs"].append({
-                            "mode": mode, "kind": kind, "round": r, "drag_s": took,
+                            "mode": mode, "kind": kind, "round": r, "drag_s": took, "hybrid": hybrid,
+                            "fast_mode": fast, "fast_frames": s["frameModes"].get(fast, 0) - modes0.get(fast, 0),
+                            "fast_step": engine._fast_step() if fast == FAST_MODE else None,
                             "frames_per_s": len(shown) / ((end - start) / 1e3),
                             "changes_per_s": (changes1 - changes0) / ((end - start) / 1e3),
                             "latency_median_ms": _median(s["latencies"]), "latency_p90_ms": _p90(s["latencies"]),
@@ -251,13 +279,25 @@ def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int
             camera, spec = view.camera, view.spec
             browser.close()
         # the passes themselves, on the loaded scene: the fast one on this view and on an empty medium
-        small, full = engine._sizes()
         empty = replace(spec, points=((0.0, 0.0), (1.0, 0.0)))
-        fast = engine._fast_mode()
-        out["passes"]["fast"] = {"size": small, "ms": pass_times(engine, camera, spec, small, fast)}
-        out["passes"]["fast_tf_changing"] = {"size": small, "ms": pass_times(engine, camera, spec, small, fast,
-                                                                              tf=True)}
-        out["passes"]["fast_empty"] = {"size": small, "ms": pass_times(engine, camera, empty, small, fast)}
+        fast_modes = [m for m in (FAST_MODE if h else PLAIN_FAST_MODE for h in hybrids) if m in engine.loaded.modes]
+        for k, fast in enumerate(dict.fromkeys(fast_modes or [None])):
+            small, full = engine._sizes(fast, SimpleNamespace(hybrid=fast == FAST_MODE))   # a view's toggle
+            hybrid = {"step_scale": engine.fast_step_scale, "centred": True} if fast == FAST_MODE else {}
+            name = "fast" if k == 0 else f"fast_{fast}"
+            jpeg = []
+            out["passes"][name] = {"size": small, "mode": fast, "step_scale": hybrid.get("step_scale"),
+                                   "ms": pass_times(engine, camera, spec, small, fast, jpeg=jpeg, **hybrid)}
+            out["passes"][name + "_jpeg"] = {"size": small, "ms": jpeg}
+            out["passes"][name + "_tf_changing"] = {"size": small, "ms": pass_times(
+                engine, camera, spec, small, fast, tf=True, **hybrid)}
+            out["passes"][name + "_empty"] = {"size": small, "ms": pass_times(engine, camera, empty, small, fast,
+                                                                               **hybrid)}
+            for share in FAST_STEPS[1:] if hybrid else ():    # the coarser steps the budget may take
+                step = engine.fast_step_scale * share
+                out["passes"][f"{name}_step{step:g}"] = {"size": small, "mode": fast, "step_scale": step, "ms":
+                                                         pass_times(engine, camera, spec, small, fast, step_scale=step,
+                                                                    centred=True)}
         for mode in modes:
             out["passes"][f"full_{mode}"] = {"size": full, "ms": pass_times(engine, camera, spec, full, mode, 6)}
         out["load_average_end"] = os.getloadavg()
@@ -277,8 +317,11 @@ def _spread(xs, fmt="{:.0f}") -> str:
 
 def report(result: dict) -> str:
     la = result.get("load_average_start", (0, 0, 0))
+    fast = (f"{result['fast_mode']} (step {result['fast_step_scale']:g} finest cells, coarser to keep to the "
+            "frame budget) with the hybrid on, "
+            f"{PLAIN_FAST_MODE} with it off," if "fast_step_scale" in result else result["fast_mode"])
     lines = [f"`mi-amr view` on {result['data']}, {result['res']}x{result['res']}, fast passes "
-             f"{result['fast_mode']} at preview scale {result['preview_scale']} (or smaller, to keep a "
+             f"{fast} at preview scale {result['preview_scale']} (or smaller, to keep a "
              f"frame budget), the pointer moving every {result['move_ms']:g} ms "
              f"({'in the page' if result.get('driver', 'page') == 'page' else 'through Playwright'}); "
              "load average at the start "
@@ -296,31 +339,40 @@ def report(result: dict) -> str:
              "full size / denoised full ms |",
              "|---|---|---|---|---|---|---|---|"]
     f = lambda x: "-" if x is None else f"{x:.0f}"      # noqa: E731
+    # a run's mode, and its drag frames' where measured (the hybrid viewer's toggle)
+    label = lambda r: r["mode"] + (f", drags {r['fast_mode']}" if r.get("fast_mode") else "")    # noqa: E731
     for r in result["runs"]:
-        lines.append(f"| {r['mode']} | {r['kind']} | {r['round']} | {r['frames_per_s']:.1f} "
+        lines.append(f"| {label(r)} | {r['kind']} | {r['round']} | {r['frames_per_s']:.1f} "
                      f"({r['changes_per_s']:.0f}) | "
                      f"{f(r['latency_median_ms'])} / {f(r['latency_p90_ms'])} | "
                      f"{f(r['render_latency_median_ms'])} / {f(r['render_latency_p90_ms'])} | "
-                     f"{f(r['fast_render_median_ms'])} ({', '.join(map(str, r['fast_sizes']))}) | "
+                     f"{f(r['fast_render_median_ms'])} ({', '.join(map(str, r['fast_sizes']))}"
+                     + (f"; step {r['fast_step']:g} at the end" if r.get("fast_step") else "") + ") | "
                      f"{f(r['refined_after_ms'])} / {f(r['full_after_ms'])} / "
                      f"{f(r['full_denoised_after_ms'])} |")
     lines += ["", "Summary, median (min-max) over the rounds:", "",
               "| mode | drag | frames/s | change -> next frame median ms | last change -> mode's first ms |",
               "|---|---|---|---|---|"]
-    for mode in dict.fromkeys(r["mode"] for r in result["runs"]):
+    for mode in dict.fromkeys(label(r) for r in result["runs"]):
         for kind in ("camera", "tf"):
-            rs = [r for r in result["runs"] if r["mode"] == mode and r["kind"] == kind]
+            rs = [r for r in result["runs"] if label(r) == mode and r["kind"] == kind]
             lines.append(f"| {mode} | {kind} | {_spread([r['frames_per_s'] for r in rs], '{:.1f}')} | "
                          f"{_spread([r['latency_median_ms'] for r in rs])} | "
                          f"{_spread([r['refined_after_ms'] for r in rs])} |")
     lines += ["", "Passes timed on the loaded scene (camera turning, frozen replays), median (min-max) ms:", ""]
     for name, p in result["passes"].items():
-        lines.append(f"* {name} at {p['size'][0]}x{p['size'][1]}: {_spread(p['ms'], '{:.1f}')}")
-    fast = result["passes"].get("fast_empty")
-    if fast:
-        bound = 1e3 / statistics.median(fast["ms"])
-        lines.append(f"* the empty-medium fast pass bounds the drag at {bound:.0f} frames/s; the fast pass on "
-                     f"this view at {1e3 / statistics.median(result['passes']['fast']['ms']):.0f} frames/s")
+        what = f" ({p['mode']}" + (f", step {p['step_scale']:g}" if p.get("step_scale") else "") + ")" \
+            if p.get("mode") else ""
+        lines.append(f"* {name}{what} at {p['size'][0]}x{p['size'][1]}: {_spread(p['ms'], '{:.1f}')}")
+    for name in [n for n in result["passes"] if n.startswith("fast") and n.endswith("_empty")]:
+        bound = 1e3 / statistics.median(result["passes"][name]["ms"])
+        own = result["passes"][name[:-len("_empty")]]
+        jpeg = result["passes"].get(name[:-len("_empty")] + "_jpeg", {}).get("ms")
+        ms = statistics.median(own["ms"])
+        lines.append(f"* the empty-medium {name[:-len('_empty')]} pass bounds the drag at {bound:.0f} frames/s; "
+                     f"the fast pass on this view at {1e3 / ms:.0f} frames/s"
+                     + (f", with its JPEG encoding ({statistics.median(jpeg):.1f} ms) at "
+                        f"{1e3 / (ms + statistics.median(jpeg)):.0f}" if jpeg else ""))
     return "\n".join(lines) + "\n"
 
 
@@ -364,8 +416,8 @@ def first_report(result: dict) -> str:
 
 
 def run(data, field, res, out_dir, repeats=3, seconds=4.0, preview_scale=0.5, modes=None, move_ms=16,
-        driver="page"):
-    result = measure(data, field, res, seconds, repeats, preview_scale, modes, move_ms, driver)
+        driver="page", hybrids=(True,)):
+    result = measure(data, field, res, seconds, repeats, preview_scale, modes, move_ms, driver, hybrids)
     write_report(out_dir, "view", result, report(result))
 
 
@@ -373,7 +425,8 @@ def main_args(args) -> int:
     """Entry from `mi_amr.bench.__main__` (``--view``): every lighting mode,
     or those of ``args.view_modes`` where given."""
     run(args.view, args.view_field, args.res, Path(args.out), args.repeats, preview_scale=args.view_preview_scale,
-        modes=getattr(args, "view_modes", None), move_ms=getattr(args, "view_move_ms", 16.0))
+        modes=getattr(args, "view_modes", None), move_ms=getattr(args, "view_move_ms", 16.0),
+        hybrids=getattr(args, "view_hybrids", (True,)))
     print(f"wrote {args.out}/view.json and view.md")
     return 0
 

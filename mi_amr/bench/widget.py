@@ -9,8 +9,9 @@ folder, a token, nothing else of the user's), opens a notebook that runs
 camera (an orbit) for ``--widget-seconds``, the pointer moving every 16 ms
 (dispatched in the page, as `mi_amr.bench.view` does), ``--repeats`` times:
 frames received per second in the page during the drag
-(``window.viewerStats.frameTimes``), their sizes, the fast passes' render
-time. Writes ``DIR/widget.json`` and ``DIR/widget.md``.
+(``window.viewerStats.frameTimes``), their sizes and lighting mode (the
+hybrid viewer's ``ray_march``; ``hybrid=False``: ``emission_absorption``),
+the fast passes' render time. Writes ``DIR/widget.json`` and ``DIR/widget.md``.
 
 `JupyterLab` is also what tests/test_widget.py drives: run a cell, read
 its output, the kernel's process and its listening sockets.
@@ -229,6 +230,7 @@ def drag_rate(page, seconds: float = 4.0, move_ms: float = 16) -> dict:
     x0, y0 = box["x"] + 0.3 * box["width"], box["y"] + 0.5 * box["height"]
     page.evaluate("window.viewerStats.frameTimes = []; window.viewerStats.fastRenderMs = [];"
                   "window.viewerStats.fastWidths = [];")
+    modes0 = page.evaluate("({...window.viewerStats.frameModes})")
     page.mouse.move(x0, y0)
     page.mouse.down()
     start = page.evaluate("performance.now()")
@@ -239,20 +241,22 @@ def drag_rate(page, seconds: float = 4.0, move_ms: float = 16) -> dict:
     if not s["fastWidths"]:
         raise RuntimeError("the drag moved nothing: no fast frame came (was the view on screen?)")
     shown = [t for t in s["frameTimes"] if start <= t <= end]
+    modes = {m: n - modes0.get(m, 0) for m, n in s["frameModes"].items() if n > modes0.get(m, 0)}
     return {"frames_per_s": len(shown) / ((end - start) / 1e3), "moves_per_s": moves / ((end - start) / 1e3),
-            "fast_widths": sorted(set(s["fastWidths"])),
+            "fast_widths": sorted(set(s["fastWidths"])), "frame_modes": modes,
             "fast_render_median_ms": statistics.median(s["fastRenderMs"]) if s["fastRenderMs"] else None}
 
 
-def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int = 3) -> dict:
+def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int = 3, hybrid: bool = True) -> dict:
     from playwright.sync_api import sync_playwright   # lazy: a benchmark dependency
     exe = shutil.which("chromium")
     if exe is None:
         raise SystemExit("the widget benchmark needs Debian's chromium (make setup installs it)")
     out = {"data": str(data), "field": field, "res": res, "seconds": seconds, "cpus": os.cpu_count(),
-           "load_average_start": os.getloadavg(), "runs": []}
+           "hybrid": bool(hybrid), "load_average_start": os.getloadavg(), "runs": []}
     cells = ["import mitsuba as mi\nmi.set_variant('llvm_ad_rgb')\nimport mi_amr",
-             f"sc = mi_amr.scene({str(data)!r}, field={field!r})\nw = sc.show(res={int(res)})\nw",
+             f"sc = mi_amr.scene({str(data)!r}, field={field!r})\n"
+             f"w = sc.show(res={int(res)}, hybrid={bool(hybrid)})\nw",
              "w.wait(recorded=True);"]
     with tempfile.TemporaryDirectory(prefix="mi-amr-widget-bench-") as tmp, JupyterLab(tmp) as lab, \
             sync_playwright() as p:
@@ -277,19 +281,22 @@ def measure(data, field=None, res: int = 256, seconds: float = 4.0, repeats: int
 
 def report(result: dict) -> str:
     fps = [r["frames_per_s"] for r in result["runs"]]
+    modes = sorted({m for r in result["runs"] for m in r.get("frame_modes", {})})
     lines = [f"widget through the comm channel: {result['data']} at {result['res']}x{result['res']}, "
-             f"{result['cpus']} CPUs (load {result['load_average_start'][0]:.1f})",
+             f"{result['cpus']} CPUs (load {result['load_average_start'][0]:.1f})"
+             + (f", hybrid {'on' if result['hybrid'] else 'off'}" if "hybrid" in result else ""),
              f"  first refined picture after show(): {result['first_refined_s']:.1f} s",
              f"  frames/s in the page while dragging: median {statistics.median(fps):.1f} "
              f"({min(fps):.1f}-{max(fps):.1f}) over {len(fps)} drags",
              f"  pointer moves/s: {statistics.median(r['moves_per_s'] for r in result['runs']):.0f}; "
              f"fast frame widths {sorted({w for r in result['runs'] for w in r['fast_widths']})}; "
-             f"fast pass median {statistics.median(r['fast_render_median_ms'] or 0 for r in result['runs']):.1f} ms"]
+             f"fast pass median {statistics.median(r['fast_render_median_ms'] or 0 for r in result['runs']):.1f} ms"
+             + (f"; frames in {', '.join(modes)}" if modes else "")]
     return "\n".join(lines)
 
 
-def run(data, field, res, out_dir, repeats=3, seconds=4.0):
-    result = measure(data, field, res, seconds, repeats)
+def run(data, field, res, out_dir, repeats=3, seconds=4.0, hybrid=True):
+    result = measure(data, field, res, seconds, repeats, hybrid)
     write_report(out_dir, "widget", result, report(result))
 
 
