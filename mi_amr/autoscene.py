@@ -33,8 +33,8 @@ from .data.yt_import import field_key
 from .transfer.function import PRESETS, TransferFunction
 from .transfer.layers import Layers, is_layers
 from .transfer.spectra import blackbody_luminance
-from .visibility import (OPAQUE_OPACITY, PREDICT_RES, LayersSeen, Visibility, camera_rays, layer_weights, layers_opacity,
-                         layers_seen, max_grid, opacity_grid, projected_depth, ray_samples, scale_for_opacity,
+from .visibility import (OPAQUE_OPACITY, PREDICT_RES, LayersSeen, Visibility, camera_rays, layer_weights,
+                         layers_opacity, layers_seen, opacity_grid, projected_depth, ray_samples, scale_for_opacity,
                          visibility_of_depths)
 
 #: Percentiles (of the volume and of the mass) that bound the TF domain.
@@ -412,8 +412,9 @@ def _planned_layers(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scal
     layers (`layers_seen`), the most evenly (never a flat opaque block).
     Notes say which layers the picture is predicted to show. Where at most
     one layer would be seen (the values do not spread over the range: a
-    field of zeros and ones) a default TF becomes `FALLBACK_TF`. Returns whether it set the density scale,
-    and the TF's opacity over the check's voxel grid (None if not made)."""
+    field of zeros and ones) a default TF becomes `FALLBACK_TF` over the
+    values' range. Returns whether it set the density scale, and the TF's
+    opacity over the check's voxel grid (None if not made)."""
     log = plan.transform == "log10"
     layers = Layers.parse(plan.tf)
     if not range_given:
@@ -452,12 +453,15 @@ def _planned_layers(plan: ScenePlan, stats, vs: ValueStats, tf_given: bool, scal
                 best = (score, low, float(scale))
     (_, count, *_), low, scale = best
     if count < 2 and not tf_given:              # the values do not spread over layers (a field of two values)
+        if not range_given:
+            plan.tf_range = plan.value_range
         mean = _mean_alpha(stats, FALLBACK_TF, plan.tf_range, log)
         peak = _peak_alpha(FALLBACK_TF, plan.tf_range, log, vs)
         new = plan.density_scale if scale_given else _planned_density_scale(mean, peak)[0]
         plan.notes.append(f"layers: at most {count} of {layers.n} layers would be seen (the values do not spread "
                           f"over the range): TF '{FALLBACK_TF}' instead, density_scale {new:.3g}")
-        plan.tf, plan.density_scale, plan.optical_depth, plan.peak_depth = FALLBACK_TF, float(new), new * mean, new * peak
+        plan.tf, plan.density_scale = FALLBACK_TF, float(new)
+        plan.optical_depth, plan.peak_depth = new * mean, new * peak
         return False, None
     chosen = layers if tf_given else layers.with_low(low)
     if not tf_given:

@@ -17,6 +17,17 @@ whose pixels show the medium:
   `SCORE_SIGMAS` noise standard deviations and by more than
   `SCORE_RELATIVE` of their brightness. This is what the tests measure.
 
+And what a picture says (docs/manual/transfer-functions.md "Layers"):
+
+* `colour_layers`: the number of colour layers an eye can tell apart in a
+  picture (hue clusters of the pixels that carry colour, CIELAB a*, b*),
+  what the tests and the gallery count, for our pictures and yt's alike;
+* before rendering, for a layered TF (`mi_amr.transfer.layers`):
+  `layer_weights` and `layers_seen` predict the share of each pixel's
+  light each layer gives, from the layers' profiles averaged into the
+  voxel grid (`opacity_grid` with one channel a layer, `ray_samples`):
+  which layers the planned picture shows (`mi_amr.autoscene._planned_layers`).
+
 World space is the plan's (the domain centred at the origin, its longest
 side 1, +z up); the data's unit cube maps onto the domain box.
 """
@@ -150,16 +161,6 @@ def opacity_grid(data, opacity, grid: int = GRID) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where(den[:, None] > 0, num / np.where(den > 0, den, 1.0)[:, None], 0.0)
     return out.reshape(tuple(shape) + tuple(channels))
-
-
-def max_grid(data, transform=None, grid: int = GRID) -> np.ndarray:
-    """The largest of the (``transform``-ed) values of a sample of the cells
-    per voxel of the grid of `opacity_grid`; -inf where no cell reaches."""
-    lo, voxel, shape = _grid_shape(data, grid)
-    out = np.full(int(np.prod(shape)), -np.inf)
-    for flat, v, _ in _voxel_cover(data, lo, voxel, shape):
-        np.maximum.at(out, flat, v if transform is None else transform(v))
-    return out.reshape(tuple(shape))
 
 
 def camera_rays(origin, target, up, fov: float, res: int) -> tuple[np.ndarray, np.ndarray]:
@@ -449,7 +450,7 @@ def colour_layers(image, mask=None, *, radius: float = HUE_RADIUS, min_share: fl
                   min_chroma: float = MIN_CHROMA, lightness=LIGHTNESS_RANGE, smooth: int = SMOOTH) -> ColourLayers:
     """The number of colour layers an eye can tell apart in ``image`` (H, W,
     3+; sRGB uint8 or floats in [0, 1] as displayed: `mi_amr.images.srgb8`
-    of a rendered one; docs/design.md section 16).
+    of a rendered one; docs/manual/transfer-functions.md "Layers").
 
     The picture is first averaged over ``smooth`` x ``smooth`` pixels (as
     an eye averages a Monte Carlo picture's grain: the noise of a grey

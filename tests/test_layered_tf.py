@@ -1,5 +1,5 @@
-"""Layered transfer functions (mi_amr/transfer/layers.py, docs/design.md
-section 16): the preset by name, options and file, the colour-layer
+"""Layered transfer functions (mi_amr/transfer/layers.py,
+docs/manual/transfer-functions.md "Layers"): the preset by name, options and file, the colour-layer
 measure of a picture (`mi_amr.visibility.colour_layers`) on images whose
 answer is known, and the default picture of deep hierarchies (an
 eight-level AMReX collapse, a five-decade Enzo cosmology) against yt's
@@ -14,7 +14,7 @@ import pytest
 
 from mi_amr.transfer.function import TransferFunction
 from mi_amr.transfer.layers import Layers
-from mi_amr.visibility import MIN_LAYER_SHARE, colour_layers
+from mi_amr.visibility import colour_layers
 
 
 def test01_layers_by_name_options_and_file(llvm, tmp_path):
@@ -109,8 +109,8 @@ def test02_colour_layers_counts_the_hues_an_eye_tells_apart(hues):
     distinct hues, each shaded in lightness and chroma) on a grey ground,
     under a pale sky, beside black: the measure counts exactly the bands
     (3, 5 and 7: a count that differs gives that count); the ground, sky
-    and black add none, and a band under `MIN_LAYER_SHARE` of the coloured
-    pixels is no layer."""
+    and black add none, and a further hue on 1% of the coloured pixels is
+    no layer (the measure's 3%), on 10% it is one."""
     img = _patches(hues)
     got = colour_layers(img)
     assert got.count == len(hues), (got, got.hues, got.shares)
@@ -133,7 +133,6 @@ def test02_colour_layers_counts_the_hues_an_eye_tells_apart(hues):
         assert n <= len(ground)
         flat[ground[:n]] = pixel
         assert colour_layers(flat.reshape(img.shape)).count == len(hues) + more
-    assert MIN_LAYER_SHARE == 0.03
 
 
 def _yt_default_picture(path, field, res):

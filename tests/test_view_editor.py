@@ -17,7 +17,7 @@ from mi_amr.data.io import save_cells
 from mi_amr.transfer.function import TransferFunction
 from mi_amr.view.camera import OrbitCamera, floor_height, world_up
 from mi_amr.view.engine import ViewEngine
-from mi_amr.view.tf_spec import TFSpec, point_colours
+from mi_amr.view.tf_spec import TFSpec, point_colours, spiky_points
 
 from conftest import HANG_S
 
@@ -304,7 +304,12 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
         time.sleep(0.05)
     assert view.spec.density == 123.5
 
-    # a point's colour, then save
+    # a point's colour, then save (on spiky's points: the planned layers' points carry their own colours)
+    page.get_by_test_id("preset").select_option("spiky")
+    deadline = time.monotonic() + HANG_S
+    while [p[:2] for p in view.spec.points] != spiky_points() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert [p[:2] for p in view.spec.points] == spiky_points()
     editor = page.get_by_test_id("tf-editor").bounding_box()
     u, a = view.spec.points[1][:2]
     page.mouse.click(editor["x"] + 8 + u * (editor["width"] - 16), editor["y"] + 8 + (1 - a) * (230 - 8 - 58))

@@ -17,16 +17,22 @@ collapse, Athena++ waves, a RAMSES sheet), each picture's colour layers
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import platform
+import sys
+import tempfile
 import time
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
 
-from .. import distributed
-from ..images import write_png
+from .. import autoscene, distributed
+from ..images import srgb8, write_png
+from ..scene_writer import scene_for
+from ..visibility import colour_layers
 from .render import set_variant as _set_variant
 
 #: name -> (scene, -D parameters, caption)
@@ -50,8 +56,6 @@ BESIDE_YT = (("cosmology", "cosmology", "Enzo"), ("deep collapse", "deep", "AMRe
 
 def _yt_default(path, field, res):
     """yt's ``create_scene`` default picture (sRGB uint8) and its seconds."""
-    import tempfile
-
     import matplotlib.image as mpimg
     import yt
     t0 = time.perf_counter()
@@ -66,23 +70,15 @@ def _yt_default(path, field, res):
 
 def beside_yt(out: Path, res: int = 160, spp: int = 64, work: Path | None = None) -> dict:
     """The ``--beside-yt`` figure (see the module docstring); returns its record."""
-    import sys
-    import tempfile
-
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import mitsuba as mi
-
-    from .. import autoscene
-    from ..images import srgb8
-    from ..scene_writer import scene_for
-    from ..visibility import colour_layers
+    # the codes' formats as the repository's tests write them (a maintainer's tool, run from a checkout)
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
-    import gallery_outputs
+    gallery_outputs = importlib.import_module("gallery_outputs")
     work = Path(work or tempfile.mkdtemp(prefix="beside-yt-"))
-    columns = ("yt create_scene", "ours before (default spiky)", "ours: layers, multi", "ours: layers, emission_absorption",
-               "ours: layers, ray_march")
+    columns = ("yt create_scene", "ours before (default spiky)", "ours: layers, multi",
+               "ours: layers, emission_absorption", "ours: layers, ray_march")
     record, pictures = {}, []
     for name, case, code in BESIDE_YT:
         path, field = gallery_outputs.CASES[case](work / case)

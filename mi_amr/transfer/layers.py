@@ -1,7 +1,7 @@
 """Layered transfer functions: a few narrow Gaussian layers of opacity over
 the value range, each in one colour of a colormap, opacity rising with the
-value (yt's ``ColorTransferFunction.add_layers``; docs/design.md section
-16, docs/manual/transfer-functions.md "Layers").
+value (yt's ``ColorTransferFunction.add_layers``;
+docs/manual/transfer-functions.md "Layers").
 
 A layered TF is a few parameters, not a table written by hand (`Layers`).
 It is named by a string wherever a TF is named (Python, ``mi-amr render
