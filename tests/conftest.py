@@ -214,6 +214,20 @@ def browser():
         b = pw.chromium.launch(executable_path=exe, args=[
             "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
             "--disable-sync", "--no-first-run"])
+        new_page, new_context = b.new_page, b.new_context
+
+        def page_waiting_for_events(*args, **kw):
+            """A page whose waits and actions give up only at `HANG_S` (Playwright's 30 s default
+            is a wall-clock threshold a loaded machine can reach)."""
+            page = new_page(*args, **kw)
+            page.set_default_timeout(HANG_S * 1000)
+            return page
+
+        def context_waiting_for_events(*args, **kw):
+            context = new_context(*args, **kw)
+            context.set_default_timeout(HANG_S * 1000)
+            return context
+        b.new_page, b.new_context = page_waiting_for_events, context_waiting_for_events
         yield b
         b.close()
 

@@ -281,10 +281,14 @@ def test04_the_page_draws_annotations_clips_and_slices(enzo, browser):
         page.wait_for_function(f"window.viewerStats.lastSlice && window.viewerStats.lastSlice.axis === 'x' && "
                                f"Math.abs(window.viewerStats.lastSlice.position - {offset}) < 1e-9", timeout=HANG_MS)
         _settle(engine, view)
-        box = page.get_by_test_id("slice").bounding_box()
-        page.mouse.move(box["x"] + 0.3 * box["width"], box["y"] + 0.7 * box["height"])
-        page.wait_for_function("document.getElementById('slice-readout').dataset.value !== undefined")
-        shown = float(page.evaluate("document.getElementById('slice-readout').dataset.value"))
+        def readout():
+            """The readout once the pointer is over (0.3, 0.7) of the panel (moved
+            there again from its corner: a panel laid out after a move gets another)."""
+            box = page.get_by_test_id("slice").bounding_box()
+            page.mouse.move(box["x"] + 1, box["y"] + 1)
+            page.mouse.move(box["x"] + 0.3 * box["width"], box["y"] + 0.7 * box["height"])
+            return page.evaluate("document.getElementById('slice-readout').dataset.value")
+        shown = float(wait_until(readout, "value under the cursor", poll=0.1))
         last = page.evaluate("window.viewerStats.lastSlice")
         ref = Slicer(engine.loaded.medium.volume).slice(0, 0.4, 256, engine.loaded.medium.reconstruction)
         i, j = int(0.3 * last["width"]), int(0.7 * last["height"])
