@@ -282,8 +282,9 @@ def test04_the_page_draws_annotations_clips_and_slices(enzo, browser):
                                f"Math.abs(window.viewerStats.lastSlice.position - {offset}) < 1e-9", timeout=HANG_MS)
         _settle(engine, view)
         def readout():
-            """The readout once the pointer is over (0.3, 0.7) of the panel (moved
-            there again from its corner: a panel laid out after a move gets another)."""
+            """The readout once the pointer is over (0.3, 0.7) of the panel (in view,
+            moved there again from its corner: a panel laid out after a move gets another)."""
+            page.get_by_test_id("slice").scroll_into_view_if_needed()
             box = page.get_by_test_id("slice").bounding_box()
             page.mouse.move(box["x"] + 1, box["y"] + 1)
             page.mouse.move(box["x"] + 0.3 * box["width"], box["y"] + 0.7 * box["height"])
