@@ -11,8 +11,11 @@ Jupyter's comm channel),
 against Mitsuba's homogeneous medium), ``--modes-bound``
 (`mi_amr.bench.modes_bound`: what bounds the emission-absorption frame) or
 ``--grad`` (`mi_amr.bench.gradients`: what a gradient step costs against the
-primal frame and a dense grid) or ``--vs-yt`` (`mi_amr.bench.vs_yt`: yt's
-volume renderer against ``emission_absorption``, time to equal error).
+primal frame and a dense grid) or ``--march`` (`mi_amr.bench.march`: the
+ray marcher against the path tracer's convergence frames, the paper's
+comparison) or ``--vs-yt`` (`mi_amr.bench.vs_yt`: yt's
+volume renderer against ``ray_march`` and ``emission_absorption``, time to
+equal error).
 """
 
 import argparse
@@ -30,7 +33,7 @@ def main(argv=None) -> int:
 
 def dispatch(args) -> int:
     """Run the study the options ask for; its exit status."""
-    if args.vs_yt:
+    if args.vs_yt is not None:
         from .vs_yt import main_args
     elif args.view:
         from .view import main_args
@@ -38,6 +41,8 @@ def dispatch(args) -> int:
         from .widget import main_args
     elif args.distributed:
         from .distributed import main_args
+    elif args.march:
+        from .march import main_args
     elif args.modes_bound:
         from .modes_bound import main_args
     elif args.modes:
@@ -93,7 +98,7 @@ def protocol_options(p):
     p.add_argument("--data", metavar="PATH",
                    help="run on this data set instead of the synthetic ones (.cells/.npz or anything yt "
                         "loads; log10 values and density scale chosen as mi-amr render chooses them)")
-    p.add_argument("--field", help="field of --data (e.g. density)")
+    p.add_argument("--field", help="field of --data or of --vs-yt DATA (e.g. density)")
     p.add_argument("--configs", nargs="*", default=None, help="subset of: " + " ".join(all_configs()))
     p.add_argument("--peers", nargs="*", default=[], choices=["eradiate"],
                    help="also render each case with these peers in their own environments (eradiate: "
@@ -169,6 +174,14 @@ def view_options(p):
 
 
 def modes_options(p):
+    p.add_argument("--march", action="store_true",
+                   help="the paper's comparison: ray_march (gradient shading) frames/s and time to 2%% of its "
+                        "converged picture against multi's 1-spp convergence frames (mi_amr.bench.march)")
+    p.add_argument("--march-cells", type=float, nargs="*", default=[1e7, 1e8], metavar="CELLS",
+                   help="--march: block-structured data sets of these sizes (default 1e7 1e8)")
+    p.add_argument("--march-res", type=int, default=512, help="--march: frame width and height (default 512)")
+    p.add_argument("--march-multi-spp", type=int, default=8,
+                   help="--march: spp of the two multi pictures whose difference estimates its error (8)")
     p.add_argument("--modes", action="store_true",
                    help="frames/s of amrvolpath's lighting modes beside the empty-medium frame (--res, 1 spp "
                         "unless --spp; --datasets x --tfs, then --modes-cells), and the uniform field against "
@@ -217,18 +230,28 @@ def grad_options(p):
 
 
 def vs_yt_options(p):
-    p.add_argument("--vs-yt", action="store_true",
-                   help="yt's volume renderer against amrvolpath's emission_absorption on the same AMR data "
-                        "and camera: each one's RMSE against a dense ray march, our time to yt's error "
-                        "(docs/performance/vs-yt.md)")
-    p.add_argument("--vs-yt-res", type=int, nargs="+", default=[128, 256], help="--vs-yt: image sizes")
-    p.add_argument("--vs-yt-kinds", nargs="+", default=["blocks", "cells"], choices=["blocks", "cells"],
-                   help="--vs-yt: one value per yt grid (yt's model matches ours), one per cell (yt "
-                        "interpolates; at the first size only)")
+    p.add_argument("--vs-yt", nargs="*", default=None, metavar="DATA",
+                   help="yt's volume renderer against amrvolpath's ray_march and emission_absorption on the "
+                        "same AMR data and camera: each one's RMSE against the exact emission-absorption "
+                        "integral, our time to yt's error (docs/performance/vs-yt.md). DATA: blocks, cells "
+                        "(the bench's own data; the default: both), enzo-example (written under --out) or "
+                        "any output yt loads (its field: --field, default density)")
+    p.add_argument("--vs-yt-res", type=int, nargs="+", default=[128, 256, 512],
+                   help="--vs-yt: image sizes (the 'cells' data: the first only)")
     p.add_argument("--vs-yt-n0", type=int, default=32, help="--vs-yt: level-0 cells per side (32)")
-    p.add_argument("--vs-yt-cap", type=int, default=1024, help="--vs-yt: our highest spp (1024)")
+    p.add_argument("--vs-yt-cap", type=int, default=1024,
+                   help="--vs-yt: emission_absorption's highest spp at 128^2, scaled by (128/size)^2 beyond "
+                        "(1024)")
+    p.add_argument("--vs-yt-march-cap", type=int, default=16, help="--vs-yt: ray_march's highest spp (16)")
+    p.add_argument("--vs-yt-sampler", default="centres", choices=["centres", "multijitter", "stratified",
+                                                                  "independent"],
+                   help="--vs-yt: ray_march's pixel samples (centres: stratified without jitter, 1 spp is "
+                        "the pixel centre as yt's ray)")
+    p.add_argument("--vs-yt-sub", type=int, default=4,
+                   help="--vs-yt: reference rays per pixel side (the box filter's footprint, 4)")
+    p.add_argument("--vs-yt-cache", default=None,
+                   help="--vs-yt: folder of the exact references (default OUT/reference-cache)")
     p.add_argument("--vs-yt-rounds", type=int, default=3, help="--vs-yt: alternated rounds (3)")
-    p.add_argument("--vs-yt-steps", type=int, default=1024, help="--vs-yt: steps of the reference march")
     p.add_argument("--vs-yt-samples", type=int, default=None,
                    help="--vs-yt: yt's num_samples per cell (default: yt's, 10)")
 
