@@ -23,6 +23,7 @@ from ..data.blocks import BlockVolume
 from ..reconstruction import Reconstruction
 from ..structures.level_hash import SLOT_BYTES, LevelHash, hash_u32, pack_key
 from .ray import in_unit_cube
+from ..structures.macrocell_grid import NO_LEVEL
 from ..core.jit_struct import jit_struct
 from ..data.device_values import CellValues, device_values, shares_host_values
 
@@ -110,6 +111,33 @@ class DeviceReconstruction:
         finished = hit | ~active | (k == 0xFFFFFFFFFFFFFFFF) | (probe + 1 >= self.max_probe)
         return hit, finished, block
 
+    @dr.syntax
+    def cell_at(self, x: mi.Vector3f, level_bits: mi.UInt32, active=True):
+        """The leaf cell that contains ``x`` (finest units relative to
+        ``origin``) whatever the reconstruction: ``(value, found, level)``,
+        probing the levels of ``level_bits`` coarsest first up to the first
+        present cell (leaf cells do not overlap; a ghost block holds none).
+        ``level`` is `NO_LEVEL` where none is found."""
+        limit = float(min(self.hash.coord_limit << self.log2_block, 1 << 31))
+        remaining = dr.select(active, level_bits, 0)
+        st = _CellSearch(found=mi.Bool(False), value=mi.Float(0.0), level=mi.UInt32(NO_LEVEL), probe=mi.UInt32(0))
+        while dr.hint(remaining != 0, label="amr_cell_at", exclude=[self, x]):
+            L = 31 - dr.lzcnt(remaining)
+            fl = dr.floor(x * dr.rcp(mi.Float(mi.UInt32(1) << L)))
+            in_range = dr.all((fl >= 0.0) & (fl < limit))
+            qi = mi.Vector3u(dr.select(in_range, fl, 0.0))
+            hit, level_done, blk = self.probe_block(qi >> self.log2_block, L, st.probe, in_range)
+            hit &= blk < self.n_blocks
+            v = dr.gather(mi.Float, self.values, blk * self.block ** 3 + self.cell_slot(qi), hit)
+            present = hit & ~dr.isnan(v)
+            st.value = dr.select(present, v, st.value)
+            st.level = dr.select(present, L, st.level)
+            st.found |= present
+            st.probe = dr.select(level_done, 0, st.probe + 1)
+            remaining = dr.select(level_done, remaining & ~(mi.UInt32(1) << L), remaining)
+            remaining = dr.select(st.found, 0, remaining)
+        return st.value, st.found, st.level
+
     def cell_slot(self, q: mi.Vector3u):
         """Index of cell ``q`` (level coordinates) inside its block."""
         m = self.block - 1
@@ -148,6 +176,14 @@ class DeviceReconstruction:
         return self.method.hash_result(state)
 
 
+@jit_struct(found="Bool", value="Float", level="UInt32", probe="UInt32")
+class _CellSearch:
+    """Loop state of `DeviceReconstruction.cell_at`."""
+
+    def __init__(self, found=None, value=None, level=None, probe=None):
+        self.found, self.value, self.level, self.probe = found, value, level, probe
+
+
 class HashSampler:
     """Point sampler over a `DeviceReconstruction`: the macrocell grid's level
     masks limit the levels probed. A view over device structs; ``carried``:
@@ -165,3 +201,12 @@ class HashSampler:
         g = self.grid
         level_bits = dr.gather(mi.UInt32, g.level_bits, g.flat(g.cell_of(u)), active)
         return self.table.eval(self.offset + u * self.extent, level_bits, active, self.carried)
+
+    def cell_at(self, u: mi.Vector3f, active=True):
+        """``(value, found, level)`` of the leaf cell that contains the local
+        point ``u`` (`DeviceReconstruction.cell_at`): the level the ray
+        marcher steps by, and the value of ``nearest`` there."""
+        active = mi.Bool(active) & in_unit_cube(u)
+        g = self.grid
+        level_bits = dr.gather(mi.UInt32, g.level_bits, g.flat(g.cell_of(u)), active)
+        return self.table.cell_at(self.offset + u * self.extent, level_bits, active)

@@ -13,11 +13,15 @@ finest cells):
 * otherwise steps ``[a, b]`` cover the segment front to back, each sampled
   once at ``x``: of length ``h = step_scale * w`` (along the ray, in finest
   cells) at ``a + jitter (b - a)``, one jitter per ray (``tent``); or, with
-  ``exact`` (``nearest``: the field is constant per cell), each step ends
-  on the next face of the lattice of width ``w``, which holds every face of
-  every cell under the segment (no cell there is finer than ``w`` and
-  cells are aligned to their width), and is sampled at its midpoint: each
-  step lies in one cell, so the integral is exact up to rounding;
+  ``exact`` (``nearest``: the field is constant per cell), each step lies
+  in one cell, so the integral is exact up to rounding: where the sampler
+  finds the leaf cell at a point (``cell_at``: the block hash), the step
+  goes from where the last one ended to the far face of the cell found
+  just past it, whose value it takes (one look-up per cell crossed);
+  elsewhere it ends on the next face of the lattice of width ``w``, which
+  holds every face of every cell under the segment (no cell there is
+  finer than ``w`` and cells are aligned to their width), sampled at its
+  midpoint;
 * each step composites front to back with its exact absorption:
   ``alpha = 1 - exp(-sigma_t (b - a))``, ``L += T alpha E(x)``,
   ``T *= 1 - alpha``, with ``E = brightness * shading * rgb + (1 - rgb)
@@ -41,6 +45,7 @@ import mitsuba as mi
 from .rng import Rng
 from .tracking import TrackingCounts, WalkEnd, _Fields, _counted, _counter, _tally
 from ..core.jit_struct import jit_struct
+from ..structures.macrocell_grid import NO_LEVEL
 
 #: Below this transmittance a marched ray plays Russian roulette.
 MARCH_RR_THRESHOLD = 1e-3
@@ -67,13 +72,14 @@ def absorbed_fraction(tau):
     return dr.select(small, tau * (1.0 - tau * (0.5 - tau * (1.0 / 6.0))), 1.0 - dr.exp(-tau))
 
 
-@jit_struct(rng=Rng, mu="Float", a="Float", b="Float", h="Float", w="Float", T="Float",
+@jit_struct(rng=Rng, mu="Float", a="Float", b="Float", w="Float", T="Float",
             L="UnpolarizedSpectrum", lookups="UInt32", steps="UInt32")
 class MarchState(_Fields):
     """Loop state of `RayMarch`: the stream (Russian roulette), the
-    segment's majorant, the current step ``[a, b]`` (local ``t``), the
-    step length ``h`` (local ``t``) and lattice width ``w`` (finest cells)
-    of the segment, the transmittance and radiance so far, and the counts."""
+    segment's majorant, the current step ``[a, b]`` (local ``t``; in cell
+    steps ``b`` holds the segment's end until the cell is found), the
+    segment's lattice width ``w`` (finest cells), the transmittance and
+    radiance so far, and the counts."""
 
 
 @jit_struct(L="UnpolarizedSpectrum", T="Float", counts=TrackingCounts)
@@ -91,69 +97,85 @@ class RayMarch:
     TF colour; ``emission_of(value, carried, active)``: ``L_e`` or None (the
     medium does not glow); ``shading(u, value, rgb, active)`` (a
     `GradientShading`: the shaded colour) or None (the TF colour as it
-    is); ``extent``, ``offset``: the data box in finest cells and its
-    lower corner relative to the cells' alignment origin (the lattice of
-    ``exact``); ``step_scale``: the step in finest cells under a segment;
-    ``brightness``: the colour's factor; ``sampler`` seeds the jitter and
-    the roulette."""
+    is); ``cell_at(u, active) -> (value, sigma_t, level)``: the leaf cell
+    containing ``u`` (its value, that value's sigma_t, its level), or
+    None: with ``exact`` (``nearest``) the steps then go cell by cell; ``extent``, ``offset``: the data box in finest cells and its
+    lower corner relative to the cells' alignment origin (the lattices);
+    ``step_scale``: the step in cells of the segment's finest level
+    (``tent``); ``brightness``: the colour's factor;
+    ``sampler`` seeds the jitter and the roulette."""
 
     label = "amr_march"
-    MOVING = ("mu", "a", "b", "h", "w", "steps")
+    MOVING = ("mu", "a", "b", "w", "steps")
 
     def __init__(self, lookup, colour_of, sampler, extent, offset, step_scale, brightness, exact: bool,
-                 emission_of=None, shading=None, carries: bool = False, count: bool = True):
+                 emission_of=None, shading=None, carries: bool = False, count: bool = True, cell_at=None):
         self.lookup, self.colour_of, self.sampler = lookup, colour_of, sampler
         self.extent, self.offset = extent, offset
         self.step_scale, self.brightness, self.exact = step_scale, brightness, exact
         self.emission_of, self.shading, self.carries, self.count = emission_of, shading, carries, count
+        self.cell_at = cell_at
+        #: exact steps cell by cell: each from where the last ended to the
+        #: far face of the cell found there (nearest, with `cell_at`)
+        self.by_cell = exact and cell_at is not None
 
     def begin(self, ray, active):
         # the stream from the sampler and the ray itself: a sampler that
         # repeats its numbers over pixels (stratified without jitter: yt's
         # pixel-centre rays) still gives each ray its own jitter
         rng = Rng.derive(self.sampler, active).mixed(_ray_bits(ray))
-        # per ray: the jitter of every step's sample, and finest cells per local t
+        # per ray: the jitter of every step's sample, finest cells per local
+        # t, and the progress guard of a point just past a face
         self.jitter = mi.Float(0.5) if self.exact else rng.next_1d(active)
         self.cells_per_t = dr.norm(ray.d * self.extent)
+        self.guard = 1e-7 * dr.rcp(dr.max(dr.abs(ray.d)))
         n = self.count
-        return MarchState(rng=rng, mu=mi.Float(0.0), a=mi.Float(0.0), b=mi.Float(0.0), h=mi.Float(0.0),
-                          w=mi.Float(1.0), T=mi.Float(1.0), L=dr.zeros(mi.UnpolarizedSpectrum),
+        return MarchState(rng=rng, mu=mi.Float(0.0), a=mi.Float(0.0), b=mi.Float(0.0), w=mi.Float(1.0),
+                          T=mi.Float(1.0), L=dr.zeros(mi.UnpolarizedSpectrum),
                           lookups=_counter(n), steps=_counter(n))
 
     def enter(self, state, ray, seg, entered, t, seg_end):
-        """A new segment: its majorant, its lattice width ``2^level`` and step."""
+        """A new segment: its majorant and its lattice width ``2^level``."""
         w = mi.Float(mi.UInt32(1) << dr.minimum(seg.level, 30))
         state.mu = dr.select(entered, seg.mu, state.mu)
         state.w = dr.select(entered, w, state.w)
-        h = self.step_scale * w * dr.rcp(dr.maximum(self.cells_per_t, 1e-30))
-        state.h = dr.select(entered, h, state.h)
         state.a = dr.select(entered, t, state.a)
         state.b = dr.select(entered, t, state.b)
         state.steps = _tally(state.steps, dr.select(entered, 1, 0))
         return state
 
-    def _lattice_exit(self, ray, a, w, seg_end):
+    def _guard(self, a):
+        return dr.maximum(dr.abs(a) * 5e-7, self.guard)
+
+    def _lattice_exit(self, ray, a, w, end):
         """The next face of the lattice of width ``w`` (finest cells) after
-        local ``t = a`` along the ray, at most ``seg_end``."""
+        local ``t = a`` along the ray, at most ``end``."""
         d_f = ray.d * self.extent
-        guard = dr.maximum(dr.abs(a) * 5e-7, 1e-7 * dr.rcp(dr.max(dr.abs(ray.d))))
+        guard = self._guard(a)
         p_f = self.offset + self.extent * (ray.o + ray.d * (a + guard))
         target = (dr.floor(p_f * dr.rcp(w)) + dr.select(d_f > 0.0, 1.0, 0.0)) * w
         p_a = self.offset + self.extent * (ray.o + ray.d * a)
         t_axis = dr.select(dr.abs(d_f) > 0.0, a + (target - p_a) * dr.rcp(dr.select(d_f != 0.0, d_f, 1.0)),
                            float("inf"))
-        return dr.minimum(dr.maximum(dr.min(t_axis), a + guard), seg_end)
+        return dr.minimum(dr.maximum(dr.min(t_axis), a + guard), end)
 
     def clock(self, state, ray, t, seg_end, moving):
         """The next step ``[a, b]`` of lanes ``moving`` and its sample
-        ``t_c``; none in an empty segment or past its end."""
+        ``t_c``; none in an empty segment or past its end. A cell step
+        samples just past ``a`` and finds its end there (`collide_at`)."""
         go = moving & (state.mu > 0.0) & (state.a < seg_end)
-        if self.exact:
+        if self.by_cell:
+            b = mi.Float(seg_end)
+        elif self.exact:
             b = self._lattice_exit(ray, state.a, state.w, seg_end)
         else:
-            b = dr.minimum(state.a + state.h, seg_end)
+            b = dr.minimum(state.a + self.step_scale * state.w * dr.rcp(dr.maximum(self.cells_per_t, 1e-30)),
+                           seg_end)
         state.b = dr.select(go, b, state.b)
-        t_c = state.a + self.jitter * (state.b - state.a)
+        if self.by_cell:
+            t_c = dr.minimum(state.a + self._guard(state.a), 0.5 * (state.a + state.b))
+        else:
+            t_c = state.a + self.jitter * (state.b - state.a)
         return state, t_c, go & (state.b > state.a)
 
     def passes(self, state, alive):
@@ -163,9 +185,18 @@ class RayMarch:
     def collide_at(self, state, ray, t_c, inside, alive):
         """Sample the step of lanes ``inside`` at ``t_c`` and composite it."""
         found = (mi.Float(0.0), mi.Float(0.0)) + ((mi.Float(0.0),) if self.carries else ())
-        lookup = self.lookup
+        lookup, cell_at = self.lookup, self.cell_at
         x = ray.o + ray.d * t_c
-        if dr.hint(inside, exclude=[lookup, x]):
+        cell = (mi.Float(0.0), mi.Float(0.0), mi.UInt32(NO_LEVEL))
+        if dr.hint(self.by_cell, mode="scalar"):
+            if dr.hint(inside, exclude=[cell_at, x]):
+                cell = cell_at(x, inside)
+            found, level = cell[:2], cell[2]
+            # the step ends on the far face of the cell found (the segment's
+            # lattice where none was: nothing absorbs there)
+            w = dr.select(level < NO_LEVEL, mi.Float(mi.UInt32(1) << dr.minimum(level, 30)), state.w)
+            state.b = dr.select(inside, self._lattice_exit(ray, state.a, w, state.b), state.b)
+        elif dr.hint(inside, exclude=[lookup, x]):
             found = lookup(x, inside)
         value, sigma_t = found[0], found[1]
         state.lookups = _tally(state.lookups, dr.select(inside, 1, 0))

@@ -673,9 +673,17 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
             shading = GradientShading(value_at, eps, lambda g: dr.normalize(self._to_world @ mi.Normal3f(g)),
                                       lambda u, active: light(self._to_world @ mi.Point3f(u), active),
                                       dr.normalize(ray.d))
+        # the leaf cell at a point, where the sampling can find it: steps by
+        # the level sampled (not only the leaf's finest), cell by cell for nearest
+        cell_at = None
+        points = s.sampler()
+        if hasattr(points, "cell_at") and not carries:
+            def cell_at(u, active):
+                value, found, level = points.cell_at(u, active)
+                return value, self.classification.sigma_t(value, found), level
         tracking = RayMarch(lookup, colour_of, sampler, s.extent, s.offset, step_scale, brightness,
                             exact=self.reconstruction == "nearest", emission_of=emission_of, shading=shading,
-                            carries=carries, count=count)
+                            carries=carries, count=count, cell_at=cell_at)
         return self._track(ray, t_max, active, tracking, levels=True)
 
     def _thinning(self, replay, margin):
