@@ -232,8 +232,10 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
        - The cells themselves (Python scene dictionaries only).
      * - transfer_function
        - |string| or ``TransferFunction``
-       - Preset name (``spiky``, ``foggy``, ``ramp``, ``constant``) or a
-         ``.json`` file. Default: ``foggy``.
+       - Preset name (``layers``, with options as ``layers:n=8,width=0.2,colormap=plasma``;
+         ``spiky``, ``foggy``, ``ramp``, ``constant``, ``dust``, ``blackbody``), a colormap
+         name, or a ``.json`` file. Default: ``foggy`` (data planned by
+         ``mi-amr render``, ``mi_amr.scene`` and the viewer get ``layers``).
      * - tf_min, tf_max
        - |float|
        - Value domain of a preset TF, and the range a ``.json`` TF is
