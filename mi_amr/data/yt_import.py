@@ -30,9 +30,11 @@ from __future__ import annotations
 
 import contextlib
 import difflib
+import gc
 import os
 import re
 import struct
+import sys
 import warnings
 
 import mitsuba as mi
@@ -481,8 +483,6 @@ def _release_quietly(e: BaseException):
     as an 'Exception ignored' traceback whenever they are collected. Done
     here, with those reports from yt's own code silenced; the traceback
     keeps its lines (``--traceback``), not the frames' local variables."""
-    import gc
-    import sys
     tb, frames = e.__traceback__, []
     while tb is not None:
         frames.append(tb.tb_frame)
