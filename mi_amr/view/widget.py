@@ -415,10 +415,14 @@ class ViewWidget(anywidget.AnyWidget):
 
     def _pull(self):
         """The view's camera, TF, mode and hybrid toggle as the traits, and
-        into the scene."""
+        into the scene (nothing once the widget is closed)."""
         with self._lock:
-            self._pull_timer = None
+            timer, self._pull_timer = self._pull_timer, None
+        if timer is not None:                    # a pull due later (`_pull_soon`): this one serves it
+            timer.cancel()
         view = self.view
+        if view is None or view.closed or self.engine.loaded is None:
+            return
         camera, spec, mode = view.camera, view.spec, view.mode
         with self._from_view(), self.hold_sync():
             self.camera = camera_dict(camera)
