@@ -104,7 +104,7 @@ def spp_to_target(scene_dict: dict, multi: bool, multi_spp: int, max_spp: int = 
 
 def run_case(volume, tf_name: str, args) -> dict:
     scenes = scenes_of(volume, tf_name, args.march_res)
-    timing = time_passes(scenes, 1, args.repeats, frozen=True)
+    timing = time_passes(scenes, 1, args.repeats, frozen=args.frozen)
     rec = {"cells": len(volume), "tf": tf_name, "res": args.march_res, "configs": {}}
     for config, t in timing.items():
         frame_s = statistics.median(t["wall"])
