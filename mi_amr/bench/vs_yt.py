@@ -45,6 +45,7 @@ import gc
 import hashlib
 import json
 import math
+import os
 import statistics
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -55,6 +56,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..autoscene import plan_scene
+from ..data.enzo_example import write_example
+from ..data.transform import apply_value_transform
 from ..data.yt_import import from_yt, load_dataset, resolve_field
 from ..reference import emission_absorption_march
 from ..transfer.function import TransferFunction
@@ -166,8 +170,6 @@ def output_case(path, field: str, name: str | None = None) -> Case:
     widened by 1e-3 of it on each side (yt gives 0 on and past its bounds,
     ours clamps: no value lies there)."""
     import yt
-    from ..autoscene import plan_scene
-    from ..data.transform import apply_value_transform
     yt.set_log_level(40)
     t0 = time.perf_counter()
     ds = load_dataset(path)
@@ -626,7 +628,6 @@ def json_safe(x):
 
 def load_note() -> str:
     """The machine's load averages and core count now (one line)."""
-    import os
     a = os.getloadavg()
     return f"load average {a[0]:.2f} {a[1]:.2f} {a[2]:.2f} on {os.cpu_count()} cores"
 
@@ -637,7 +638,6 @@ def open_case(data: str, field: str | None, n0: int, out: Path) -> Case:
     if data in OWN:
         return own_case(data, n0)
     if data == ENZO_EXAMPLE:
-        from ..data.enzo_example import write_example
         path = out / "enzo-example" / "DD0018" / "DD0018"
         if not path.exists():
             path = write_example(out / "enzo-example")
@@ -653,7 +653,6 @@ def omp_wait_policy() -> str:
     the bench's data took 22-33 s at load 12 on 2 cores, 0.17-0.23 s
     passive (docs/performance/vs-yt.md). libgomp reads it once, when yt's
     renderer loads it: too late afterwards (said so)."""
-    import os
     policy = os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     maps = Path("/proc/self/maps")
     if maps.exists() and "libgomp" in maps.read_text():
