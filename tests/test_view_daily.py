@@ -110,6 +110,7 @@ def test01_a_bad_range_in_one_tab_while_another_renders(served, browser):
         assert "density_scale" in _next(ws, "error")["message"]
     # B refines on (a camera change restarts it; its frames go on coming)
     frames_b = _stats(b)["frames"]
+    b.get_by_test_id("view").scroll_into_view_if_needed()
     box = b.get_by_test_id("view").bounding_box()
     b.mouse.move(box["x"] + 100, box["y"] + 100)
     b.mouse.down()
@@ -120,6 +121,8 @@ def test01_a_bad_range_in_one_tab_while_another_renders(served, browser):
     assert _stats(b)["errors"] == [] and _stats(b)["fatal"] is None
     # A is alive: an orbit gives a new frame
     version = _stats(a)["lastFrame"]["version"]
+    # typing into the range inputs scrolled them into view: the picture may be above it now
+    a.get_by_test_id("view").scroll_into_view_if_needed()
     box = a.get_by_test_id("view").bounding_box()
     a.mouse.move(box["x"] + 100, box["y"] + 100)
     a.mouse.down()
