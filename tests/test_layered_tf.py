@@ -6,7 +6,6 @@ eight-level AMReX collapse, a five-decade Enzo cosmology) against yt's
 ``create_scene`` default on the same outputs."""
 
 import json
-import time
 
 import mitsuba as mi
 import numpy as np
@@ -15,6 +14,8 @@ import pytest
 from mi_amr.transfer.function import TransferFunction
 from mi_amr.transfer.layers import Layers
 from mi_amr.visibility import colour_layers
+
+from conftest import HANG_S, wait_until
 
 
 def test01_layers_by_name_options_and_file(llvm, tmp_path):
@@ -220,9 +221,7 @@ def test05_the_editor_adds_layers_in_one_action(llvm, tmp_path, browser):
         page.get_by_test_id("layers-n").fill("5")
         page.get_by_test_id("add-layers").click()
         want = layer_points(Layers(n=5))
-        deadline = time.monotonic() + 15
-        while len(view.spec.points) != len(want) and time.monotonic() < deadline:
-            time.sleep(0.05)
+        wait_until(lambda: len(view.spec.points) == len(want), "the added layers in the view's TF")
         got = view.spec.points
         assert len(got) == len(want), got
         np.testing.assert_allclose([p[:2] for p in got], [p[:2] for p in want], atol=1e-9)
@@ -232,7 +231,7 @@ def test05_the_editor_adds_layers_in_one_action(llvm, tmp_path, browser):
         peaks = np.flatnonzero((table.rgba[1:-1, 3] > table.rgba[:-2, 3]) & (table.rgba[1:-1, 3] >= table.rgba[2:, 3]))
         assert len(peaks) == 5
         page.wait_for_function("window.viewerStats.lastFrame && window.viewerStats.lastFrame.version >= 1",
-                               timeout=30000)
+                               timeout=HANG_S * 1000)
         assert not errors, errors
         page.close()
     finally:
