@@ -19,7 +19,7 @@ from mi_amr.view.camera import OrbitCamera, floor_height, world_up
 from mi_amr.view.engine import ViewEngine
 from mi_amr.view.tf_spec import TFSpec, point_colours, spiky_points
 
-from conftest import HANG_S
+from conftest import HANG_S, wait_until
 
 pytest.importorskip("starlette")
 #: Playwright's deadlines, in milliseconds: only a hang reaches them.
@@ -265,6 +265,10 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
     page.get_by_test_id("log").check()
     page.wait_for_function(f"+document.getElementById('density-number').value !== {linear.density!r} && "
                            "document.getElementById('log').checked", timeout=HANG_MS)
+    # the page may show its own planned density before the server has the change
+    wait_until(lambda: view.spec.log, "the log10 change in the view")
+    page.wait_for_function(f"Math.abs(+document.getElementById('density-number').value / {view.spec.density!r} - 1)"
+                           " < 1e-5", timeout=HANG_MS)
     assert view.spec.log and abs(np.log(view.spec.density / linear.density)) > 0.1
     shown = float(page.get_by_test_id("density-number").input_value())
     assert shown == pytest.approx(view.spec.density, rel=1e-5)
@@ -273,6 +277,7 @@ def test04_the_tf_editor_on_yt_data(enzo, browser):
     page.wait_for_function("!document.getElementById('log').checked && "
                            f"Math.abs(+document.getElementById('density-number').value / {linear.density!r} - 1) < 0.03",
                            timeout=HANG_MS)
+    wait_until(lambda: not view.spec.log, "the log10 change back in the view")
     assert not view.spec.log and view.spec.range == pytest.approx(linear.range, rel=1e-6)
 
     # the range, then the shares under the histogram
