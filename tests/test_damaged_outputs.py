@@ -27,7 +27,7 @@ pytest.importorskip("yt")
 pytest.importorskip("h5py")
 
 #: Cases per format and kind of damage (3 formats x 3 kinds x this).
-PER_KIND = 3
+PER_KIND = 2
 #: Seconds one case may take before it counts as a hang (a render of 16x16
 #: pixels at 1 spp takes about a second; the first compiles its kernels).
 CASE_TIMEOUT = 240
