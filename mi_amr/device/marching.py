@@ -43,6 +43,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .rng import Rng
+from .segments import direction_guard, progress_guard
 from .tracking import TrackingCounts, WalkEnd, _Fields, _counted, _counter, _tally
 from ..core.jit_struct import jit_struct
 from ..structures.macrocell_grid import NO_LEVEL
@@ -99,11 +100,12 @@ class RayMarch:
     `GradientShading`: the shaded colour) or None (the TF colour as it
     is); ``cell_at(u, active) -> (value, sigma_t, level)``: the leaf cell
     containing ``u`` (its value, that value's sigma_t, its level), or
-    None: with ``exact`` (``nearest``) the steps then go cell by cell; ``extent``, ``offset``: the data box in finest cells and its
-    lower corner relative to the cells' alignment origin (the lattices);
+    None: with ``exact`` (``nearest``) the steps then go cell by cell;
+    ``extent``, ``offset``: the data box in finest cells and its lower
+    corner relative to the cells' alignment origin (the lattices);
     ``step_scale``: the step in cells of the segment's finest level
-    (``tent``); ``brightness``: the colour's factor;
-    ``sampler`` seeds the jitter and the roulette."""
+    (``tent``); ``brightness``: the colour's factor; ``sampler`` seeds the
+    jitter and the roulette."""
 
     label = "amr_march"
     MOVING = ("mu", "a", "b", "w", "steps")
@@ -128,7 +130,7 @@ class RayMarch:
         # t, and the progress guard of a point just past a face
         self.jitter = mi.Float(0.5) if self.exact else rng.next_1d(active)
         self.cells_per_t = dr.norm(ray.d * self.extent)
-        self.guard = 1e-7 * dr.rcp(dr.max(dr.abs(ray.d)))
+        self.guard = direction_guard(ray.d)
         n = self.count
         return MarchState(rng=rng, mu=mi.Float(0.0), a=mi.Float(0.0), b=mi.Float(0.0), w=mi.Float(1.0),
                           T=mi.Float(1.0), L=dr.zeros(mi.UnpolarizedSpectrum),
@@ -144,14 +146,11 @@ class RayMarch:
         state.steps = _tally(state.steps, dr.select(entered, 1, 0))
         return state
 
-    def _guard(self, a):
-        return dr.maximum(dr.abs(a) * 5e-7, self.guard)
-
     def _lattice_exit(self, ray, a, w, end):
         """The next face of the lattice of width ``w`` (finest cells) after
         local ``t = a`` along the ray, at most ``end``."""
         d_f = ray.d * self.extent
-        guard = self._guard(a)
+        guard = progress_guard(a, self.guard)
         p_f = self.offset + self.extent * (ray.o + ray.d * (a + guard))
         target = (dr.floor(p_f * dr.rcp(w)) + dr.select(d_f > 0.0, 1.0, 0.0)) * w
         p_a = self.offset + self.extent * (ray.o + ray.d * a)
@@ -173,7 +172,7 @@ class RayMarch:
                            seg_end)
         state.b = dr.select(go, b, state.b)
         if self.by_cell:
-            t_c = dr.minimum(state.a + self._guard(state.a), 0.5 * (state.a + state.b))
+            t_c = dr.minimum(state.a + progress_guard(state.a, self.guard), 0.5 * (state.a + state.b))
         else:
             t_c = state.a + self.jitter * (state.b - state.a)
         return state, t_c, go & (state.b > state.a)
