@@ -16,7 +16,6 @@ import mi_amr
 from mi_amr import AMRCells, TransferFunction
 from mi_amr.device.marching import AMBIENT, DIFFUSE, FLAT_SHARE, SHININESS, SPECULAR, GradientShading
 from mi_amr.device.rng import Rng
-from mi_amr.params import ParameterError
 from mi_amr.reference import emission_absorption_march
 from mi_amr.testing import block_z_scores, brute_force, render_passes
 

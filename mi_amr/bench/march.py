@@ -41,7 +41,7 @@ import mi_amr
 from ..data.datasets import make_dataset
 from ..data.io import load_volume
 from ..images import write_png
-from .harness import bench_scene, check_alone, frame_function, write_report
+from .harness import bench_scene, check_alone, write_report
 from .modes import LARGE_SCALE, time_passes
 from .protocol import SCALES as PROTOCOL_SCALES
 from .scale import data_file
