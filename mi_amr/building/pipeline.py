@@ -144,10 +144,11 @@ class Structures:
         return store[name]
 
     # ---- Views used by the tracking kernels --------------------------------
-    def segments(self, levels: bool = False):
+    def segments(self, levels: bool = False, ranges: bool = False):
         """The segment walker of the chosen traversal; with ``levels``, one
-        that reports each segment's finest level (`Segment.level`)."""
-        return self.traversal.walker(self._built(self.traversal.structure(self)), levels)
+        that reports each segment's finest level (`Segment.level`); with
+        ``ranges``, each segment's value range (`Segment.vmin`, ``vmax``)."""
+        return self.traversal.walker(self._built(self.traversal.structure(self)), levels, ranges)
 
     def thinning(self):
         """``thin(u, active) -> mu_f``: the finer majorant at local points

@@ -26,8 +26,8 @@ from ..device.segments import GridSegments, TreeSegments, TwoLevelGridSegments
 class Traversal:
     """``structure(s)``: the name of the component whose leaves are the
     segments (for `mi_amr.building.pipeline.Structures` ``s``); ``walker(device,
-    levels)``: the segment walker over its device struct (``levels``: it
-    reports each segment's finest level)."""
+    levels, ranges)``: the segment walker over its device struct (``levels``:
+    it reports each segment's finest level; ``ranges``: its value range)."""
     structure: Callable
     walker: Callable
 
@@ -47,8 +47,8 @@ class Sampling:
         return tuple(c(s) if callable(c) else c for c in self.needs_)
 
 
-def _grid_walker(grid, levels=False):
-    return (TwoLevelGridSegments if isinstance(grid, DeviceTwoLevelGrid) else GridSegments)(grid, levels)
+def _grid_walker(grid, levels=False, ranges=False):
+    return (TwoLevelGridSegments if isinstance(grid, DeviceTwoLevelGrid) else GridSegments)(grid, levels, ranges)
 
 
 def _abr_tree(s) -> str:

@@ -168,8 +168,9 @@ assert MAX_SKIP_EDGE.bit_length() - 1 < 1 << SKIP_BITS
 
 
 @jit_struct(res="Vector3i", coarse_res="Vector3i", fine=DeviceMacrocellGrid, coarse_mu="Float",
-            coarse_min="Float", coarse_skip="UInt32", coarse_level="UInt32", fine_inside="Bool", n_fine="Float",
-            keep_step="Float", refine_step="Float", world_scale="Float")
+            coarse_min="Float", coarse_skip="UInt32", coarse_level="UInt32", coarse_vmin="Float",
+            coarse_vmax="Float", fine_inside="Bool", n_fine="Float", keep_step="Float", refine_step="Float",
+            world_scale="Float")
 class DeviceTwoLevelGrid:
     """A two-level macrocell grid in Dr.Jit (docs/design.md section 4).
 
@@ -187,7 +188,9 @@ class DeviceTwoLevelGrid:
     edge of an empty cube of coarse macrocells that stretches from it along
     the octant (`_skip_cubes`), so that a ray may cross that whole cube in
     one step (empty-space skipping). ``coarse_level``: the finest level
-    that reaches each coarse macrocell (`Segment.level` of a coarse step).
+    that reaches each coarse macrocell (`Segment.level` of a coarse step);
+    ``coarse_vmin``/``coarse_vmax``: the value range of each (of its fine
+    ones, made with the majorants: `Segment.vmin` of a coarse step).
     """
 
     def __init__(self, grid, refinement: int, world_scale: float, step_costs):
@@ -216,6 +219,8 @@ class DeviceTwoLevelGrid:
         self.coarse_mu = dr.zeros(mi.Float, self.n_coarse)
         self.coarse_min = dr.zeros(mi.Float, self.n_coarse)
         self.coarse_skip = dr.zeros(mi.UInt32, self.n_coarse)
+        self.coarse_vmin = dr.zeros(mi.Float, self.n_coarse)
+        self.coarse_vmax = dr.zeros(mi.Float, self.n_coarse)
         self.keep_step, self.refine_step = mi.Float(step_costs[0]), mi.Float(step_costs[1])
         self.world_scale = mi.Float(world_scale)
         dr.make_opaque(self.res, self.coarse_res, self.fine_inside, self.n_fine, self.coarse_level,
@@ -264,7 +269,10 @@ class DeviceTwoLevelGrid:
         gain = refine_gain(self.n_fine, s1, mu_c, self.keep_step, self.refine_step, dr.maximum)
         self.coarse_mu = dr.select(gain > 0.0, -1.0, mu_c * dr.rcp(self.world_scale))
         self.coarse_skip = self._skip_cubes(self.coarse_mu != 0.0)
-        dr.make_opaque(self.coarse_mu, self.coarse_min, self.coarse_skip)
+        # the ranges too: new values (`Structures.revalue`) end here as well
+        self.coarse_vmin = dr.block_reduce(dr.ReduceOp.Min, self.fine.vmin, b)
+        self.coarse_vmax = dr.block_reduce(dr.ReduceOp.Max, self.fine.vmax, b)
+        dr.make_opaque(self.coarse_mu, self.coarse_min, self.coarse_skip, self.coarse_vmin, self.coarse_vmax)
 
     def _skip_cubes(self, occupied: mi.Bool) -> mi.UInt32:
         """Per coarse macrocell ``c``, one word: its ``SKIP_BITS`` bits from

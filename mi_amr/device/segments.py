@@ -16,7 +16,12 @@ A walker made with ``levels=True`` also reports the finest level under
 each segment (``Segment.level``: the finest level whose cells' supports
 reach the leaf, from the leaf's level mask or its own record; the step of
 the ray marcher, docs/design.md section 14); without it ``level`` is 0 and
-costs no gather.
+costs no gather. One made with ``ranges=True`` reports the range of values
+the reconstruction takes in each segment's leaf (``Segment.vmin``,
+``vmax``: the isosurface search skips a leaf whose range holds no iso
+value, docs/design.md section 15), and walks every leaf one by one (no
+empty-space cubes: a leaf empty under the TF may hold a surface);
+without it both are 0.
 
 `GridSegments` walks the macrocell grid with a 3D DDA (Amanatides-Woo);
 `TwoLevelGridSegments` walks a two-level grid by locating the macrocell at
@@ -37,25 +42,31 @@ from ..core.jit_struct import jit_struct
 from .tree import DeviceTree
 
 
-@jit_struct(t0="Float", t1="Float", mu="Float", mu_min="Float", valid="Bool", level="UInt32")
+@jit_struct(t0="Float", t1="Float", mu="Float", mu_min="Float", valid="Bool", level="UInt32", vmin="Float",
+            vmax="Float")
 class Segment:
     """One piece ``[t0, t1]`` (local ray parameter) of a ray with majorant
     ``mu`` and minorant ``mu_min`` (inverse world units); ``valid`` is false
     past the ray's end; ``level``: the finest level under it (walkers made
-    with ``levels=True``; 0 otherwise)."""
+    with ``levels=True``; 0 otherwise); ``vmin``, ``vmax``: the value range
+    of its leaf (walkers made with ``ranges=True``; 0 otherwise)."""
 
-    def __init__(self, t0=None, t1=None, mu=None, mu_min=None, valid=None, level=None):
+    def __init__(self, t0=None, t1=None, mu=None, mu_min=None, valid=None, level=None, vmin=None, vmax=None):
         self.t0, self.t1, self.mu, self.mu_min, self.valid = t0, t1, mu, mu_min, valid
         self.level = mi.UInt32(0) if level is None else level
+        self.vmin = mi.Float(0.0) if vmin is None else vmin
+        self.vmax = mi.Float(0.0) if vmax is None else vmax
 
 
 class GridSegments:
     """Front-to-back macrocells of a `DeviceMacrocellGrid`."""
 
-    def __init__(self, grid, levels: bool = False):
+    def __init__(self, grid, levels: bool = False, ranges: bool = False):
         self.grid = grid
         #: report each segment's finest level (`Segment.level`)
         self.levels = levels
+        #: report each segment's value range (`Segment.vmin`, ``vmax``)
+        self.ranges = ranges
 
     def leaf_bounds(self):
         """``(minorant, majorant, volume)`` per leaf on the host (numpy):
@@ -101,7 +112,10 @@ class GridSegments:
                              dr.select(mv & ax_z, t_next.z + dt.z, t_next.z))
         t_cell = dr.select(mv, t1, t_cell)
         level = finest_level(dr.gather(mi.UInt32, g.level_bits, flat, valid)) if self.levels else None
-        return (cell, t_next, t_cell), Segment(t0, t1, mu, mu_min, valid, level)
+        vmin = vmax = None
+        if self.ranges:
+            vmin, vmax = dr.gather(mi.Float, g.vmin, flat, valid), dr.gather(mi.Float, g.vmax, flat, valid)
+        return (cell, t_next, t_cell), Segment(t0, t1, mu, mu_min, valid, level, vmin, vmax)
 
 
 def direction_guard(d):
@@ -158,8 +172,11 @@ class TwoLevelGridSegments(GridSegments):
                            dr.gather(mi.Float, g.coarse_min, mi.UInt32(cflat), valid & ~refined))
         # an empty coarse macrocell: the empty cube of edge k that stretches
         # from it along the ray's octant (k = 1: the macrocell itself)
-        word = dr.gather(mi.UInt32, g.coarse_skip, mi.UInt32(cflat), valid & ~refined)
-        k = mi.Int32(1) << mi.Int32((word >> octant_shift) & ((1 << SKIP_BITS) - 1))
+        if self.ranges:
+            k = mi.Int32(1)          # every coarse macrocell on its own: its range counts, not the TF
+        else:
+            word = dr.gather(mi.UInt32, g.coarse_skip, mi.UInt32(cflat), valid & ~refined)
+            k = mi.Int32(1) << mi.Int32((word >> octant_shift) & ((1 << SKIP_BITS) - 1))
         lo = dr.select(refined, cell, (coarse + 1 - k) << g.log2f)
         hi = dr.select(refined, cell + 1, (coarse + k) << g.log2f)
         far = mi.Vector3f(dr.select(d >= 0, hi, lo))
@@ -172,16 +189,25 @@ class TwoLevelGridSegments(GridSegments):
         if self.levels:
             level = dr.select(refined, finest_level(dr.gather(mi.UInt32, g.fine.level_bits, fflat, refined)),
                               dr.gather(mi.UInt32, g.coarse_level, mi.UInt32(cflat), valid & ~refined))
-        return (t_cell,), Segment(t0, t1, dr.select(refined, mu_f, mu_c), mu_min, valid, level)
+        vmin = vmax = None
+        if self.ranges:
+            coarse_only = valid & ~refined
+            vmin = dr.select(refined, dr.gather(mi.Float, g.fine.vmin, fflat, refined),
+                             dr.gather(mi.Float, g.coarse_vmin, mi.UInt32(cflat), coarse_only))
+            vmax = dr.select(refined, dr.gather(mi.Float, g.fine.vmax, fflat, refined),
+                             dr.gather(mi.Float, g.coarse_vmax, mi.UInt32(cflat), coarse_only))
+        return (t_cell,), Segment(t0, t1, dr.select(refined, mu_f, mu_c), mu_min, valid, level, vmin, vmax)
 
 
 class TreeSegments:
     """Front-to-back leaves of a `DeviceTree` (kd-restart)."""
 
-    def __init__(self, tree: DeviceTree, levels: bool = False):
+    def __init__(self, tree: DeviceTree, levels: bool = False, ranges: bool = False):
         self.tree = tree
         #: report each segment's finest level (`Segment.level`)
         self.levels = levels
+        #: report each segment's value range (`Segment.vmin`, ``vmax``)
+        self.ranges = ranges
 
     def leaf_bounds(self):
         """``(minorant, majorant, volume)`` per leaf on the host (numpy;
@@ -215,4 +241,7 @@ class TreeSegments:
         t0 = t_cell
         t_cell = dr.select(valid, t1, t_cell)
         level = dr.gather(mi.UInt32, tree.finest_level, leaf, valid) if self.levels else None
-        return (t_cell,), Segment(t0, t1, mu, mu_min, valid, level)
+        vmin = vmax = None
+        if self.ranges:
+            vmin, vmax = dr.gather(mi.Float, tree.vmin, leaf, valid), dr.gather(mi.Float, tree.vmax, leaf, valid)
+        return (t_cell,), Segment(t0, t1, mu, mu_min, valid, level, vmin, vmax)

@@ -226,7 +226,7 @@ def _segments_to_collision(segments, ray, consumer, fixed, max_iterations, state
         # ---- Next segment once the current one is used up ----
         need = moving & (t >= seg_end)
         seg = Segment(t0=mi.Float(0.0), t1=mi.Float(0.0), mu=mi.Float(0.0), mu_min=mi.Float(0.0),
-                      valid=mi.Bool(False), level=mi.UInt32(0))
+                      valid=mi.Bool(False), level=mi.UInt32(0), vmin=mi.Float(0.0), vmax=mi.Float(0.0))
         if dr.hint(need, exclude=[segments, ray, fixed]):
             # a symbolic conditional: a packet whose lanes all go on in
             # their segments (after a null collision) skips the advance

@@ -337,6 +337,19 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             act_null = mi.Bool(False)
             mei = dr.zeros(mi.MediumInteraction3f)
 
+            # ---- isosurfaces of amr media (docs/design.md section 15): the
+            # first one ahead is the surface that ends the medium segment ----
+            iso_at = mi.Bool(False)
+            iso_bsdf = dr.zeros(mi.BSDFPtr)
+            for k in range(len(amr_media)):
+                if dr.hint(amr_media[k].has_iso, mode="scalar"):
+                    is_k = active_medium & (medium == amr_ptrs[k])
+                    hit = amr_media[k].iso_hit(ray, si.t, is_k)
+                    closer = is_k & hit.found & (hit.t < si.t)
+                    si[closer] = self._iso_interaction(ray, hit)
+                    iso_bsdf[closer] = amr_media[k].iso_bsdf(hit.slot, closer)
+                    iso_at |= closer
+
             # ---- amr media: the ray marcher's steps (docs/design.md section 14) ----
             if dr.hint(lighting.marches, mode="scalar"):
                 light = self._march_light(scene, ray)
@@ -435,16 +448,21 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             active_surface &= si.is_valid()
             ctx = mi.BSDFContext()
             bsdf = si.bsdf(ray)
+            iso_surface = active_surface & iso_at
+            bsdf[iso_surface] = iso_bsdf
             nee_s = active_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth + 1 < self.max_depth)
-            if dr.hint(lighting.marches, mode="scalar"):
+            if dr.hint(lighting.marches or lighting.shades_iso_locally, mode="scalar"):
                 # the ray marcher shades a surface of smooth lobes locally, as
                 # its samples (no light sample, no bounce): a deterministic
-                # picture; null, delta and emitting surfaces are as ever
+                # picture; null, delta and emitting surfaces are as ever.
+                # emission_absorption shades its isosurfaces so (self-lit
+                # colours of the sci-vis modes) and lights other surfaces as multi
+                local = nee_s if lighting.marches else nee_s & iso_surface
                 light = self._march_light(scene, ray, local=True)
-                L = accumulate(L, nee_s, throughput * self.brightness * local_surface_shading(
-                    bsdf.eval_diffuse_reflectance(si, nee_s), si.sh_frame.n, light(si.p, nee_s), -ray.d), adjoint)
-                active_surface &= ~nee_s
-                nee_s &= False
+                L = accumulate(L, local, throughput * self.brightness * local_surface_shading(
+                    bsdf.eval_diffuse_reflectance(si, local), si.sh_frame.n, light(si.p, local), -ray.d), adjoint)
+                active_surface &= ~local
+                nee_s &= ~local
 
             # ---- NEE, one call for medium and surface vertices ----
             # (a lane is one or the other: one shadow loop in the kernel and
@@ -527,6 +545,22 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         return light
 
     @staticmethod
+    def _iso_interaction(ray, hit):
+        """The surface interaction at an isosurface hit (`IsoHit`): no shape
+        (no emitter, no medium transition: the path stays in its medium),
+        the shading frame on the surface's normal."""
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.t = hit.t
+        si.p = hit.p
+        si.n = mi.Normal3f(hit.n)
+        si.sh_frame = mi.Frame3f(si.n)
+        si.dp_du, si.dp_dv = si.sh_frame.s, si.sh_frame.t
+        si.wi = si.to_local(-ray.d)
+        si.time = ray.time
+        si.wavelengths = ray.wavelengths
+        return si
+
+    @staticmethod
     def _medium_interaction(ray, flight, ptr):
         """The interaction at a free flight's real collision (`FreeFlight`)."""
         mei = dr.zeros(mi.MediumInteraction3f)
@@ -594,6 +628,11 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             moved = mi.Bool(False)
             for k in range(len(amr_media)):
                 is_k = in_medium & (medium == amr_ptrs[k])
+                if dr.hint(amr_media[k].has_iso, mode="scalar"):
+                    # an isosurface is opaque: it blocks the light behind it
+                    blocked = is_k & amr_media[k].iso_hit(ray, seg, is_k).found
+                    T[blocked] = 0.0
+                    is_k &= ~blocked
                 control = self._uses_minorants(self.residual, amr_media[k])
                 replay = None if adjoint is None else amr_media[k].replay(adjoint.mode, weight)
                 estimate = amr_media[k].transmittance(ray, seg, rng, is_k, control, self.counters_enabled, replay,

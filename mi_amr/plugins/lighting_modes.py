@@ -49,6 +49,9 @@ class MultipleScattering:
     continues = True
     #: whether amr media are ray-marched rather than tracked (`RayMarch`)
     marches = False
+    #: whether an isosurface is shaded locally (`local_surface_shading`) and
+    #: ends the path, rather than lit as any surface (docs/design.md section 15)
+    shades_iso_locally = False
 
     def collided(self, L, act_scatter, throughput, brightness, adjoint):
         """``(L, act_scatter)`` after the walk's real collisions
@@ -73,6 +76,8 @@ class SingleScattering(MultipleScattering):
 class EmissionAbsorption(MultipleScattering):
     """The collision scores its albedo times the brightness and the path
     stops there (no light sample, no scattering)."""
+
+    shades_iso_locally = True
 
     def collided(self, L, act_scatter, throughput, brightness, adjoint):
         L = accumulate(L, act_scatter, throughput * brightness, adjoint)

@@ -16,6 +16,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..device.grid import DeviceTwoLevelGrid
+from ..device.isosurface import IsoHit, IsoSearch, central_gradient
 from ..device.marching import GradientShading, Marched, RayMarch
 from ..device.ray import clip_to_half_space, flush_tiny, intersect_unit_cube, safe_rcp
 from ..device.tracking import (GRADIENT_FLOOR, GRADIENT_MARGIN, DecompositionTracking, DeltaTracking,
@@ -27,6 +28,7 @@ from ..building import Structures
 from ..transfer.classification import Classification
 from ..transfer.function import TransferFunction
 from ..transfer.spectra import require_supported_variant
+from .iso_surfaces import IsoSurfaces
 from .options import parse_medium_options
 from .variant_class import VariantPlugin
 import gc
@@ -176,6 +178,18 @@ def _warn_if_volpath_is_slower(medium):
                f"faster (<integrator type=\"amrvolpath\"/>; figures: docs/performance/protocol.md)")
 
 
+def _warn_if_iso_is_ignored(medium):
+    """Once per process: stock ``volpath`` (any integrator that calls
+    ``sample_interaction``) cannot see isosurfaces; say so, naming
+    ``amrvolpath``."""
+    if "iso" in _WARNED or not medium.iso_values:
+        return
+    _WARNED.add("iso")
+    mi.Log(mi.LogLevel.Warn,
+           "amr: this medium has isosurfaces (iso values), which Mitsuba's stock volpath cannot see: it renders "
+           "the volume alone; the 'amrvolpath' and 'amrprbvolpath' integrators draw them")
+
+
 def _warn_if_emission_is_ignored(medium):
     """Once per process: stock ``volpath`` (any integrator that calls
     ``sample_interaction``) has no medium emission, so a medium that glows
@@ -224,6 +238,17 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
      * - clip_offset
        - |float|
        - The clip plane's offset, world units. Default: 0.
+     * - iso
+       - |string|
+       - Up to 4 iso values in the medium's value units (after
+         ``value_transform``), as ``"0.3 0.5"``: isosurfaces of the
+         reconstruction, drawn by ``amrvolpath`` and ``amrprbvolpath``
+         (docs/design.md section 15); nested BSDFs, in order, are their
+         BSDFs (default: two-sided diffuse in the TF's colour at the
+         value). ``set_iso`` moves them. Stock ``volpath`` cannot see them.
+     * - iso_only
+       - |bool|
+       - The surfaces alone: the medium's own density is off. Default: false.
      * - scalars
        - |string|
        - Scalars file for ``filename`` (optional).
@@ -401,6 +426,10 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
                                              emission=None if emission is None else emission.tf,
                                              emission_scale=1.0 if emission is None else emission.scale,
                                              emission_model="tf" if emission is None else emission.model)
+        # the isosurfaces (docs/design.md section 15): values, BSDFs, the
+        # kernels' opaque view of them
+        lo, hi = options.volume.value_range
+        self.iso = IsoSurfaces(options.iso, options.iso_bsdfs, options.iso_only, span=hi - lo, tf=options.tf)
         # the `AMRCells` a user gave (``data``), kept for `cells`; the
         # structures read the blocks only
         self._given_cells = options.cells
@@ -428,11 +457,17 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         self._carried = None
         if emission is not None and (emission.field is not None or emission.transform != "none"):
             self._carried = self.structures.field_values(emission.field, emission.transform)
-        self.classification.on_change = self.structures.reclassify
+        self.classification.on_change = self._reclassified
         two_level = (options.structures.traversal == "grid"
                      and isinstance(self.structures.device.get("grid"), DeviceTwoLevelGrid))
         self._span_stop = SPAN_STOP_SHARE if two_level else None
         self.structures.update_majorants()
+
+    def _reclassified(self, classification):
+        """After a TF or density-scale change: the structures' majorants,
+        and the colours of the default iso BSDFs."""
+        self.structures.reclassify(classification)
+        self.iso.set_tf(classification.tf)
 
     # ---- Read-only views --------------------------------------------------------
     @property
@@ -740,8 +775,65 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         t_lo, t_hi = self._clipped(o, d, dr.maximum(t0, 0.0), dr.minimum(t1, t_max * s))
         local = LocalRay(o=o, d=d, t_lo=t_lo, t_hi=t_hi, scale=s)
         active = (mi.Bool(active) & hit & (s > 0.0) & (local.t_lo < local.t_hi)
-                  & (self.structures.global_majorant > 0.0))
+                  & (self.structures.global_majorant * self.iso.volume_on > 0.0))
         return walk_segments(self.structures.segments(levels), local, active, tracking, self._max_iterations)
+
+    # ---- Isosurfaces (docs/design.md section 15) -----------------------------------
+    @property
+    def iso_values(self) -> tuple:
+        """The iso values, in the medium's value units (after its ``value_transform``)."""
+        return self.iso.values
+
+    @property
+    def iso_only(self) -> bool:
+        """Whether the medium shows its surfaces alone (its own density off)."""
+        return self.iso.only
+
+    @property
+    def has_iso(self) -> bool:
+        """Whether the integrators search this medium for surfaces: once an
+        iso value was set (at load or by `set_iso`). A Python constant of the
+        kernels: moving, adding or removing values later compiles nothing."""
+        return self.iso.enabled
+
+    def set_iso(self, values=None, bsdfs=None, only: bool | None = None):
+        """New iso values (value units; None keeps them; at most
+        `MAX_ISO_VALUES`), BSDFs by slot (None keeps them; a None entry: the
+        default, two-sided diffuse in the TF's colour at the value) and
+        ``only`` (the surfaces alone; None keeps it). Opaque: compiles
+        nothing once the medium has surfaces (`has_iso`)."""
+        self.iso.set(values, bsdfs, only)
+
+    def iso_bsdf(self, slot, active=True):
+        """The BSDF (``mi.BSDFPtr``) of iso slot ``slot`` per lane."""
+        return self.iso.bsdf(slot, active)
+
+    def iso_hit(self, ray: mi.Ray3f, t_max, active, count: bool = False) -> IsoHit:
+        """The first isosurface along ``ray`` before world ``t_max`` (on the
+        clip plane's kept side), found by the one walk (`IsoSearch`): an
+        `IsoHit` in world space, its normal the normalised gradient of the
+        reconstruction (central differences over half a finest cell),
+        turned towards lower values (``-ray.d`` where it vanishes)."""
+        o, d, s = self.local_ray(ray)
+        hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
+        t_lo, t_hi = self._clipped(o, d, dr.maximum(t0, 0.0), dr.minimum(t1, t_max * s))
+        local = LocalRay(o=o, d=d, t_lo=t_lo, t_hi=t_hi, scale=s)
+        active = mi.Bool(active) & hit & (s > 0.0) & (local.t_lo < local.t_hi)
+        points = self.structures.sampler()
+
+        def value_at(u, active):
+            value, found = points.eval(u, active)
+            return dr.select(found, value, dr.nan)
+        search = IsoSearch(value_at, self.iso.slots, self.iso.tolerance, self.structures.extent, count)
+        found = walk_segments(self.structures.segments(True, True), local, active, search, self._max_iterations)
+        u = o + d * dr.select(found.found, found.t, 0.0)
+        g = central_gradient(value_at, u, 0.5 * dr.rcp(dr.max(self.structures.extent)), found.found)
+        n = dr.normalize(self._to_world @ mi.Normal3f(-g))
+        usable = found.found & dr.all(dr.isfinite(n)) & (dr.squared_norm(g) > 0.0)
+        n = mi.Vector3f(dr.select(usable, n, -dr.normalize(ray.d)))
+        t = dr.select(found.found, local.world_t(found.t), dr.inf)
+        return IsoHit(t=t, found=found.found, p=ray(dr.select(found.found, t, 0.0)), n=n, slot=found.slot,
+                      counts=found.counts)
 
     # ---- Mitsuba medium interface -------------------------------------------
     def intersect_aabb(self, ray: mi.Ray3f):
@@ -749,6 +841,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         # segments itself): a stock integrator is rendering this medium
         _warn_if_volpath_is_slower(self)
         _warn_if_emission_is_ignored(self)
+        _warn_if_iso_is_ignored(self)
         key = self._ray_majorant.key_of(ray)
         o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))

@@ -27,6 +27,7 @@ from ..building import SAMPLINGS, StructureOptions, TRAVERSALS
 from ..structures.cache import HOST_CACHE
 from ..transfer.classification import EMISSION_MODELS, MAX_DENSITY_SCALE, check_emission_scale
 from ..transfer.function import TransferFunction
+from .iso_surfaces import parse_iso_values
 
 MAJORANTS = ("ray", "global")
 OVERLAPS = ("error", "finest")
@@ -43,7 +44,7 @@ KNOWN = {"filename", "field", "data_checksum", "scalars", "data", "transfer_func
          "kdtree_leaves", "max_iterations", "memory_limit", "value_masks", "value_transform",
          "emission", "emission_field", "emission_scale", "emission_min", "emission_max", "emission_transform",
          "emission_model",
-         "clip_normal", "clip_offset"}
+         "clip_normal", "clip_offset", "iso", "iso_only"}
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,9 @@ class MediumOptions:
     structures: StructureOptions
     emission: "Emission | None" = None
     clip: "tuple | None" = None            # (normal (3,), offset): keep world points with normal . x <= offset
+    iso: tuple = ()                        # iso values, value units (after value_transform)
+    iso_bsdfs: tuple = ()                  # the nested BSDFs, by slot
+    iso_only: bool = False                 # surfaces only: the medium's own density off
 
     @property
     def world_scale(self) -> float:
@@ -86,7 +90,7 @@ class MediumOptions:
 
 def parse_medium_options(props: mi.Properties) -> MediumOptions:
     """Validate the ``amr`` plugin's properties and load its data."""
-    check_known(props, "amr", KNOWN, allow=lambda k, v: isinstance(v, mi.PhaseFunction))
+    check_known(props, "amr", KNOWN, allow=lambda k, v: isinstance(v, (mi.PhaseFunction, mi.BSDF)))
     reconstruction = get_string(props, "amr", "reconstruction", "tent", METHODS)
     transform = get_string(props, "amr", "value_transform", "none", VALUE_TRANSFORMS)
     data = _load_data(props, reconstruction)
@@ -117,7 +121,23 @@ def parse_medium_options(props: mi.Properties) -> MediumOptions:
         to_world=_to_world(props, volume),
         structures=structures,
         emission=emission,
-        clip=_clip(props))
+        clip=_clip(props),
+        **_iso(props))
+
+
+def _iso(props) -> dict:
+    """``iso`` (numbers, in the values' units after ``value_transform``),
+    the nested BSDFs (in order: the first for the first value, ...) and
+    ``iso_only``."""
+    values = parse_iso_values(props["iso"] if "iso" in props.keys() else None)
+    bsdfs = tuple(props[k] for k in props.keys() if isinstance(props[k], mi.BSDF))
+    if len(bsdfs) > max(len(values), 0) and bsdfs:
+        raise ParameterError(f"amr: {len(bsdfs)} nested BSDFs for {len(values)} iso values (one BSDF per "
+                             f"iso value, in order)")
+    only = get_bool(props, "amr", "iso_only", False)
+    if only and not values:
+        raise ParameterError("amr: iso_only needs iso values (iso_only shows the surfaces alone)")
+    return dict(iso=values, iso_bsdfs=bsdfs, iso_only=only)
 
 
 def _clip(props) -> "tuple | None":
