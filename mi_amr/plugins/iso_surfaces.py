@@ -21,6 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..core.jit_struct import jit_struct
 from ..device.isosurface import ISO_VALUE_TOLERANCE, MAX_ISO_VALUES
 from ..params import ParameterError
 
@@ -61,9 +62,12 @@ def default_bsdf(rgb) -> "mi.BSDF":
         "type": "rgb", "value": [float(c) for c in np.clip(rgb, 0.0, 1.0)]}}})
 
 
+@jit_struct(slots="Float", tolerance="Float", volume_on="Float", pointers="BSDFPtr")
 class IsoSurfaces:
     """Iso values, their BSDFs and the kernels' view of them (see the module
-    docstring). ``span``: the data's value range width (value units), which
+    docstring); a device struct (`jit_struct`), so that ``dr.freeze`` sees
+    its arrays as inputs: a frozen render follows `set` without recording
+    again, and records again when the first value makes ``pointers``. ``span``: the data's value range width (value units), which
     scales the hit tolerance; ``tf``: the medium's TF (`TransferFunction`),
     whose colours the default BSDFs take (`set_tf` after a change)."""
 
