@@ -15,7 +15,8 @@ primal frame and a dense grid) or ``--march`` (`mi_amr.bench.march`: the
 ray marcher against the path tracer's convergence frames, the paper's
 comparison) or ``--vs-yt`` (`mi_amr.bench.vs_yt`: yt's
 volume renderer against ``ray_march`` and ``emission_absorption``, time to
-equal error).
+equal error) or ``--iso`` (`mi_amr.bench.iso`: isosurfaces against yt's
+``ds.surface``, cracks and hit errors, and the isosurface frame's rate).
 """
 
 import argparse
@@ -35,6 +36,8 @@ def dispatch(args) -> int:
     """Run the study the options ask for; its exit status."""
     if args.vs_yt is not None:
         from .vs_yt import main_args
+    elif args.iso:
+        from .iso import main_args
     elif args.view:
         from .view import main_args
     elif args.widget:
@@ -66,7 +69,7 @@ def parse(argv=None) -> argparse.Namespace:
                                        "  python -m mi_amr.bench --datasets cloud --tfs spiky "
                                        "--configs reference amrvolpath/default --out out/b")
     for options in (protocol_options, scale_options, resample_options, view_options, distributed_options,
-                    modes_options, grad_options, vs_yt_options):
+                    modes_options, grad_options, vs_yt_options, iso_options):
         options(p)
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)      # the command, for the tables
@@ -254,6 +257,25 @@ def vs_yt_options(p):
     p.add_argument("--vs-yt-rounds", type=int, default=3, help="--vs-yt: alternated rounds (3)")
     p.add_argument("--vs-yt-samples", type=int, default=None,
                    help="--vs-yt: yt's num_samples per cell (default: yt's, 10)")
+
+
+def iso_options(p):
+    p.add_argument("--iso", action="store_true",
+                   help="isosurfaces against yt's ds.surface on an analytic radial field over 2 and 3 levels: "
+                        "cracks at level boundaries and hit errors against the exact sphere, the pictures side "
+                        "by side, and frames/s of an isosurface picture (docs/performance/iso.md)")
+    p.add_argument("--iso-levels", type=int, nargs="+", default=[2, 3], help="--iso: level counts (2 3)")
+    p.add_argument("--iso-crack-res", type=int, default=512,
+                   help="--iso: camera rays per side of the crack figures (512)")
+    p.add_argument("--iso-yt-only", action="store_true", help="--iso: yt's surface only (no mi-amr rows)")
+    p.add_argument("--iso-picture", default=None, metavar="PNG",
+                   help="--iso: the side-by-side figure (default OUT/iso-vs-yt.png; none: no figure)")
+    p.add_argument("--iso-picture-res", type=int, default=384, help="--iso: each panel's size (384)")
+    p.add_argument("--iso-picture-spp", type=int, default=64, help="--iso: the pictures' samples per pixel (64)")
+    p.add_argument("--iso-cells", type=float, nargs="*", default=[1e7, 1e8], metavar="CELLS",
+                   help="--iso: block-structured data sets of the frame rate (files in --data-dir; default "
+                        "1e7 1e8; none: no frame rate)")
+    p.add_argument("--iso-res", type=int, default=512, help="--iso: the timed frame's width and height (512)")
 
 
 def distributed_options(p):
