@@ -184,6 +184,23 @@ def merge(sums) -> np.ndarray:
 
 
 # ---- In this process ---------------------------------------------------------
+def load_here(scene, params: dict | None = None, integrator: dict | None = None) -> mi.Scene:
+    """``scene`` loaded in this process as `render_local` renders it: an
+    XML path (``params``: its ``-D`` parameters), a scene dictionary or a
+    loaded ``mi.Scene`` (returned as it is); ``integrator``: parameters set
+    on the XML or dictionary scene's ``amrvolpath`` integrator."""
+    if isinstance(scene, mi.Scene):
+        if integrator:
+            raise ValueError("integrator parameters are for a scene file or dictionary, not a loaded scene")
+        return scene
+    if isinstance(scene, dict):
+        return mi.load_dict(dict_with_integrator_parameters(scene, integrator) if integrator else scene,
+                            parallel=False)
+    # on this thread: Mitsuba's parallel loader may build a medium on a worker
+    # thread, where Ctrl-C cannot reach it until the whole load is over
+    return load_scene(scene, params, integrator, parallel=False)
+
+
 def render_local(scene, spp: int, chunk_spp: int | None = None, seed: int = 0, sensor: int = 0,
                  params: dict | None = None, progress: bool = False, desc: str = "render",
                  integrator: dict | None = None):
@@ -194,17 +211,7 @@ def render_local(scene, spp: int, chunk_spp: int | None = None, seed: int = 0, s
     dictionary) scene's ``amrvolpath`` integrator, e.g. ``{"mode": "single"}``."""
     plan = chunk_plan(spp, chunk_spp)
     seeds = chunk_seeds(seed, len(plan))
-    if isinstance(scene, mi.Scene):
-        if integrator:
-            raise ValueError("integrator parameters are for a scene file or dictionary, not a loaded scene")
-        loaded = scene
-    elif isinstance(scene, dict):
-        loaded = mi.load_dict(dict_with_integrator_parameters(scene, integrator) if integrator else scene,
-                              parallel=False)
-    else:
-        # on this thread: Mitsuba's parallel loader may build a medium on a worker
-        # thread, where Ctrl-C cannot reach it until the whole load is over
-        loaded = load_scene(scene, params, integrator, parallel=False)
+    loaded = load_here(scene, params, integrator)
     sums = []
     with tqdm(total=spp, unit="spp", desc=desc, disable=not progress) as bar:
         for n, s in zip(plan, seeds):

@@ -10,6 +10,12 @@ jobs here, or frame-parallel on a Dask cluster (``cluster``: a
 ``dask.distributed.Client``), and returns one `RenderResult` each: the image
 (float32 ``(H, W, C)``, linear), the plan of a data job and the seconds.
 
+A job with ``noise`` renders adaptively (`mi_amr.adaptive`: tiles stop at
+that relative error, ``spp`` is the cap, ``seconds`` a time limit; its
+result has the samples each pixel took), here only: a cluster renders fixed
+counts. A job with ``denoise`` also gets the picture through Open Image
+Denoise (`mi_amr.denoising`); its ``image`` stays the unbiased estimate.
+
 It writes nothing and prints nothing: the command line writes the images
 (`mi_amr.tools.render.write_frame`) and the planned scene's XML, and shows the
 plan's notes; a progress bar only with ``progress=True``. Bad jobs are
@@ -33,7 +39,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import distributed
+from . import adaptive, distributed
 from .autoscene import ScenePlan, plan_scene
 from .scene_writer import scene_for
 from .plugins.integrator import MODES
@@ -104,7 +110,12 @@ class RenderJob:
     (None: the scene's own, ``multi`` for data); ``spp``: samples per pixel
     (None: the XML scene's ``sample_count``, else `default_spp` of the mode); ``res``:
     width and height of a data scene, pixels; ``defines``: an XML scene's
-    ``<default>`` values (``-D NAME=VALUE``); ``seed``: of the first chunk."""
+    ``<default>`` values (``-D NAME=VALUE``); ``seed``: of the first chunk.
+    ``noise``: render adaptively, tiles stopping at this relative error
+    (`mi_amr.adaptive`; then ``spp`` is the cap, None:
+    `mi_amr.adaptive.DEFAULT_MAX_SPP`), None: ``spp`` in every pixel;
+    ``seconds``: the adaptive render's time limit; ``denoise``: also the
+    denoised picture (`RenderResult.denoised`)."""
     source: object
     field: str | None = None
     plan_options: dict = dc_field(default_factory=dict)
@@ -113,6 +124,9 @@ class RenderJob:
     res: int = 400
     seed: int = 0
     defines: dict = dc_field(default_factory=dict)
+    noise: float | None = None
+    seconds: float | None = None
+    denoise: bool = False
 
     @property
     def is_xml(self) -> bool:
@@ -133,6 +147,13 @@ class RenderJob:
             raise ValueError("field and plan options are for data, not XML scenes (set those in the scene)")
         if not self.is_xml and self.defines and set(self.defines) - {"res", "spp"}:
             raise ValueError("defines other than res and spp are for XML scenes")
+        if self.noise is not None and not (isinstance(self.noise, (int, float)) and 0 < self.noise < 1e3):
+            raise ValueError(f"noise: a relative error above 0 (e.g. 0.02), got {self.noise!r}")
+        if self.seconds is not None and not (isinstance(self.seconds, (int, float)) and self.seconds > 0
+                                             and np.isfinite(self.seconds)):
+            raise ValueError(f"seconds: a time limit above 0, got {self.seconds!r}")
+        if self.seconds is not None and self.noise is None:
+            raise ValueError("seconds: a time limit is for adaptive jobs (give noise too)")
 
 
 @dataclass
@@ -140,12 +161,17 @@ class RenderResult:
     """A job's picture: ``image`` float32 (H, W, C) linear, ``plan`` (data
     jobs: what was planned, with its notes and predicted picture; None for
     XML), ``spp`` it was rendered with, ``seconds`` of its rendering (a
-    cluster's frames share the batch's time)."""
+    cluster's frames share the batch's time); an adaptive job's
+    ``adaptive`` (`mi_amr.adaptive.AdaptiveResult`: the samples each pixel
+    took, ``spp`` their most), a ``denoise`` job's ``denoised`` picture
+    (float32 (H, W, 3))."""
     job: RenderJob
     image: np.ndarray
     plan: ScenePlan | None
     spp: int
     seconds: float
+    adaptive: adaptive.AdaptiveResult | None = None
+    denoised: np.ndarray | None = None
 
 
 def scene_spp(path, params: dict) -> int | None:
@@ -180,9 +206,11 @@ def plan_job(job: RenderJob) -> ScenePlan:
 
 
 def job_spp(job: RenderJob) -> int:
-    """The samples per pixel ``job`` renders with."""
+    """The samples per pixel ``job`` renders with (adaptive: at most)."""
     if job.spp is not None:
         return int(job.spp)
+    if job.noise is not None:
+        return adaptive.DEFAULT_MAX_SPP
     if job.is_xml:
         return scene_spp(job.source, job.defines) or DEFAULT_SPP
     return int(job.defines.get("spp", default_spp(job.mode)))
@@ -203,6 +231,9 @@ def render_jobs(jobs, cluster=None, *, chunk_spp: int | None = None, progress: b
     jobs = list(jobs)
     for job in jobs:
         job.check()
+        if cluster is not None and job.noise is not None:
+            raise ValueError("noise: adaptive sampling renders in this process, not on a cluster "
+                             "(noise=None renders spp samples in every pixel there)")
     use_variant(variant)
     plans = [None if j.is_xml else plan_job(j) for j in jobs]
     frames, spps = [], []
@@ -223,19 +254,49 @@ def render_jobs(jobs, cluster=None, *, chunk_spp: int | None = None, progress: b
                                            progress=progress, desc=desc or _label(job), drjit_threads=drjit_threads,
                                            integrator=_integrator(job))
         seconds = time.perf_counter() - t0
-        return [RenderResult(j, _image(im), p, spp, seconds) for j, p, im in zip(jobs, plans, images)]
+        return [_denoised(RenderResult(j, _image(im), p, spp, seconds)) for j, p, im in zip(jobs, plans, images)]
     for job, plan, spp, (scene, params) in zip(jobs, plans, spps, frames):
         t0 = time.perf_counter()
         if cluster is not None:
             image = distributed.render_frames([(scene, params)], spp, cluster, chunk_for(spp, chunk_spp), job.seed,
                                               progress=progress, desc=desc or _label(job),
                                               drjit_threads=drjit_threads, integrator=_integrator(job))[0]
+            results.append(_denoised(RenderResult(job, _image(image), plan, spp, time.perf_counter() - t0)))
+            continue
+        loaded = distributed.load_here(scene, params, _integrator(job))
+        if job.noise is None:
+            image = distributed.render_local(loaded, spp, chunk_for(spp, chunk_spp), job.seed, progress=progress,
+                                             desc=desc or _label(job))
+            result = RenderResult(job, _image(image), plan, spp, time.perf_counter() - t0)
         else:
-            image = distributed.render_local(scene, spp, chunk_for(spp, chunk_spp), job.seed, params=params,
-                                             progress=progress, desc=desc or _label(job),
-                                             integrator=_integrator(job))
-        results.append(RenderResult(job, _image(image), plan, spp, time.perf_counter() - t0))
+            found = render_adaptively(loaded, job, spp, progress, desc or _label(job))
+            result = RenderResult(job, found.image, plan, int(found.spp.max()), time.perf_counter() - t0,
+                                  adaptive=found)
+        results.append(_denoised(result))
     return results
+
+
+def render_adaptively(scene: mi.Scene, job: RenderJob, spp: int, progress: bool = False,
+                      desc: str = "render") -> adaptive.AdaptiveResult:
+    """``job`` (with ``noise``) rendered adaptively in the loaded ``scene``,
+    at most ``spp`` samples per pixel; the progress bar counts the
+    picture's mean samples per pixel."""
+    from tqdm import tqdm
+    with tqdm(total=spp, unit="spp", desc=desc, disable=not progress,
+              bar_format="{l_bar}{bar}| {n:.1f}/{total} spp mean [{elapsed}]") as bar:
+        def advance(mean_spp):
+            bar.update(mean_spp - bar.n)
+        return adaptive.render_adaptive(scene, job.noise, spp, job.seconds, job.seed, progress=advance)
+
+
+def _denoised(result: RenderResult) -> RenderResult:
+    """``result`` with its denoised picture when its job asks for one
+    (`mi_amr.denoising.denoise`, without a guide: docs/performance/adaptive.md
+    measured the albedo guide worse)."""
+    if result.job.denoise:
+        from . import denoising
+        result.denoised = denoising.denoise(result.image)
+    return result
 
 
 def render_job(job: RenderJob, **options) -> RenderResult:

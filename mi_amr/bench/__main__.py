@@ -36,6 +36,8 @@ def dispatch(args) -> int:
     """Run the study the options ask for; its exit status."""
     if args.vs_yt is not None:
         from .vs_yt import main_args
+    elif args.adaptive is not None:
+        from .adaptive import main_args
     elif args.iso:
         from .iso import main_args
     elif args.view:
@@ -69,7 +71,7 @@ def parse(argv=None) -> argparse.Namespace:
                                        "  python -m mi_amr.bench --datasets cloud --tfs spiky "
                                        "--configs reference amrvolpath/default --out out/b")
     for options in (protocol_options, scale_options, resample_options, view_options, distributed_options,
-                    modes_options, grad_options, vs_yt_options, iso_options):
+                    modes_options, grad_options, vs_yt_options, iso_options, adaptive_options):
         options(p)
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)      # the command, for the tables
@@ -257,6 +259,18 @@ def vs_yt_options(p):
     p.add_argument("--vs-yt-rounds", type=int, default=3, help="--vs-yt: alternated rounds (3)")
     p.add_argument("--vs-yt-samples", type=int, default=None,
                    help="--vs-yt: yt's num_samples per cell (default: yt's, 10)")
+
+
+def adaptive_options(p):
+    p.add_argument("--adaptive", nargs="*", default=None, metavar="DATA",
+                   help="seconds to a picture within 2%% RMSE of converged: fixed spp against adaptive sampling, "
+                        "raw against denoised, and the default command's whole process beside yt's "
+                        "(docs/performance/adaptive.md). DATA: enzo, blocks, 1e7 (default: all)")
+    p.add_argument("--adaptive-res", type=int, default=512, help="--adaptive: image size (512)")
+    p.add_argument("--adaptive-ref-spp", type=int, default=512,
+                   help="--adaptive: samples per pixel of each half of the reference (512; cached under --out)")
+    p.add_argument("--rounds-adaptive", type=int, default=3,
+                   help="--adaptive: whole-process rounds, ours and yt's alternated (3; 0: none)")
 
 
 def iso_options(p):

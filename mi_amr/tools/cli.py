@@ -154,7 +154,8 @@ def _render_flags(p, spp: int | None):
     scene's own sample count, else 64)."""
     p.add_argument("--spp", type=_positive, default=spp,
                    help=f"samples per pixel (default {spp})" if spp else
-                   "samples per pixel (default: an XML scene's own sample_count, else 64)")
+                   "samples per pixel: the most with adaptive sampling (default 1024), else in every pixel "
+                   "(default: an XML scene's own sample_count, else 64)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default=None, help=VARIANT_HELP)
     p.add_argument("-D", "--define", action="append", metavar="NAME=VALUE",
@@ -212,9 +213,20 @@ def build_parser():
     r.add_argument("-o", "--output", help="output .exr path; with --movie OUT.mp4 it may be left out: then "
                                           "OUT.exr beside the movie (--frames writes OUT_000.exr, ...; the "
                                           "scenes and data go to OUT_outputs/)")
-    r.add_argument("--denoise", action="store_true",
-                   help="also write OUT-denoised.exr/.png: Intel Open Image Denoise (mi-amr[view] extra)")
+    r.add_argument("--denoise", action=argparse.BooleanOptionalAction, default=None,
+                   help="also write OUT-denoised.exr, shown as OUT.png (OUT.exr stays the unbiased estimate): "
+                        "Intel Open Image Denoise (mi-amr[view] extra; default: on where installed, except in "
+                        "ray_march; a run's frames: off; docs/manual/adaptive.md)")
     _render_flags(r, None)
+    r.add_argument("--noise", type=_above_zero, default=None, metavar="REL",
+                   help="adaptive sampling: a 16x16 tile stops once its estimated RMS error is below REL times the "
+                        "picture's mean (default 0.05 when denoised, else 0.02); the samples each pixel took go to "
+                        "OUT-spp.exr")
+    r.add_argument("--time", type=_above_zero, default=None, metavar="SECONDS",
+                   help="adaptive sampling: stop rendering after about this many seconds")
+    r.add_argument("--no-adaptive", dest="adaptive", action="store_false",
+                   help="--spp samples in every pixel (default: adaptive sampling up to --spp, default 1024, "
+                        "except in ray_march and on a cluster)")
     r.add_argument("--mode", choices=MODES, default=None,
                    help="the amrvolpath integrator's lighting mode: ray_march (the sci-vis ray marcher: "
                         "the TF colour, self-lit, no noise; data: 4 spp unless --spp), emission_absorption "

@@ -8,9 +8,15 @@ planned into a scene (`mi_amr.autoscene`: the planned data are rendered as
 they lie in memory, and the XML written beside the image for the user names
 a file written once, never loaded again here), and a run's outputs as
 frames and a movie (`mi_amr.series`). Every image goes out through
-`write_frame` (finite check, EXR + PNG preview), the ``--denoise`` copies
-too (`denoised_path`). ``args`` is the parsed command line of
-``mi-amr render`` (`mi_amr.tools.cli`).
+`write_frame` (finite check, EXR + PNG preview), the denoised copies too
+(`denoised_path`). ``args`` is the parsed command line of ``mi-amr render``
+(`mi_amr.tools.cli`).
+
+By default a picture is rendered adaptively (`mi_amr.adaptive`: up to
+``--spp``, tiles stopping at ``--noise``; OUT-spp.exr the samples each
+pixel took) and denoised (`mi_amr.denoising`): OUT.exr is the unbiased
+estimate, OUT-denoised.exr its denoised copy, OUT.png shows the denoised
+one and OUT-raw.png the estimate (docs/manual/adaptive.md).
 """
 
 from __future__ import annotations
@@ -34,6 +40,8 @@ from ..data.opening import field_scalars, is_native
 from ..native_file import save_data
 from ..images import write_exr, write_png
 from ..rendering import RenderJob, default_spp, render_jobs, scene_spp, use_variant
+from ..adaptive import DEFAULT_MAX_SPP, DEFAULT_NOISE, DENOISED_NOISE
+from ..denoising import denoiser_missing
 
 DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
                       "not XML scenes (set those in the scene)")
@@ -71,10 +79,10 @@ def write_frame(path, image, what: str = "the rendered image") -> np.ndarray:
     return img
 
 
-def denoised_path(path) -> Path:
-    """``OUT-denoised.exr`` beside ``OUT.exr``."""
+def denoised_path(path, what: str = "denoised") -> Path:
+    """``OUT-denoised.exr`` (or ``OUT-WHAT.exr``) beside ``OUT.exr``."""
     path = Path(path)
-    return path.with_name(f"{path.stem}-denoised{path.suffix}")
+    return path.with_name(f"{path.stem}-{what}{path.suffix}")
 
 
 def frame_path(out, k: int, n: int) -> Path:
@@ -128,22 +136,60 @@ def frames(args) -> tuple[list[dict], list[str]]:
 def cli_jobs(args, scenes) -> list:
     """`RenderJob`s of the command line: ``scenes`` are ``(XML path,
     -D values)`` or ``(ScenePlan, -D values)``, with ``--spp``, ``--seed``,
-    ``--mode`` and ``--res`` from ``args``."""
+    ``--mode``, ``--res`` and the adaptive ``--noise`` and ``--time`` from
+    ``args`` (`sampling`)."""
     mode = getattr(args, "mode", None)
-    return [RenderJob(scene, spp=args.spp, seed=args.seed, mode=mode, res=args.res, defines=dict(p))
+    noise = getattr(args, "noise", None)
+    return [RenderJob(scene, spp=args.spp, seed=args.seed, mode=mode, res=args.res, defines=dict(p),
+                      noise=noise, seconds=getattr(args, "time", None) if noise else None,
+                      denoise=bool(getattr(args, "denoise", False)) and getattr(args, "denoise_here", True))
             for scene, p in scenes]
+
+
+def sampling(args, is_xml: bool):
+    """Settle the sampling flags of ``mi-amr render`` in ``args``:
+    adaptive (``args.noise`` set) unless ``--no-adaptive``, on a cluster
+    (said on stderr), or in ``ray_march`` without ``--noise``, at
+    `DENOISED_NOISE` when denoised, else `DEFAULT_NOISE`; ``args.spp``
+    the cap (default `DEFAULT_MAX_SPP`) or the fixed count (the XML scene's
+    own, else `default_spp`); ``args.denoise`` on by default where the
+    denoiser is installed (said when it is not), off in ``ray_march``."""
+    cluster = bool(args.workers or args.scheduler)
+    asked = args.noise is not None or args.time is not None
+    if not args.adaptive and asked:
+        raise ValueError("--noise and --time are for adaptive sampling (leave out --no-adaptive)")
+    adaptive = args.adaptive and (args.mode != "ray_march" or asked)
+    if adaptive and cluster:
+        if asked:
+            raise ValueError("--noise and --time render in this process, not on a cluster "
+                             "(--workers/--scheduler render --spp samples in every pixel)")
+        adaptive = False
+        print("mi-amr: on a cluster every pixel gets --spp samples (adaptive sampling runs in one process)",
+              file=sys.stderr)
+    if args.denoise is None:
+        missing = denoiser_missing()
+        args.denoise = args.mode != "ray_march" and missing is None
+        if missing and args.mode != "ray_march" and not args.quiet:
+            print(f"mi-amr: not denoised ({missing})", file=sys.stderr)
+    if adaptive:
+        args.noise = args.noise or (DENOISED_NOISE if args.denoise else DEFAULT_NOISE)
+        args.spp = args.spp or DEFAULT_MAX_SPP
+    else:
+        args.noise = None
+        if args.spp is None:               # the scene's own sample count, as Mitsuba would take it
+            args.spp = (scene_spp(args.scene, frames(args)[0][0]) if is_xml else None) or default_spp(args.mode)
 
 
 def render_cli_jobs(args, jobs, desc: str | None = None) -> list:
     """Render `RenderJob`s for the command line (`mi_amr.rendering.render_jobs`):
     on a Dask cluster with ``--workers``/``--scheduler`` (frame-parallel),
     else one after the other here, in chunks of ``--chunk-spp``. Returns
-    the images."""
+    their `mi_amr.rendering.RenderResult`s."""
     spp, workers = args.spp, args.workers
     chunk_spp = args.chunk_spp or -(-spp // max(8, 2 * (workers or 1)))
     options = dict(chunk_spp=chunk_spp, progress=not args.quiet, desc=desc)
     if not (workers or args.scheduler):
-        return [r.image for r in render_jobs(jobs, **options)]
+        return render_jobs(jobs, **options)
     if args.scheduler:
         from dask.distributed import Client
         client = Client(args.scheduler)
@@ -151,7 +197,7 @@ def render_cli_jobs(args, jobs, desc: str | None = None) -> list:
         client = distributed.local_cluster(workers)
     try:
         threads = max(1, (os.cpu_count() or 1) // workers) if workers and not args.scheduler else None
-        return [r.image for r in render_jobs(jobs, client, drjit_threads=threads, **options)]
+        return render_jobs(jobs, client, drjit_threads=threads, **options)
     finally:
         cluster = getattr(client, "cluster", None)
         client.close()
@@ -220,8 +266,12 @@ def render(args):
                   or args.emission_range or args.emission_scale is not None)
     if is_xml and data_flags:
         raise SystemExit(DATA_FLAGS_MESSAGE)
-    if args.spp is None:                      # the scene's own sample count, as Mitsuba would take it
-        args.spp = (scene_spp(args.scene, frames(args)[0][0]) if is_xml else None) or default_spp(args.mode)
+    series_run = not is_xml and (args.movie or glob.has_magic(args.scene))
+    if series_run:                            # a run's frames: fixed spp, --denoise when asked (as before)
+        args.adaptive = args.adaptive and (args.noise is not None or args.time is not None)
+        args.denoise_here = False
+        args.denoise = bool(args.denoise)
+    sampling(args, is_xml)
     if args.spp < 1:
         raise ValueError(f"--spp {args.spp}: at least 1")
     if is_xml and args.movie:
@@ -243,26 +293,47 @@ def render(args):
         params, varying = frames(args)
         jobs, desc = data_jobs(args, plan, xml, params), Path(xml).name
     t0 = time.perf_counter()
-    images = render_cli_jobs(args, jobs, desc)
+    results = render_cli_jobs(args, jobs, desc)
     seconds = time.perf_counter() - t0
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    for k, (p, image) in enumerate(zip(params, images)):
+    for k, (p, result) in enumerate(zip(params, results)):
         path = frame_path(out, k, len(params))
-        img = write_frame(path, image)
+        written = write_result(path, result)
         if not args.quiet:
             what = " ".join(f"{a}={b}" for a, b in p.items() if a in varying)
-            print(f"wrote {path} and {path.with_suffix('.png')} ({img.shape[1]}x{img.shape[0]}, "
-                  f"{args.spp} spp{', ' + what if what else ''})")
-    if args.denoise:
-        for k, clean in enumerate(denoised(images)):
-            path = denoised_path(frame_path(out, k, len(params)))
-            write_frame(path, clean)
-            if not args.quiet:
-                print(f"wrote {path} and {path.with_suffix('.png')} (denoised)")
+            samples = result.adaptive.summary() if result.adaptive is not None else f"{args.spp} spp"
+            print(f"wrote {', '.join(str(w) for w in written)} ({result.image.shape[1]}x{result.image.shape[0]}"
+                  f"{', ' + what if what else ''})\n  {samples}"
+                  + (f"\n  {path.with_suffix('.png')} is denoised, {path} the unbiased estimate "
+                     "(docs/manual/adaptive.md)"
+                     if result.denoised is not None else ""))
     if not args.quiet:
         print(f"{len(params)} frame(s) in {seconds:.2f} s")
     dr.sync_thread()
+
+
+def write_result(path, result) -> list:
+    """Write a `mi_amr.rendering.RenderResult` as ``path`` (the estimate,
+    EXR) and its PNG preview, with ``-spp.exr`` (samples per pixel) when
+    adaptive, and when denoised ``-denoised.exr``, the PNG then showing the
+    denoised picture and ``-raw.png`` the estimate. Returns the paths
+    written."""
+    path = Path(path)
+    img = write_frame(path, result.image)
+    written = [path]
+    if result.adaptive is not None:
+        write_exr(denoised_path(path, "spp"), result.adaptive.spp[..., None])
+        written.append(denoised_path(path, "spp"))
+    if result.denoised is not None:
+        clean = write_frame(denoised_path(path), result.denoised, "the denoised image")
+        denoised_path(path).with_suffix(".png").unlink(missing_ok=True)     # OUT.png shows it
+        write_png(denoised_path(path.with_suffix(".png"), "raw"), img)
+        write_png(path.with_suffix(".png"), clean)
+        written += [denoised_path(path), path.with_suffix(".png"), denoised_path(path.with_suffix(".png"), "raw")]
+    else:
+        written.append(path.with_suffix(".png"))
+    return written
 
 
 def render_series(args):
@@ -286,7 +357,7 @@ def render_series(args):
     scenes = series.frame_scenes(plan, stored, folder, args.res, args.spp, args.orbit,
                                  mode=getattr(args, "mode", None))
     t0 = time.perf_counter()
-    images = render_cli_jobs(args, cli_jobs(args, [(str(s), {}) for s in scenes]))
+    images = [r.image for r in render_cli_jobs(args, cli_jobs(args, [(str(s), {}) for s in scenes]))]
     seconds = time.perf_counter() - t0
     images = [check_finite(im, f"the frame of {src}") for (src, _), im in zip(stored, images)]
     clean = denoised(images) if args.denoise else None       # the movie shows the denoised frames
