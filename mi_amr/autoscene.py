@@ -30,6 +30,7 @@ from .data.statistics import (STATS_VERSION, ValueStats, cells_and_weights, fine
                               stored_stats, value_stats, volume_and_mass_percentiles, weighted_histograms)
 from .data.transform import apply_value_transform
 from .data.yt_import import field_key
+from .plugins.iso_surfaces import parse_iso_values
 from .transfer.function import PRESETS, TransferFunction
 from .transfer.layers import Layers, is_layers
 from .transfer.spectra import blackbody_luminance
@@ -106,6 +107,20 @@ class ScenePlan:
     layers: "LayersSeen | None" = None       # a layered TF's layers the picture is predicted to show
     value_range: tuple | None = None         # the range the values' distributions give (`_value_scale`);
                                              # a layered default's ``tf_range`` lies within it
+    iso: tuple = ()                          # isosurface values, in the field's own units
+    iso_only: bool = False                   # the surfaces alone (the medium's density off)
+
+    def medium_iso(self) -> tuple:
+        """The iso values in the medium's value units (log10 of them where
+        the plan takes log10 of the field); a `ValueError` for a value a
+        log10 medium cannot hold (zero or negative)."""
+        if self.transform != "log10":
+            return tuple(float(v) for v in self.iso)
+        bad = [v for v in self.iso if not v > 0.0]
+        if bad:
+            raise ValueError(f"iso: the field is drawn in log10 units, so iso values must be positive, got "
+                             f"{', '.join(f'{v:g}' for v in bad)} (or plan it linear: --linear / log=False)")
+        return tuple(float(np.log10(v)) for v in self.iso)
 
     @property
     def lit(self) -> bool:
@@ -265,7 +280,7 @@ def _check_tf_name(tf, flag):
 def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = None, value_range=None,
                density_scale: float | None = None, emission: str | None = None,
                emission_field: str | None = None, emission_log: bool | None = None, emission_range=None,
-               emission_scale: float | None = None, stats=None) -> ScenePlan:
+               emission_scale: float | None = None, stats=None, iso=None, iso_only: bool = False) -> ScenePlan:
     """Look at the data once and plan a scene (see the module docstring).
 
     ``log``: None chooses log10 when at least `MIN_POSITIVE_SHARE` of the
@@ -292,7 +307,12 @@ def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = No
     glow of the absorbing gas 1); the scene then has no other light.
     ``stats``: the data sets whose values choose the scales and ranges
     (default: ``data``): all outputs of a time series, so that one TF
-    range serves every frame."""
+    range serves every frame. ``iso``: isosurface values in the field's
+    own units (at most 4; docs/manual/isosurfaces.md), ``iso_only``: the
+    surfaces alone."""
+    iso = parse_iso_values(iso, "iso")
+    if iso_only and not iso:
+        raise ValueError("iso_only: needs iso values (--iso V ...)")
     fields = (emission_field,) if emission is not None and emission_field else ()
     volume, extent, what = open_data(data, field, fields)
     stats = volume if stats is None else stats
@@ -347,7 +367,10 @@ def plan_scene(data, field=None, *, tf: str | None = None, log: bool | None = No
     origin = direction * radius / np.sin(np.radians(FOV / 2)) * 1.1
     plan = ScenePlan(volume, transform, tf, value_range, float(density_scale), world, origin, notes=notes,
                      emission=glow, optical_depth=float(depth), peak_depth=float(peak_depth),
-                     value_range=value_range)
+                     value_range=value_range, iso=iso, iso_only=bool(iso_only))
+    if iso:
+        plan.medium_iso()                    # a value log10 units cannot hold: refused before any rendering
+        notes.append(f"isosurfaces at {', '.join(f'{v:.4g}' for v in iso)}{' (alone)' if iso_only else ''}")
     alpha_grid = None
     if is_layers(tf):
         planned, alpha_grid = _planned_layers(plan, stats, vs, tf_given, scale_given, range_given)

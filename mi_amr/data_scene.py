@@ -38,6 +38,7 @@ from .images import png_bytes, srgb8, write_exr, write_png
 from .slicing import Slice, Slicer, axis_index
 from .native_file import save_data
 from .plugins.integrator import MODES
+from .plugins.iso_surfaces import parse_iso_values
 from .plugins.medium import AMRMedium, scene_media
 from .rendering import chunk_for, default_spp, use_variant
 from .scene_xml import dict_with_integrator_parameters
@@ -129,6 +130,37 @@ class DataScene:
         self.plan.tf_range = (lo, hi)
 
     @property
+    def iso(self) -> tuple:
+        """Isosurface values in the field's own units (at most 4; () none;
+        docs/manual/isosurfaces.md). Setting them moves the surfaces of the
+        loaded scene (nothing is compiled once it has any)."""
+        return tuple(self.plan.iso)
+
+    @iso.setter
+    def iso(self, values):
+        values = parse_iso_values(values, "iso")
+        before = self.plan.iso
+        self.plan.iso = values
+        try:
+            self.plan.medium_iso()
+        except ValueError:
+            self.plan.iso = before
+            raise
+        if not values:
+            self.plan.iso_only = False
+
+    @property
+    def iso_only(self) -> bool:
+        """Whether only the isosurfaces are drawn (the gas off)."""
+        return self.plan.iso_only
+
+    @iso_only.setter
+    def iso_only(self, value):
+        if value and not self.plan.iso:
+            raise ValueError("iso_only: set iso values first")
+        self.plan.iso_only = bool(value)
+
+    @property
     def log(self) -> bool:
         """Whether the medium holds log10 of the values (choose it with
         ``mi_amr.scene(..., log=True)``)."""
@@ -176,6 +208,7 @@ class DataScene:
         return {"tf": (self.plan.tf, tuple(self.plan.tf_range), self.plan.density_scale),
                 "camera": (tuple(self.origin), tuple(self.target), tuple(self.up), self.plan.fov),
                 "res": self.res,
+                "iso": (tuple(self.plan.iso), self.plan.iso_only),
                 "clip": None if self.clip is None else (tuple(float(x) for x in self.clip[0]), float(self.clip[1]))}
 
     def _apply(self):
@@ -184,6 +217,9 @@ class DataScene:
         now = self._state()
         if not before:                              # just loaded: everything but the clip is in it
             before = dict(now, clip=None)
+        if now["iso"] != before["iso"]:
+            medium = next(m for m in scene_media(scene) if isinstance(m, AMRMedium))
+            medium.set_iso(self.plan.medium_iso(), only=self.plan.iso_only)
         if now["clip"] != before["clip"]:
             medium = next(m for m in scene_media(scene) if isinstance(m, AMRMedium))
             medium.set_clip_plane(*(now["clip"] or (None,)))

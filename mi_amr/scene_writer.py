@@ -39,6 +39,7 @@ def scene_for(data, field=None, *, res: int = 400, spp: int = 64, integrator: st
               "tf_min": plan.tf_range[0], "tf_max": plan.tf_range[1], "value_transform": plan.transform,
               "density_scale": plan.density_scale, "to_world": matrix(plan.to_world_matrix())}
     medium.update(emission_parameters(plan))
+    medium.update(iso_parameters(plan))
     scene = {
         "type": "scene",
         "integrator": dict({"type": integrator, "max_depth": 64}, **({} if mode is None else {"mode": mode})),
@@ -85,6 +86,15 @@ def emission_parameters(plan: ScenePlan) -> dict:
     return out
 
 
+def iso_parameters(plan: ScenePlan) -> dict:
+    """The ``amr`` medium's ``iso`` and ``iso_only`` parameters of a plan
+    (in the medium's value units; {} without isosurfaces)."""
+    if not plan.iso:
+        return {}
+    out = {"iso": " ".join(f"{v:.9g}" for v in plan.medium_iso())}
+    return {**out, "iso_only": True} if plan.iso_only else out
+
+
 def _tf_reference(tf: str) -> str:
     """How a scene file names a TF: a preset or colormap by its name, a TF
     file by its absolute path (the scene renders from any folder)."""
@@ -113,6 +123,9 @@ def write_scene_xml(plan: ScenePlan, data_file, path, res: int = 400, spp: int =
     glow = "".join(f"\n        <{'float' if isinstance(v, float) else 'string'} name=\"{k}\" value="
                    f"{quoteattr(format(v, '.9g') if isinstance(v, float) else str(v))}/>"
                    for k, v in glow_params.items())
+    glow += "".join(f"\n        <{'boolean' if isinstance(v, bool) else 'string'} name=\"{k}\" "
+                    f"value={quoteattr(str(v).lower() if isinstance(v, bool) else v)}/>"
+                    for k, v in iso_parameters(plan).items())
     lights = "" if not plan.lit else f"""
     <emitter type="sunsky">
         <vector name="sun_direction" value="{', '.join(str(x) for x in SUN_DIRECTION)}"/>

@@ -10,12 +10,15 @@ segment ``[t0, t1]`` (local ``t``):
 
 * no iso value in ``[vmin, vmax]`` (widened by the value tolerance): the
   reconstruction takes no iso value there, so the surface is not there;
-  no look-up, on to the next segment (the analogue of a zero majorant);
+  no look-up, on to the next segment (the analogue of a zero majorant).
+  Its values all lie on one side of every iso value, so ``vmin`` stands
+  for them in the sign tests, as the last sample up to its end: a jump
+  across an iso value at the face between two such leaves (the surface of
+  a piecewise-constant field lies on faces) makes the next leaf walked;
 * otherwise the field is sampled front to back at step ends at most
   `ISO_STEP_CELLS` cells of the segment's finest level apart (the step
-  ends on ``t1``, so that a run of candidate segments shares its samples,
-  and a run that starts after a skipped segment samples its own start
-  first); between two samples whose values lie on both sides of an iso
+  ends on ``t1``, so that a run of candidate segments shares its samples;
+  a ray's first walked leaf samples its own start first); between two samples whose values lie on both sides of an iso
   value (``(f_a - iso) (f_b - iso) <= 0``) the surface is bracketed: of
   several iso values crossed, the one nearest ``f_a`` (the first crossed
   where ``f`` is monotone in the step);
@@ -106,13 +109,26 @@ class IsoSearch:
         return inside
 
     def enter(self, state, ray, seg, entered, t, seg_end):
-        """A new segment: is it a candidate, and is the last sample at its start?"""
+        """A new segment: is it walked with look-ups, and what is known at its start?
+
+        A leaf whose range holds no iso value has all its values on one
+        side of every iso value, so any of them (``vmin``) stands for all of
+        them in the sign tests: it becomes the last "sample" up to the
+        leaf's end, without a look-up. A leaf is walked where its range
+        holds an iso value, or where that stand-in and the last sample lie
+        on both sides of one (a jump across the iso value at the face
+        between two leaves: a piecewise-constant field's surface lies on
+        faces)."""
         candidate = self.holds_iso(seg.vmin, seg.vmax)
-        # a candidate right after one: the last sample lies on this start
-        continues = candidate & state.candidate & (state.a == t) & ~state.fresh
-        state.fresh = dr.select(entered, ~continues, state.fresh)
-        state.candidate = dr.select(entered, candidate, state.candidate)
-        state.a = dr.select(entered, t, state.a)
+        known = ~state.fresh & (state.a == t)            # the last sample (or stand-in) is at this start
+        stand_in = dr.select(seg.vmin <= seg.vmax, seg.vmin, dr.nan)      # NaN: a leaf with no cells
+        jumped = self._crossing(state.fa, stand_in)[0] & known
+        walked = candidate | jumped
+        skipped = entered & ~walked
+        state.fresh = dr.select(entered, dr.select(walked, ~known, dr.isnan(stand_in)), state.fresh)
+        state.fa = dr.select(skipped, stand_in, state.fa)
+        state.candidate = dr.select(entered, walked, state.candidate)
+        state.a = dr.select(entered, dr.select(walked, t, seg_end), state.a)
         state.w = dr.select(entered, mi.Float(mi.UInt32(1) << dr.minimum(seg.level, 30)), state.w)
         state.steps = _tally(state.steps, dr.select(entered, 1, 0))
         return state

@@ -7,7 +7,7 @@ them, compiles nothing), the value tolerance of a hit, the factor that
 keeps or removes the medium's own density (``iso_only``), and one BSDF per
 slot as a pointer array that the integrator gathers by the slot of a hit.
 A slot without a BSDF of the user's gets a two-sided diffuse one coloured
-by the TF at its value, recoloured on every TF change.
+by the TF at its value (`surface_colours`), recoloured on every TF change.
 
 Values are in the medium's value units: after its ``value_transform``
 (log10 units for a ``log10`` medium), as ``tf_min``/``tf_max``.
@@ -56,10 +56,44 @@ def parse_iso_values(spec, plugin: str = "amr") -> tuple[float, ...]:
     return tuple(values)
 
 
+#: A TF colour darker than this (luminance) is no surface colour: the
+#: default BSDF takes the nearest table entry that is lighter.
+MIN_SURFACE_LUMINANCE = 0.05
+
+
+def surface_colours(tf, values) -> np.ndarray:
+    """The default BSDFs' reflectances (n, 3): the TF's colour at each
+    value, or, where that is nearly black (the transparent ends of many
+    TFs, a value outside the TF's domain), the colour of the nearest table
+    entry that is not (light grey where none is)."""
+    values = np.asarray(values, np.float64).reshape(-1)
+    rgb = np.asarray(tf(values), np.float64)[:, :3]
+    table = np.asarray(tf.rgba, np.float64)[:, :3]
+    luminance = table @ np.array([0.2126, 0.7152, 0.0722])
+    lit = np.flatnonzero(luminance >= MIN_SURFACE_LUMINANCE)
+    dark = rgb @ np.array([0.2126, 0.7152, 0.0722]) < MIN_SURFACE_LUMINANCE
+    for k in np.flatnonzero(dark):
+        if len(lit) == 0:
+            rgb[k] = 0.8
+            continue
+        position = tf.normalize(values[k]) * (len(table) - 1)
+        rgb[k] = table[lit[np.argmin(np.abs(lit - position))]]
+    return np.clip(rgb, 0.0, 1.0)
+
+
 def default_bsdf(rgb) -> "mi.BSDF":
-    """A two-sided diffuse BSDF of reflectance ``rgb`` (the TF's colour)."""
-    return mi.load_dict({"type": "twosided", "surface": {"type": "diffuse", "reflectance": {
+    """A two-sided diffuse BSDF of reflectance ``rgb`` (the TF's colour),
+    opaque from the start: a slot's first value (its colour set) changes no
+    literal of the kernels, so a frozen render replays (not recorded again)."""
+    bsdf = mi.load_dict({"type": "twosided", "surface": {"type": "diffuse", "reflectance": {
         "type": "rgb", "value": [float(c) for c in np.clip(rgb, 0.0, 1.0)]}}})
+    params = mi.traverse(bsdf)
+    key = next(name for name in params.keys() if name.endswith("reflectance.value"))
+    colour = mi.Color3f(*[float(c) for c in np.clip(rgb, 0.0, 1.0)])
+    dr.make_opaque(colour)
+    params[key] = colour
+    params.update()
+    return bsdf
 
 
 @jit_struct(slots="Float", tolerance="Float", volume_on="Float", pointers="BSDFPtr")
@@ -121,7 +155,7 @@ class IsoSurfaces:
         value or TF change); the pointer array of the slots' BSDFs."""
         if not self.bsdfs:
             return
-        rgb = self.tf(np.asarray(self.values, np.float64)) if self.values else np.zeros((0, 4))
+        rgb = surface_colours(self.tf, self.values) if self.values else np.zeros((0, 3))
         for k, value in enumerate(self.values):
             params = mi.traverse(self.bsdfs[k])
             key = next(name for name in params.keys() if name.endswith("reflectance.value"))
