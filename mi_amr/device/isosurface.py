@@ -16,7 +16,11 @@ segment ``[t0, t1]`` (local ``t``):
   across an iso value at the face between two such leaves (the surface of
   a piecewise-constant field lies on faces) makes the next leaf walked;
 * otherwise the field is sampled front to back at step ends at most
-  `ISO_STEP_CELLS` cells of the segment's finest level apart (the step
+  `ISO_STEP_CELLS` cells of the segment's finest level apart (for a
+  field constant per cell, ``exact``: steps from face to face of the
+  lattice of the segment's finest cells, each in one cell, sampled at its
+  midpoint, and a crossing is the face between two samples, found
+  exactly without bisection; the step
   ends on ``t1``, so that a run of candidate segments shares its samples;
   a ray's first walked leaf samples its own start first); between two samples whose values lie on both sides of an iso
   value (``(f_a - iso) (f_b - iso) <= 0``) the surface is bracketed: of
@@ -43,6 +47,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .marching import lattice_exit
 from .segments import direction_guard
 from .tracking import TrackingCounts, WalkEnd, _Fields, _counted, _counter, _tally
 from ..core.jit_struct import jit_struct
@@ -60,12 +65,13 @@ ISO_VALUE_TOLERANCE = 1e-5
 ISO_SELF_CELLS = 1e-3
 
 
-@jit_struct(a="Float", fa="Float", w="Float", candidate="Bool", fresh="Bool", t_hit="Float", slot="UInt32",
-            hit="Bool", lookups="UInt32", steps="UInt32")
+@jit_struct(a="Float", fa="Float", e="Float", b="Float", w="Float", candidate="Bool", fresh="Bool",
+            t_hit="Float", slot="UInt32", hit="Bool", lookups="UInt32", steps="UInt32")
 class IsoState(_Fields):
     """Loop state of `IsoSearch`: the last sample's local ``t`` (``a``) and
-    value (``fa``, NaN where unknown), the segment's lattice width ``w``
-    (finest cells), whether the segment may hold the surface
+    value (``fa``, NaN where unknown), where the last step ended (``e``)
+    and where the current one ends (``b``; cell steps), the segment's
+    lattice width ``w`` (finest cells), whether the segment is walked
     (``candidate``) and whether its first sample is still to take
     (``fresh``); the hit found (``t_hit`` local, the iso slot); counts."""
 
@@ -82,14 +88,20 @@ class IsoSearch:
     active) -> value`` at local points (NaN where there is none);
     ``iso``: the `MAX_ISO_VALUES` slots (opaque ``Float``, NaN unused);
     ``tolerance``: the value tolerance (opaque ``Float``, value units);
-    ``extent``: the data box in finest cells (the lattice)."""
+    ``extent``: the data box in finest cells (the lattice); ``exact``:
+    the field is constant per cell (``nearest``), stepped face to face."""
 
     label = "amr_iso"
-    MOVING = ("a", "fa", "w", "candidate", "fresh", "steps")
+    MOVING = ("a", "fa", "e", "b", "w", "candidate", "fresh", "steps")
 
-    def __init__(self, value_at, iso, tolerance, extent, count: bool = True):
+    def __init__(self, value_at, iso, tolerance, extent, count: bool = True, exact: bool = False, offset=None):
         self.value_at, self.iso, self.tolerance, self.extent = value_at, iso, tolerance, extent
         self.count = count
+        #: piecewise-constant field (``nearest``): steps from face to face of
+        #: the segment's lattice, each sampled at its midpoint (one cell each);
+        #: a crossing is the face between two samples ("offset": the data
+        #: box's corner relative to the cells' alignment origin)
+        self.exact, self.offset = exact, offset
         self.slots = [dr.gather(mi.Float, iso, mi.UInt32(k)) for k in range(MAX_ISO_VALUES)]
 
     def begin(self, ray, active):
@@ -97,7 +109,8 @@ class IsoSearch:
         self.cells_per_t = dr.norm(ray.d * self.extent)
         self.guard = direction_guard(ray.d)
         n = self.count
-        return IsoState(a=mi.Float(ray.t_lo), fa=mi.Float(dr.nan), w=mi.Float(1.0), candidate=mi.Bool(False),
+        return IsoState(a=mi.Float(ray.t_lo), fa=mi.Float(dr.nan), e=mi.Float(ray.t_lo), b=mi.Float(ray.t_lo),
+                        w=mi.Float(1.0), candidate=mi.Bool(False),
                         fresh=mi.Bool(True), t_hit=mi.Float(dr.inf), slot=mi.UInt32(0), hit=mi.Bool(False),
                         lookups=_counter(n), steps=_counter(n))
 
@@ -120,7 +133,7 @@ class IsoSearch:
         between two leaves: a piecewise-constant field's surface lies on
         faces)."""
         candidate = self.holds_iso(seg.vmin, seg.vmax)
-        known = ~state.fresh & (state.a == t)            # the last sample (or stand-in) is at this start
+        known = ~state.fresh & (state.e == t)            # the last sample (or stand-in) reaches this start
         stand_in = dr.select(seg.vmin <= seg.vmax, seg.vmin, dr.nan)      # NaN: a leaf with no cells
         jumped = self._crossing(state.fa, stand_in)[0] & known
         walked = candidate | jumped
@@ -128,17 +141,23 @@ class IsoSearch:
         state.fresh = dr.select(entered, dr.select(walked, ~known, dr.isnan(stand_in)), state.fresh)
         state.fa = dr.select(skipped, stand_in, state.fa)
         state.candidate = dr.select(entered, walked, state.candidate)
-        state.a = dr.select(entered, dr.select(walked, t, seg_end), state.a)
+        state.a = dr.select(skipped, seg_end, state.a)
+        state.e = dr.select(entered, dr.select(walked, t, seg_end), state.e)
         state.w = dr.select(entered, mi.Float(mi.UInt32(1) << dr.minimum(seg.level, 30)), state.w)
         state.steps = _tally(state.steps, dr.select(entered, 1, 0))
         return state
 
     def clock(self, state, ray, t, seg_end, moving):
-        """The next sample of lanes ``moving`` in a candidate segment: its
-        start first (``fresh``), then step ends up to ``seg_end``."""
-        go = moving & state.candidate & (state.a < seg_end)
+        """The next sample of lanes ``moving`` in a walked segment: its
+        start first (``fresh``), then step ends up to ``seg_end``; cell
+        steps (``exact``) are sampled at their midpoints."""
+        go = moving & state.candidate & (state.e < seg_end)
+        if self.exact:
+            b = lattice_exit(ray, state.e, state.w, seg_end, self.extent, self.offset, self.guard)
+            state.b = dr.select(go, b, state.b)
+            return state, 0.5 * (state.e + b), go
         step = dr.maximum(ISO_STEP_CELLS * state.w * dr.rcp(dr.maximum(self.cells_per_t, 1e-30)), self.guard)
-        b = dr.select(state.fresh, state.a, dr.minimum(state.a + step, seg_end))
+        b = dr.select(state.fresh, state.e, dr.minimum(state.e + step, seg_end))
         return state, b, go
 
     def passes(self, state, alive):
@@ -166,7 +185,10 @@ class IsoSearch:
             fb = value_at(ray.o + ray.d * t_b, inside)
         state.lookups = _tally(state.lookups, dr.select(inside, 1, 0))
         crossed, slot, iso = self._crossing(state.fa, fb)
-        crossed &= inside & ~state.fresh
+        crossed &= inside & (self.exact | ~state.fresh)
+        if dr.hint(self.exact, mode="scalar"):
+            # a cell step lies in one cell: the value jumps on the face where it began
+            return self._found(state, ray, t_b, inside, alive, fb, crossed, slot, state.e)
         # ---- bisection of [lo, hi], g = f - iso on both sides ----
         lo, hi = mi.Float(state.a), mi.Float(t_b)
         g_lo, g_hi = state.fa - iso, fb - iso
@@ -187,13 +209,19 @@ class IsoSearch:
         share = dr.select(g_lo != g_hi, g_lo * dr.rcp(g_lo - g_hi), 0.5)
         t_root = lo + dr.clip(share, 0.0, 1.0) * (hi - lo)
         t_root = dr.select(dr.abs(g_lo) <= self.tolerance, lo, dr.select(dr.abs(g_hi) <= self.tolerance, hi, t_root))
-        # the surface a ray starts on is no hit (its search goes on)
+        return self._found(state, ray, t_b, inside, alive, fb, crossed, slot, t_root)
+
+    def _found(self, state, ray, t_b, inside, alive, fb, crossed, slot, t_root):
+        """Lanes ``crossed`` end at ``t_root`` (but for the surface a ray
+        starts on, which is no hit: its search goes on); the others take
+        the sample ``fb`` at ``t_b`` as the last one."""
         crossed &= t_root > ray.t_lo + ISO_SELF_CELLS * dr.rcp(dr.maximum(self.cells_per_t, 1e-30))
         state.t_hit = dr.select(crossed, t_root, state.t_hit)
         state.slot = dr.select(crossed, slot, state.slot)
         state.hit |= crossed
         state.fa = dr.select(inside, fb, state.fa)
         state.a = dr.select(inside, t_b, state.a)
+        state.e = dr.select(inside, state.b if self.exact else t_b, state.e)
         state.fresh &= ~inside
         return state, alive & ~crossed
 

@@ -66,6 +66,22 @@ def _ray_bits(ray):
             + ((bits(ray.d.x) << 11) ^ (bits(ray.o.y) << 32) ^ (bits(ray.d.z) << 53)))
 
 
+def lattice_exit(ray, a, w, end, extent, offset, guard):
+    """The next face of the lattice of width ``w`` (finest cells) after
+    local ``t = a`` along the local ray, at most ``end``: ``extent`` and
+    ``offset`` the data box in finest cells and its corner relative to the
+    cells' alignment origin, ``guard`` the ray's `direction_guard`. Every
+    cell of width ``>= w`` aligned to its width has its faces on it."""
+    d_f = ray.d * extent
+    step = progress_guard(a, guard)
+    p_f = offset + extent * (ray.o + ray.d * (a + step))
+    target = (dr.floor(p_f * dr.rcp(w)) + dr.select(d_f > 0.0, 1.0, 0.0)) * w
+    p_a = offset + extent * (ray.o + ray.d * a)
+    t_axis = dr.select(dr.abs(d_f) > 0.0, a + (target - p_a) * dr.rcp(dr.select(d_f != 0.0, d_f, 1.0)),
+                       float("inf"))
+    return dr.minimum(dr.maximum(dr.min(t_axis), a + step), end)
+
+
 def absorbed_fraction(tau):
     """``1 - exp(-tau)`` for optical depths ``tau >= 0``, without the
     cancellation of float32 at small ``tau`` (its series there)."""
@@ -147,16 +163,8 @@ class RayMarch:
         return state
 
     def _lattice_exit(self, ray, a, w, end):
-        """The next face of the lattice of width ``w`` (finest cells) after
-        local ``t = a`` along the ray, at most ``end``."""
-        d_f = ray.d * self.extent
-        guard = progress_guard(a, self.guard)
-        p_f = self.offset + self.extent * (ray.o + ray.d * (a + guard))
-        target = (dr.floor(p_f * dr.rcp(w)) + dr.select(d_f > 0.0, 1.0, 0.0)) * w
-        p_a = self.offset + self.extent * (ray.o + ray.d * a)
-        t_axis = dr.select(dr.abs(d_f) > 0.0, a + (target - p_a) * dr.rcp(dr.select(d_f != 0.0, d_f, 1.0)),
-                           float("inf"))
-        return dr.minimum(dr.maximum(dr.min(t_axis), a + guard), end)
+        """The next face of the lattice of width ``w`` after ``a`` (`lattice_exit`)."""
+        return lattice_exit(ray, a, w, end, self.extent, self.offset, self.guard)
 
     def clock(self, state, ray, t, seg_end, moving):
         """The next step ``[a, b]`` of lanes ``moving`` and its sample

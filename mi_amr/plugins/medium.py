@@ -824,7 +824,8 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         def value_at(u, active):
             value, found = points.eval(u, active)
             return dr.select(found, value, dr.nan)
-        search = IsoSearch(value_at, self.iso.slots, self.iso.tolerance, self.structures.extent, count)
+        search = IsoSearch(value_at, self.iso.slots, self.iso.tolerance, self.structures.extent, count,
+                           exact=self.reconstruction == "nearest", offset=self.structures.offset)
         found = walk_segments(self.structures.segments(True, True), local, active, search, self._max_iterations)
         u = o + d * dr.select(found.found, found.t, 0.0)
         g = central_gradient(value_at, u, 0.5 * dr.rcp(dr.max(self.structures.extent)), found.found)
