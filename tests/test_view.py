@@ -449,7 +449,8 @@ def test13_every_message_round_trips():
     page = [p.CameraChange(10.0, -20.0, 2.5, (0.1, 0.2, 0.3)), p.CameraChange(azimuth=5.0), p.CameraChange(),
             p.TFChange(((0.0, 0.0), (0.5, 1.0), (1.0, 0.25)), "viridis", True, (-2.0, 1.5), 4.0),
             p.TFChange(density=0.5), p.DenoiseChange(True), p.DenoiseChange(False), p.HistogramRequest(),
-            p.SnapshotRequest("shot-1.v2"), p.Ack(), p.ModeChange("single"), p.HybridChange(False)]
+            p.SnapshotRequest("shot-1.v2"), p.Ack(), p.ModeChange("single"), p.HybridChange(False),
+            p.IsoChange((0.25, 3e-27), True), p.IsoChange(only=False)]
     assert {type(m) for m in page} == set(p.PageMessage.__args__)
     for msg in page:
         assert p.parse(p.dumps(msg)) == msg

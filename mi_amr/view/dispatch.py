@@ -15,7 +15,7 @@ from __future__ import annotations
 from . import protocol as p
 
 #: The page messages that change a view (`ViewEngine.change`): quick, applied where they arrive.
-VIEW_CHANGES = (p.CameraChange, p.TFChange, p.DenoiseChange, p.ModeChange, p.HybridChange)
+VIEW_CHANGES = (p.CameraChange, p.TFChange, p.DenoiseChange, p.ModeChange, p.HybridChange, p.IsoChange)
 
 
 def answer(engine, view, msg, out_dir, budget=None) -> p.ServerMessage | None:
@@ -27,6 +27,12 @@ def answer(engine, view, msg, out_dir, budget=None) -> p.ServerMessage | None:
     Blocking for a snapshot and a field switch (a worker thread's call). A
     `ValueError` or `OSError` says what is wrong; the view is then unchanged."""
     match msg:
+        case p.IsoChange():                      # refused: the view's isosurfaces as they stay, for the page
+            try:
+                engine.change(view, msg)
+            except ValueError as e:
+                return p.Error(str(e), msg.TYPE, iso=engine.iso_state(view))
+            return None
         case p.CameraChange() | p.TFChange() | p.DenoiseChange() | p.ModeChange() | p.HybridChange():
             return engine.histogram(view) if engine.change(view, msg) else None     # a new range or units
         case p.HistogramRequest():

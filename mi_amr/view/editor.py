@@ -5,7 +5,8 @@ and slice (`view_annotations`).
 
 Another field of the same data is loaded on the render thread between
 passes (`EditorRequests.switch_field`): every view keeps its camera, starts
-from the new field's TF, and its page gets a new `Hello`; a field that
+from the new field's TF (and its isosurfaces: none unless the scene has
+some), and its page gets a new `Hello`; a field that
 fails to load leaves the last good scene. While a reload is pending
 (``_reloads``), a snapshot waits for it (`snapshot.ViewSnapshots`).
 
@@ -19,6 +20,7 @@ import gc
 import threading
 
 from .camera import FLOOR_MARGIN, MAX_ELEVATION
+from .isosurfaces import scene_iso
 from .protocol import (AnnotateChange, AnnotationsRequest, ClipChange, Describe, EditorRequest, FieldChange,
                        HistogramReply, SliceRequest, TFFile, TFLoad, TFSave)
 from .scene import load_scene
@@ -130,11 +132,13 @@ class EditorRequests:
                 self._reload_done()
                 done.set()
                 continue
+            new.initial_iso, new.initial_iso_only = scene_iso(new)      # in the new field's units
             with self._wake:
                 old, self.loaded, self.field = self.loaded, new, name
                 views = list(self._views.values())
                 for v in views:
                     v.spec, v.epoch = new.initial_spec, v.epoch + 1      # version: the page's count
+                    v.iso, v.iso_only = new.initial_iso, new.initial_iso_only
                 self._new_scene()                # its own recordings and fast-pass times
                 self._wake.notify_all()
             with JIT_LOCK:

@@ -7,7 +7,7 @@ browser tab or a notebook widget each). It is the one object callers
 hold; its parts, one concept each, are mixins over its state:
 
 * `views.ViewRegistry`: the views (`views.View`: camera, TF, lighting
-  mode, clip plane, accumulation): open, describe, change (a change that
+  mode, clip plane, isosurfaces, accumulation): open, describe, change (a change that
   cannot render is refused with a `ValueError`), close;
 * `scheduler.RenderScheduler`: the render thread and its passes (fast
   passes while the hand moves, ray-marched in the hybrid viewer, the
@@ -38,8 +38,10 @@ import mitsuba as mi
 import numpy as np
 
 from ..plugins.integrator import MODES
+from ..plugins.iso_surfaces import parse_iso_values
 from ..progress import listen
 from .editor import EditorRequests
+from .isosurfaces import apply_iso, check_iso, scene_iso
 from .protocol import Status
 from .scene import LoadedScene, load_scene
 from .scheduler import (DEFAULT_MAX_SPP, DENOISE_INTERVAL, FAST_BUDGET, FAST_LADDER, FAST_MODE, FAST_STEP_SCALE,
@@ -72,12 +74,14 @@ class ViewEngine(ViewRegistry, EditorRequests, RenderScheduler, ViewSnapshots):
     step in those frames, finest cells (`FAST_STEP_SCALE`; coarser by
     `FAST_STEPS` to keep to `FAST_BUDGET`); ``plan``: the
     `ScenePlan` of data ``source`` made already (a notebook's `DataScene`),
-    else planned at load."""
+    else planned at load; ``iso``: the iso values views start with, in the
+    field's own units (at most 4; None: the scene's own), ``iso_only``: the
+    surfaces alone (`isosurfaces`; ``mi-amr view --iso``)."""
 
     def __init__(self, source, field: str | None = None, *, res: int = 256, max_spp: int = DEFAULT_MAX_SPP,
                  preview_scale: float = 0.5, variant: str = "llvm_ad_rgb", mode: str | None = None,
                  fast_ladder=FAST_LADDER, embed_data: bool = False, plan=None, hybrid: bool = True,
-                 fast_step_scale: float = FAST_STEP_SCALE):
+                 fast_step_scale: float = FAST_STEP_SCALE, iso=None, iso_only: bool = False):
         if not 16 <= res <= 4096:
             raise ValueError(f"res must lie in [16, 4096], got {res}")
         if not 1 <= max_spp <= 1_000_000:
@@ -96,6 +100,10 @@ class ViewEngine(ViewRegistry, EditorRequests, RenderScheduler, ViewSnapshots):
         if not (isinstance(fast_step_scale, (int, float)) and 0 < fast_step_scale <= 1000):
             raise ValueError(f"fast_step_scale must lie in (0, 1000] finest cells, got {fast_step_scale!r}")
         self.hybrid, self.fast_step_scale = hybrid, float(fast_step_scale)
+        self.iso = None if iso is None else parse_iso_values(iso, "iso")     # checked against the data at load
+        if iso_only and not self.iso:
+            raise ValueError("iso_only: needs iso values (--iso V ...)")
+        self.iso_only = bool(iso_only)
         self.source, self.field, self.res, self.max_spp = source, field, int(res), int(max_spp)
         self.preview_scale, self.variant = float(preview_scale), variant
         self.embed_data = bool(embed_data)       # snapshots of yt data: copy them (else name them)
@@ -154,6 +162,11 @@ class ViewEngine(ViewRegistry, EditorRequests, RenderScheduler, ViewSnapshots):
         if self.mode is not None and self.mode not in self.loaded.modes:
             raise ValueError(f"--mode {self.mode}: {self.loaded.mode_note}")
         self.mode = self.mode or self.loaded.scene_mode
+        self.loaded.initial_iso, self.loaded.initial_iso_only = scene_iso(self.loaded)
+        if self.iso is not None:                 # --iso: the views' start, searched for from the first pass
+            self.loaded.initial_iso, self.loaded.initial_iso_only = check_iso(self.loaded, self.iso), self.iso_only
+            with JIT_LOCK:
+                apply_iso(self.loaded, self.loaded.initial_iso, self.iso_only)
         self._new_scene()                        # the passes it needs, to record ahead
         encode_jpeg(np.zeros((8, 8, 3), np.float32))  # the JPEG encoder loaded now, not at the first frame
 

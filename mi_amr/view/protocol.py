@@ -12,6 +12,7 @@ fields}``; a change message's missing fields keep the view's value:
 * ``denoise``: `DenoiseChange`
 * ``mode``: `ModeChange` (the lighting mode the view refines in)
 * ``hybrid``: `HybridChange` (drag frames ray-marched, or in emission_absorption)
+* ``iso``: `IsoChange` (the view's isosurfaces: values in the field's own units)
 * ``histogram``: `HistogramRequest`; ``snapshot``: `SnapshotRequest`
 * ``ack``: `Ack` (the newest frame is on screen)
 * the TF editor's requests (`EditorRequest`): ``tf_save`` (`TFSave`, answered
@@ -43,6 +44,7 @@ import re
 from dataclasses import dataclass, field, fields
 from typing import ClassVar
 
+from ..device.isosurface import MAX_ISO_VALUES
 from ..plugins.integrator import MODES
 
 #: Largest message accepted from a page (characters of JSON text).
@@ -145,8 +147,19 @@ class HybridChange(Message):
     on: bool
 
 
-ViewChange = CameraChange | TFChange | DenoiseChange | ModeChange | HybridChange
-PageMessage = CameraChange | TFChange | DenoiseChange | ModeChange | HybridChange | HistogramRequest \
+@dataclass(frozen=True)
+class IsoChange(Message):
+    """The view's isosurfaces (docs/manual/isosurfaces.md): ``values`` in
+    the field's own units (what the data hold, before any log10 the medium
+    stores; at most `MAX_ISO_VALUES`, () none), ``only``: the surfaces alone
+    (the gas off). A missing field keeps the view's."""
+    TYPE: ClassVar[str] = "iso"
+    values: tuple[float, ...] | None = _optional()
+    only: bool | None = _optional()
+
+
+ViewChange = CameraChange | TFChange | DenoiseChange | ModeChange | HybridChange | IsoChange
+PageMessage = CameraChange | TFChange | DenoiseChange | ModeChange | HybridChange | IsoChange | HistogramRequest \
     | SnapshotRequest | Ack
 
 
@@ -172,7 +185,9 @@ class Hello(Message):
     why), ``mode`` the view's, ``fast_mode`` the one of its drag frames now;
     ``hybrid``: whether its drag frames are ray-marched (None: the scene
     has no ``ray_march``), ``fast_modes`` the drag frames' mode with the
-    hybrid ``{"on": ..., "off": ...}``."""
+    hybrid ``{"on": ..., "off": ...}``; ``iso``: its isosurfaces
+    (`mi_amr.view.isosurfaces.iso_hello`: values and the data's range in
+    the field's own units, ``only``, ``max``, ``note`` why there are none)."""
     TYPE: ClassVar[str] = "hello"
     view: int
     camera: object
@@ -194,6 +209,7 @@ class Hello(Message):
     mode_note: str | None = _optional()
     hybrid: bool | None = _optional()
     fast_modes: dict | None = _optional()
+    iso: dict | None = _optional()
 
 
 @dataclass(frozen=True)
@@ -249,12 +265,14 @@ class SnapshotDone(Message):
 class Error(Message):
     """A refused message (nothing changed); ``about``: its type, when known.
     A change that could not render is undone: ``camera`` and ``tf`` are then
-    the view's state again (the last one that rendered)."""
+    the view's state again (the last one that rendered); a refused ``iso``
+    change comes with the view's isosurfaces as they stay (``iso``, as in `Hello`)."""
     TYPE: ClassVar[str] = "error"
     message: str
     about: str | None = _optional()
     camera: object = _optional()
     tf: object = _optional()
+    iso: dict | None = _optional()
 
 
 ServerMessage = Status | Hello | HistogramReply | Frame | SnapshotDone | Error
@@ -509,6 +527,20 @@ def _hybrid(f: dict) -> HybridChange:
     return HybridChange(f["on"])
 
 
+def _iso(f: dict) -> IsoChange:
+    out = {}
+    if "values" in f:
+        v = f["values"]
+        if not isinstance(v, list) or len(v) > MAX_ISO_VALUES or not all(_is_number(x) for x in v):
+            raise ValueError(f"iso values: a list of at most {MAX_ISO_VALUES} numbers (the field's own units)")
+        if not all(_finite(x) for x in v):
+            raise ValueError("iso values: finite numbers")
+        out["values"] = tuple(float(x) for x in v)
+    if "only" in f:
+        out["only"] = _bool("iso only", f["only"])
+    return IsoChange(**out)
+
+
 def _mode(f: dict) -> ModeChange:
     if f.get("mode") not in MODES:
         raise ValueError(f"mode: one of {', '.join(MODES)}")
@@ -570,7 +602,7 @@ def _slice(f: dict) -> SliceRequest:
 #: Each page message type: its class and the parser of its fields.
 _PARSERS = {cls.TYPE: (cls, parse_fields) for cls, parse_fields in (
     (CameraChange, _camera), (TFChange, _tf), (DenoiseChange, _denoise), (ModeChange, _mode),
-    (HybridChange, _hybrid), (HistogramRequest, lambda f: HistogramRequest()), (SnapshotRequest, _snapshot),
+    (HybridChange, _hybrid), (IsoChange, _iso), (HistogramRequest, lambda f: HistogramRequest()), (SnapshotRequest, _snapshot),
     (Ack, lambda f: Ack()),
     (TFSave, lambda f: TFSave()), (TFLoad, lambda f: TFLoad(_text("text", f.get("text")))),
     (FieldChange, lambda f: FieldChange(_text("name", f.get("name"), MAX_NAME))), (Describe, lambda f: Describe()),

@@ -158,6 +158,8 @@ class LoadedScene:
     centre_params: object = None                # mi.traverse(centre)
     scene_mode: str | None = None               # the scene's own integrator's mode
     mode_note: str = ""                         # why there are no modes
+    initial_iso: tuple = ()                     # a view's start: iso values (field units), `isosurfaces`
+    initial_iso_only: bool = False              # ... and whether the surfaces are drawn alone
 
     @property
     def modes(self) -> tuple:

@@ -407,6 +407,7 @@ class RenderScheduler:
             try:
                 self.loaded.apply(camera, spec, size)
                 self._put_clip(view.clip)
+                self._put_iso(view)
                 image = self.loaded.render(next(self._seeds), size, pass_mode, step_scale=step, centred=centred)
             except Exception:
                 self.loaded.forget(size, pass_mode, centred)  # its recording and what the scene holds

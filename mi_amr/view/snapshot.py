@@ -1,6 +1,7 @@
 """A view written to files: ``NAME.exr`` (the accumulated image, linear),
 ``NAME.png`` (what the page shows), ``NAME.tf.json`` (the medium's TF) and
-``NAME.xml``, the scene with the view's camera, TF and lighting mode, which
+``NAME.xml``, the scene with the view's camera, TF, lighting mode, clip
+plane and isosurfaces, which
 ``mi-amr render`` renders to the same picture: for data the planned scene
 (`mi_amr.scene_writer.write_scene_xml`), for an XML scene the source rewritten
 (`mi_amr.scene_xml`). An XML scene's TF left as it was is written with
@@ -41,6 +42,7 @@ from ..images import write_exr, write_png
 from ..native_file import save_native
 from ..scene_xml import amr_elements, integrator_elements, parse_scene, set_parameters
 from .camera import OrbitCamera
+from .isosurfaces import medium_values
 from .protocol import safe_name
 from .scene import LoadedScene
 from .tf_spec import TFSpec
@@ -121,7 +123,7 @@ def place(written: Path, target: Path):
 
 def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, shown: np.ndarray,
                    camera: OrbitCamera, spec: TFSpec, spp: int, budget: SnapshotBudget | None = None,
-                   mode: str | None = None, embed_data: bool = False, clip=None) -> Snapshot:
+                   mode: str | None = None, embed_data: bool = False, clip=None, iso=((), False)) -> Snapshot:
     """The files of a view (module docstring) in ``out_dir``: ``image`` the
     accumulation's mean (linear RGB, ``spp`` samples per pixel, rendered in
     the lighting ``mode``; None: the scene's integrator as it is), ``shown``
@@ -130,7 +132,9 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
     path, field and checksum in the XML, not copied, unless ``embed_data``
     (then written once as ``.amrb`` beside the snapshots). ``clip``: the
     view's clip plane ``(normal, offset)``, written onto the XML's ``amr``
-    medium (``clip_normal``, ``clip_offset``). Nothing is
+    medium (``clip_normal``, ``clip_offset``); ``iso``: the view's
+    ``(values, only)`` (field units), written onto it as ``iso`` (the
+    medium's value units) and ``iso_only``. Nothing is
     overwritten; what was placed is removed again when a later file fails."""
     out_dir = Path(out_dir).resolve()
     safe_name(name)
@@ -164,6 +168,7 @@ def write_snapshot(loaded: LoadedScene, out_dir, name: str, image: np.ndarray, s
             _scene_xml(loaded, private[2], paths[3], camera, spec, spp, mode)
         if clip is not None:
             _with_clip(private[2], clip)
+        _with_iso(private[2], medium_values(loaded, iso[0]), iso[1])
         try:
             for src, target in list(zip(private, paths)) + side:
                 place(src, target)
@@ -209,7 +214,7 @@ class ViewSnapshots:
                 raise ValueError("no image yet: wait for the first full frame")
             image = (view.accum / view.spp).astype(np.float32)
             camera, spec, spp, mode = view.camera, view.spec, view.spp, view.mode
-            loaded, annotate, clip = self.loaded, view.annotate, view.clip
+            loaded, annotate, clip, iso = self.loaded, view.annotate, view.clip, (view.iso, view.iso_only)
             denoise = view.denoise and self._denoise is not None
             shown = view.denoised if denoise and view.denoised_spp == spp else None
         if shown is None:
@@ -217,7 +222,7 @@ class ViewSnapshots:
         if annotate is not None and annotate.burn_in:
             shown = burnt_in(loaded, shown, camera, loaded.table(spec), loaded.stored_log, annotate)
         return write_snapshot(loaded, out_dir, name, image, shown, camera, spec, spp, budget, mode=mode,
-                              embed_data=self.embed_data, clip=clip)
+                              embed_data=self.embed_data, clip=clip, iso=iso)
 
     def snapshot(self, view: View, out_dir, name: str) -> list[Path]:
         """`take_snapshot`'s four files: [exr, png, xml, tf.json]."""
@@ -273,6 +278,25 @@ def _with_clip(path: Path, clip):
             medium.remove(child)
     ET.SubElement(medium, "vector", name="clip_normal", value=", ".join(f"{float(x):.9g}" for x in clip[0]))
     ET.SubElement(medium, "float", name="clip_offset", value=f"{float(clip[1]):.9g}")
+    tree.write(path)
+
+
+def _with_iso(path: Path, values, only: bool):
+    """The XML at ``path`` with the iso ``values`` (the medium's value units)
+    and ``iso_only`` on its first ``amr`` medium, as the view has them (none:
+    neither); nested BSDFs beyond the values' count are dropped (one per
+    value, in order: the medium refuses more)."""
+    tree = parse_scene(path)
+    medium = amr_elements(tree.getroot())[0]
+    for child in list(medium):
+        if child.get("name") in ("iso", "iso_only"):
+            medium.remove(child)
+    for extra in [c for c in medium if c.tag == "bsdf"][len(values):]:
+        medium.remove(extra)
+    if values:
+        ET.SubElement(medium, "string", name="iso", value=" ".join(f"{float(v):.9g}" for v in values))
+        if only:
+            ET.SubElement(medium, "boolean", name="iso_only", value="true")
     tree.write(path)
 
 

@@ -1,5 +1,5 @@
 """The viewer's views: one `View` per browser tab (its camera, transfer
-function, lighting mode, hybrid toggle, clip plane and accumulated image)
+function, lighting mode, hybrid toggle, clip plane, isosurfaces and accumulated image)
 and the registry of them (`ViewRegistry`: open, close, describe, change).
 
 A change that cannot render never reaches the render thread: `ViewRegistry.change`
@@ -23,8 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import OrbitCamera
-from .protocol import (AnnotateChange, CameraChange, DenoiseChange, Hello, HybridChange, ModeChange, TFChange,
-                       ViewChange, parse_message)
+from .isosurfaces import apply_iso, check_iso, iso_hello
+from .protocol import (AnnotateChange, CameraChange, DenoiseChange, Hello, HybridChange, IsoChange, ModeChange,
+                       TFChange, ViewChange, parse_message)
 from .tf_spec import TFSpec, colormap_stops
 
 
@@ -59,6 +60,8 @@ class View:
     replanned: bool = False              # the spec's range and density were planned again (log10 toggle)
     clip: tuple | None = None            # (normal, offset) world: the medium kept where normal . x <= offset
     annotate: AnnotateChange | None = None   # what the page draws over the picture (a snapshot's PNG too)
+    iso: tuple = ()                      # iso values, the field's own units (`isosurfaces`)
+    iso_only: bool = False               # the surfaces drawn alone (the gas off)
 
 
 class ViewRegistry:
@@ -79,7 +82,8 @@ class ViewRegistry:
             raise RuntimeError("the data are still loading")
         with self._wake:
             v = View(next(self._ids), self.loaded.initial_camera, self.loaded.initial_spec, send, notify,
-                     denoise=self._denoise is not None, mode=self.mode, hybrid=self.hybrid)
+                     denoise=self._denoise is not None, mode=self.mode, hybrid=self.hybrid,
+                     iso=self.loaded.initial_iso, iso_only=self.loaded.initial_iso_only)
             self._views[v.id] = v
             self._wake.notify_all()
             return v
@@ -115,7 +119,12 @@ class ViewRegistry:
                      colormap_stops(s.colormaps, s.scene_rgb), editor=self._editor_extras(),
                      modes=s.modes or None, mode=view.mode, fast_mode=self._fast_mode(view),
                      mode_note=s.mode_note or None, hybrid=view.hybrid if marches else None,
-                     fast_modes=marches)
+                     fast_modes=marches, iso=iso_hello(s, view.iso, view.iso_only))
+
+    def iso_state(self, view: View) -> dict:
+        """``view``'s isosurfaces as `Hello` gives them (`isosurfaces.iso_hello`)."""
+        with self._wake:
+            return iso_hello(self.loaded, view.iso, view.iso_only)
 
     def place_camera(self, view: View, camera: OrbitCamera):
         """Put ``camera`` into ``view`` as it is (its field of view too: a
@@ -130,7 +139,7 @@ class ViewRegistry:
             self._wake.notify_all()
 
     def change(self, view: View, change: ViewChange | dict) -> bool:
-        """Apply a camera, TF, denoise or mode change to ``view`` (a page
+        """Apply a camera, TF, denoise, mode, hybrid or iso change to ``view`` (a page
         message as a dict is parsed first; a `ValueError` names what is
         wrong, and the view is then unchanged). Returns whether the
         histogram's range or units changed."""
@@ -179,6 +188,13 @@ class ViewRegistry:
                     self._record_ahead(view)             # its fast passes and previews
                     self._wake.notify_all()
                     return False
+                case IsoChange(values=values, only=only):
+                    values = view.iso if values is None else check_iso(self.loaded, values)
+                    only = view.iso_only if only is None else only
+                    if (values, only) == (view.iso, view.iso_only):
+                        view.version += 1                # a change message: the page counts it
+                        return False
+                    view.iso, view.iso_only = values, only
                 case _:
                     raise ValueError(f"not a view change: {type(change).__name__}")
             view.version += 1
@@ -197,6 +213,16 @@ class ViewRegistry:
             for item in (self._fast_item(size, fast), (size, view.mode)):
                 if item not in self._warm and not self.loaded.recorded(*item):
                     self._warm.append(item)
+
+    def _put_iso(self, view: View):
+        """On the render thread, under `JIT_LOCK`: ``view``'s isosurfaces into
+        the medium (`isosurfaces.apply_iso`); where that changed the kernels
+        (the medium's first value), what the views need is recorded ahead again."""
+        if apply_iso(self.loaded, view.iso, view.iso_only):
+            with self._wake:
+                self._warm = self._warm_list()
+                for v in self._views.values():
+                    self._record_ahead(v)
 
     # ---- The clip plane ----------------------------------------------------------------
     def set_clip(self, view: View, clip):

@@ -23,13 +23,16 @@ State both ways, as traits: ``camera`` (``{"origin", "target", "up",
 ``colormap``, ``log``, ``range``, ``density``; set it to that, to some of
 those fields, to a preset or colormap name, or to a TF ``.json`` path),
 ``density_scale`` (extinction at opacity 1, inverse world units),
-``mode`` (the lighting mode the picture refines in) and ``hybrid``
+``mode`` (the lighting mode the picture refines in), ``hybrid``
 (drag frames ray-marched, noise-free; False: 1-spp emission_absorption,
-as the page's toggle beside the mode selector). Set from Python, they
+as the page's toggle beside the mode selector), ``iso`` (up to 4 iso
+values in the field's own units, as ``DataScene.iso``: the isosurfaces
+the page's iso control moves over the histogram) and ``iso_only`` (the
+surfaces alone). Set from Python, they
 change the picture (a bad value is a `ValueError`, nothing changed); moved
 in the page, they follow (within `PULL_DELAY`; `ViewWidget.sync` at once).
-Every change is also written into the `DataScene` the widget came from (``w.scene``): its camera, lighting mode
-and the medium's TF table itself (a ``.json`` file in a folder of the
+Every change is also written into the `DataScene` the widget came from (``w.scene``): its camera, lighting mode,
+iso values and the medium's TF table itself (a ``.json`` file in a folder of the
 widget's, over the stored units: the log10 or linear storage the viewer
 chose), so ``sc.render()`` renders the view on screen at full quality.
 
@@ -218,6 +221,8 @@ class ViewWidget(anywidget.AnyWidget):
     density_scale = traitlets.Float(0.0).tag(sync=True)
     mode = traitlets.Unicode(None, allow_none=True).tag(sync=True)
     hybrid = traitlets.Bool(True).tag(sync=True)
+    iso = traitlets.List(traitlets.Float()).tag(sync=True)
+    iso_only = traitlets.Bool(False).tag(sync=True)
 
     def __init__(self, scene, *, res: int = 256, max_spp: int = DEFAULT_MAX_SPP, out_dir=".",
                  preview_scale: float = 0.5, hybrid: bool = True, **kwargs):
@@ -362,7 +367,12 @@ class ViewWidget(anywidget.AnyWidget):
             if not self._attached.is_set() or self.view is None:
                 self._send_json(self.engine.status)      # still loading (or failed): the page shows it
                 return
-            if isinstance(msg, VIEW_CHANGES):
+            if isinstance(msg, p.IsoChange):        # a refusal says where the values stay
+                reply = answer(self.engine, self.view, msg, self.out_dir, self._budget)
+                self._pull_soon()
+                if reply is not None:
+                    self._send_json(reply)
+            elif isinstance(msg, VIEW_CHANGES):
                 histogram = self.engine.change(self.view, msg)
                 self._pull_soon()
                 if histogram:                    # a new range or units: its histogram from the worker
@@ -414,8 +424,8 @@ class ViewWidget(anywidget.AnyWidget):
         return self
 
     def _pull(self):
-        """The view's camera, TF, mode and hybrid toggle as the traits, and
-        into the scene (nothing once the widget is closed)."""
+        """The view's camera, TF, mode, hybrid toggle and isosurfaces as the
+        traits, and into the scene (nothing once the widget is closed)."""
         with self._lock:
             timer, self._pull_timer = self._pull_timer, None
         if timer is not None:                    # a pull due later (`_pull_soon`): this one serves it
@@ -423,18 +433,21 @@ class ViewWidget(anywidget.AnyWidget):
         view = self.view
         if view is None or view.closed or self.engine.loaded is None:
             return
-        camera, spec, mode = view.camera, view.spec, view.mode
+        camera, spec, mode, iso = view.camera, view.spec, view.mode, (view.iso, view.iso_only)
         with self._from_view(), self.hold_sync():
             self.camera = camera_dict(camera)
             self.tf = spec.to_json()
             self.density_scale = float(spec.density)
             self.mode = mode
             self.hybrid = view.hybrid
-        self._into_scene(camera, spec, mode)
+            self.iso = list(iso[0])
+            self.iso_only = iso[1]
+        self._into_scene(camera, spec, mode, iso)
 
-    def _into_scene(self, camera: OrbitCamera, spec, mode):
+    def _into_scene(self, camera: OrbitCamera, spec, mode, iso=((), False)):
         """The view's state into the `DataScene` (``sc.render()`` renders it):
-        the camera, the mode, and the medium's own table over stored units."""
+        the camera, the mode, the iso values (field units) and the medium's
+        own table over stored units."""
         sc, loaded = self.scene, self.engine.loaded
         if loaded.plan is not None and loaded.plan.data is not sc.plan.data:    # the page chose another field
             sc.plan, sc.field = replace(loaded.plan, notes=list(loaded.plan.notes)), self.engine.field
@@ -450,6 +463,8 @@ class ViewWidget(anywidget.AnyWidget):
             self._table = (key, (str(name), tuple(float(x) for x in table.domain)))
         sc.plan.transform = "log10" if loaded.stored_log else "none"
         (sc.tf, sc.tf_range), sc.density_scale = self._table[1], spec.density
+        sc.iso = iso[0]                          # before iso_only, which needs values
+        sc.iso_only = bool(iso[1] and iso[0])
 
     def _ready_view(self):
         self.wait()
@@ -515,6 +530,24 @@ class ViewWidget(anywidget.AnyWidget):
         self.engine.change(view, p.HybridChange(bool(proposal.value)))
         self._changed_from_python()
         return view.hybrid
+
+    @traitlets.validate("iso")
+    def _set_iso(self, proposal):
+        if getattr(self._pulling, "on", False):
+            return proposal.value
+        view = self._ready_view()
+        self.engine.change(view, p.parse_message({"type": "iso", "values": list(proposal.value)}))
+        self._changed_from_python()
+        return list(view.iso)
+
+    @traitlets.validate("iso_only")
+    def _set_iso_only(self, proposal):
+        if getattr(self._pulling, "on", False):
+            return proposal.value
+        view = self._ready_view()
+        self.engine.change(view, p.IsoChange(only=bool(proposal.value)))
+        self._changed_from_python()
+        return view.iso_only
 
     @traitlets.validate("camera")
     def _set_camera(self, proposal):

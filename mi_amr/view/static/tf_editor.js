@@ -6,10 +6,12 @@
 // display) and an opacity axis; presets, colormaps, log10 (or why not),
 // range, density (slider and number), save and load as the TF JSON that
 // `mi-amr render --tf` reads, and the data's fields. The TF's units and
-// tables: mi_amr/view/tf_spec.py; messages: mi_amr/view/protocol.py.
+// tables: mi_amr/view/tf_spec.py; messages: mi_amr/view/protocol.py. What else
+// draws over the histogram (the iso values: iso_control.js) is the `decorate`
+// function, called with the context and the plot's bottom after each drawing.
 
-// The plot inside the canvas (tests drag points at these offsets).
-const PAD = { l: 8, r: 8, t: 8, b: 58 };
+// The plot inside the canvas (tests drag points at these offsets; iso_control.js's strip shares them).
+export const PAD = { l: 8, r: 8, t: 8, b: 58 };
 const SUPER = { "-": "⁻", 0: "⁰", 1: "¹", 2: "²", 3: "³", 4: "⁴", 5: "⁵", 6: "⁶", 7: "⁷", 8: "⁸", 9: "⁹" };
 
 function hexRgb(h) { return [1, 3, 5].map((i) => parseInt(h.slice(i, i + 2), 16) / 255); }
@@ -78,14 +80,14 @@ export function valueTicks(range, log) {
 
 // `$`: the element of an id in the viewer's own root (the page's document, or a
 // notebook widget's shadow root: widget.py).
-export function createTfEditor({ send, changed, message, $ = (id) => document.getElementById(id) }) {
+export function createTfEditor({ send, changed, message, $ = (id) => document.getElementById(id), decorate = null }) {
   const canvas = $("tf-editor"), c = canvas.getContext("2d");
   let tf = null, histogram = null, stops = {}, extras = {}, grabbed = -1, selected = -1;
   const plotW = () => canvas.width - PAD.l - PAD.r, plotH = () => canvas.height - PAD.t - PAD.b;
   const toX = (u) => PAD.l + u * plotW(), toY = (a) => PAD.t + (1 - a) * plotH();
   const fromX = (x) => Math.min(1, Math.max(0, (x - PAD.l) / plotW()));
   const fromY = (y) => Math.min(1, Math.max(0, 1 - (y - PAD.t) / plotH()));
-  const editor = { pending: false, get tf() { return tf; } };
+  const editor = { pending: false, get tf() { return tf; }, decorate, redraw: () => draw() };
 
   function edited() { editor.pending = true; draw(); }
 
@@ -127,6 +129,7 @@ export function createTfEditor({ send, changed, message, $ = (id) => document.ge
       c.fillStyle = p.length > 2 ? p[2] : "#ffcc55"; c.beginPath(); c.arc(toX(p[0]), toY(p[1]), 4, 0, 2 * Math.PI); c.fill();
       if (i === selected) { c.strokeStyle = "#ffffff"; c.lineWidth = 1.5; c.beginPath(); c.arc(toX(p[0]), toY(p[1]), 7, 0, 2 * Math.PI); c.stroke(); }
     });
+    if (editor.decorate) editor.decorate(c, bottom);
   }
 
   function axisLabel() {

@@ -1,8 +1,9 @@
 // mi-amr view: the page. One connection to the server: JSON messages out
-// (camera, tf, denoise, mode, hybrid, snapshot, ack), JSON and frames (a header and a
+// (camera, tf, iso, denoise, mode, hybrid, snapshot, ack), JSON and frames (a header and a
 // JPEG image) in. Every control change is sent at most once per animation
 // frame; the server renders the newest state and drops what went stale. The
-// TF editor: tf_editor.js; the orbit camera's arithmetic: camera.js.
+// TF editor: tf_editor.js; the iso values over its histogram: iso_control.js;
+// the orbit camera's arithmetic: camera.js.
 //
 // Where the page lives and how it talks (its host: { root, transport }): as
 // the viewer's own page, the document and a websocket to mi_amr/view/server.py
@@ -15,6 +16,7 @@ import { createTfEditor } from "./tf_editor.js";
 import { basis, clampElevation, drawAxes } from "./camera.js";
 import { createAnnotations } from "./annotations.js";
 import { createSlicePanel } from "./slice.js";
+import { createIsoControl } from "./iso_control.js";
 
 // eslint-disable-next-line no-undef
 const host = typeof widgetHost !== "undefined" ? widgetHost : websocketHost();
@@ -60,6 +62,7 @@ function changed() {             // a change message is about to go out
 function flush() {               // once per animation frame: the newest camera and TF
   if (pendingCamera) { pendingCamera = false; changed(); send({ type: "camera", ...cameraMessage() }); }
   if (tfEditor.pending) { tfEditor.pending = false; changed(); send({ type: "tf", ...tfEditor.tf }); }
+  if (isoControl.pending) { isoControl.pending = false; changed(); send({ type: "iso", values: isoControl.values, only: isoControl.only }); }
   if (!host.closed) requestAnimationFrame(flush);
 }
 
@@ -123,6 +126,7 @@ function onJson(msg) {
     $("data").textContent = msg.data;
     if (msg.out_dir) $("snapshot-folder").textContent = `snapshots go to ${msg.out_dir}`;
     tfEditor.hello(msg);
+    isoControl.hello(msg);
     $("denoise").checked = msg.denoise;
     $("denoise").disabled = !msg.denoiser;
     $("denoise-note").textContent = msg.denoiser ? "" : `denoiser missing: ${msg.denoiser_missing}`;
@@ -151,6 +155,7 @@ function onJson(msg) {
     if (msg.about === "slice") slicePanel.failed();
     if (msg.camera) { camera = msg.camera; drawAxes($("axes"), camera); }   // a change that could not render, undone
     if (msg.tf) { tfEditor.setTf(msg.tf); send({ type: "histogram" }); }
+    if (msg.iso) isoControl.set(msg.iso);                                  // a refused iso change: where they stay
   }
 }
 
@@ -288,6 +293,9 @@ $("reset-camera").addEventListener("click", () => {     // the view the scene st
 
 // ---- transfer-function editor (tf_editor.js) and the other controls ---------------------
 const tfEditor = createTfEditor({ send, changed, message: (text) => { $("message").textContent = text; }, $ });
+const isoControl = createIsoControl({ $, message: (text) => { $("message").textContent = text; },
+  getTf: () => tfEditor.tf, redraw: () => tfEditor.redraw() });
+tfEditor.decorate = isoControl.decorate;
 // annotations over the picture, the clip plane and the slice panel (annotations.js, slice.js)
 const slicePanel = createSlicePanel({ $, send, stats, getTf: () => tfEditor.tf });
 const annotations = window.viewerAnnotations = createAnnotations({ $, send, changed, stats, getCamera: () => camera,
