@@ -72,7 +72,7 @@ def view(args):
         raise ValueError(str(e.code).removeprefix("mi-amr: ")) from None
     engine = ViewEngine(args.scene, args.field, res=args.res, max_spp=args.max_spp,
                         preview_scale=args.preview_scale, variant=mi.variant(), mode=args.mode,
-                        embed_data=args.embed_data, hybrid=not args.no_hybrid)
+                        embed_data=args.embed_data, hybrid=not args.no_hybrid, iso=args.iso, iso_only=args.iso_only)
     try:
         server = ViewServer(engine, host, port, out_dir=out)
     except (OSError, OverflowError) as e:
