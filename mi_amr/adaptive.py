@@ -55,7 +55,7 @@ class AdaptiveResult:
     every sample each pixel took: the film's sums over their weight),
     ``spp`` float32 (H, W) samples each pixel took, ``tile_error`` (tile
     rows, tile columns) the last relative error estimate of each tile,
-    ``noise`` the threshold, ``converged`` whether every tile went below
+    ``noise`` the threshold, ``max_spp`` the cap, ``converged`` whether every tile went below
     it, ``stopped`` why the render ended (``noise``, ``spp`` or ``time``),
     ``passes`` and ``seconds`` of rendering."""
     image: np.ndarray
@@ -63,6 +63,7 @@ class AdaptiveResult:
     tile_error: np.ndarray
     tile: int
     noise: float
+    max_spp: int
     converged: bool
     stopped: str
     passes: int
@@ -80,7 +81,8 @@ class AdaptiveResult:
         below = f"{100 * float(np.mean(self.tile_error < self.noise)):.0f}% of tiles below {100 * self.noise:g}% noise"
         why = {"noise": f"every tile below {100 * self.noise:g}% noise", "spp": f"the spp cap reached ({below})",
                "time": f"the time limit reached ({below})"}[self.stopped]
-        return (f"adaptive: {self.samples:.1f} spp mean ({low:.0f} to {tiles.max():.0f} per pixel; "
+        return (f"adaptive: {self.samples:.1f} spp mean ({low:.0f} to {tiles.max():.0f} per pixel, cap "
+                f"{self.max_spp} spp; "
                 f"{100 * float(np.mean(tiles == low)):.0f}% of tiles stopped at {low:.0f}), {self.passes} passes, "
                 f"{why}; estimated error {100 * estimated_picture_error(self.tile_error):.2f}%")
 
@@ -207,7 +209,8 @@ def render_adaptive(scene: mi.Scene, noise: float = DEFAULT_NOISE, max_spp: int 
         spp_map[:] = 1
         image = (sums[..., :-1] / np.where(sums[..., -1:] > 0, sums[..., -1:], 1.0)).astype(np.float32)
         return AdaptiveResult(image=image, spp=spp_map, tile_error=error, tile=tile, noise=float(noise),
-                              converged=False, stopped="spp", passes=1, seconds=time.perf_counter() - t0)
+                              max_spp=int(max_spp), converged=False, stopped="spp", passes=1,
+                              seconds=time.perf_counter() - t0)
     taken = 0                               # samples per pixel of the active tiles, each half
     while active.any():
         # passes grow as the picture converges (each pair half again as many samples)
@@ -238,5 +241,5 @@ def render_adaptive(scene: mi.Scene, noise: float = DEFAULT_NOISE, max_spp: int 
     w = total[..., -1:]
     image = np.where(w > 0, total[..., :-1] / np.where(w > 0, w, 1.0), 0.0).astype(np.float32)
     return AdaptiveResult(image=image, spp=spp_map, tile_error=error, tile=tile, noise=float(noise),
-                          converged=not active.any(), stopped=stopped, passes=passes,
+                          max_spp=int(max_spp), converged=not active.any(), stopped=stopped, passes=passes,
                           seconds=time.perf_counter() - t0)

@@ -154,8 +154,8 @@ def _render_flags(p, spp: int | None):
     scene's own sample count, else 64)."""
     p.add_argument("--spp", type=_positive, default=spp,
                    help=f"samples per pixel (default {spp})" if spp else
-                   "samples per pixel: the most with adaptive sampling (default 1024), else in every pixel "
-                   "(default: an XML scene's own sample_count, else 64)")
+                   "samples per pixel: the most with adaptive sampling, else in every pixel (default: an XML "
+                   "scene's own sample_count, else 1024 adaptive, 64 fixed)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default=None, help=VARIANT_HELP)
     p.add_argument("-D", "--define", action="append", metavar="NAME=VALUE",
@@ -273,10 +273,6 @@ def build_parser():
     v.add_argument("--no-hybrid", action="store_true",
                    help="drags render 1-spp emission_absorption passes instead of the ray marcher's "
                         "(noise-free) ones; each page can switch it back")
-    v.add_argument("--iso", type=_finite, nargs="+", metavar="V",
-                   help="start every page with isosurfaces at these values of the field (its own units, at most 4; "
-                        "the page's iso control moves them; docs/manual/isosurfaces.md)")
-    v.add_argument("--iso-only", action="store_true", help="start with the isosurfaces alone (the gas off; needs --iso)")
     v.add_argument("--variant", default=None, help=VARIANT_HELP)
     v.set_defaults(func=cmd_view)
 

@@ -151,8 +151,8 @@ def sampling(args, is_xml: bool):
     adaptive (``args.noise`` set) unless ``--no-adaptive``, on a cluster
     (said on stderr), or in ``ray_march`` without ``--noise``, at
     `DENOISED_NOISE` when denoised, else `DEFAULT_NOISE`; ``args.spp``
-    the cap (default `DEFAULT_MAX_SPP`) or the fixed count (the XML scene's
-    own, else `default_spp`); ``args.denoise`` on by default where the
+    the cap or the fixed count (default: an XML scene's own count, else
+    `DEFAULT_MAX_SPP` or `default_spp`); ``args.denoise`` on by default where the
     denoiser is installed (said when it is not), off in ``ray_march``."""
     cluster = bool(args.workers or args.scheduler)
     asked = args.noise is not None or args.time is not None
@@ -171,13 +171,13 @@ def sampling(args, is_xml: bool):
         args.denoise = args.mode != "ray_march" and missing is None
         if missing and args.mode != "ray_march" and not args.quiet:
             print(f"mi-amr: not denoised ({missing})", file=sys.stderr)
+    own = scene_spp(args.scene, frames(args)[0][0]) if is_xml else None   # an XML scene's own count
     if adaptive:
         args.noise = args.noise or (DENOISED_NOISE if args.denoise else DEFAULT_NOISE)
-        args.spp = args.spp or DEFAULT_MAX_SPP
+        args.spp = args.spp or own or DEFAULT_MAX_SPP
     else:
         args.noise = None
-        if args.spp is None:               # the scene's own sample count, as Mitsuba would take it
-            args.spp = (scene_spp(args.scene, frames(args)[0][0]) if is_xml else None) or default_spp(args.mode)
+        args.spp = args.spp or own or default_spp(args.mode)      # as Mitsuba would take it
 
 
 def render_cli_jobs(args, jobs, desc: str | None = None) -> list:
