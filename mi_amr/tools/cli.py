@@ -273,6 +273,10 @@ def build_parser():
     v.add_argument("--no-hybrid", action="store_true",
                    help="drags render 1-spp emission_absorption passes instead of the ray marcher's "
                         "(noise-free) ones; each page can switch it back")
+    v.add_argument("--iso", type=_finite, nargs="+", metavar="V",
+                   help="start every page with isosurfaces at these values of the field (its own units, at most 4; "
+                        "the page's iso control moves them; docs/manual/isosurfaces.md)")
+    v.add_argument("--iso-only", action="store_true", help="start with the isosurfaces alone (the gas off; needs --iso)")
     v.add_argument("--variant", default=None, help=VARIANT_HELP)
     v.set_defaults(func=cmd_view)
 
