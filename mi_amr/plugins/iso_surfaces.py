@@ -21,7 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..core.jit_struct import jit_struct
+from ..core.jit_struct import jit_struct, owned
 from ..device.isosurface import ISO_VALUE_TOLERANCE, MAX_ISO_VALUES
 from ..params import ParameterError
 
@@ -142,7 +142,7 @@ class IsoSurfaces:
             self.user_bsdfs = bsdfs + [None] * (MAX_ISO_VALUES - len(bsdfs))
         slots = np.full(MAX_ISO_VALUES, np.nan, np.float32)
         slots[:len(values)] = values
-        self.slots = mi.Float(slots)
+        self.slots = owned(mi.Float, slots)     # a copy of its own, aligned: a frozen render replays
         dr.make_opaque(self.slots)
         self.volume_on = dr.opaque(mi.Float, 0.0 if (only and values) else 1.0)
         if values and not self.bsdfs:
