@@ -58,7 +58,7 @@ def default_spp(mode: str | None) -> int:
     return MARCH_SPP if mode == "ray_march" else DEFAULT_SPP
 #: The plan options a data job takes (`mi_amr.autoscene.plan_scene`).
 PLAN_OPTIONS = ("tf", "log", "value_range", "density_scale", "emission", "emission_field", "emission_log",
-                "emission_range", "emission_scale")
+                "emission_range", "emission_scale", "iso", "iso_only")
 
 
 #: The variants chosen when none is set, in order: the first whose Dr.Jit

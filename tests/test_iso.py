@@ -307,3 +307,23 @@ def test07_bad_iso_parameters_are_refused_in_one_line(llvm, props, message):
         mi_amr.plan_scene(cells, log=True, iso=[-1.0])
     with pytest.raises(ParameterError, match="at most 4"):
         medium(cells, 0.3).set_iso([0.1, 0.2, 0.3, 0.4, 0.5])
+
+
+def test08_command_line_and_scene_files_carry_the_surfaces(llvm, tmp_path):
+    """``--iso`` and ``--iso-only`` reach the plan in the field's units, the
+    written XML scene holds them in the medium's (log10 of them for a log10
+    plan), and the scene loads with them."""
+    from mi_amr.scene_writer import write_scene_xml
+    from mi_amr.tools.cli import build_parser
+    from mi_amr.tools.render import plan_options
+    cells = radial_cells(levels=2, root=8)
+    args = build_parser().parse_args(["render", "data.amrb", "--iso", "0.2", "0.3", "--iso-only", "--log",
+                                      "-o", "x.exr"])
+    plan = mi_amr.plan_scene(cells, **plan_options(args))
+    assert plan.iso == (0.2, 0.3) and plan.iso_only and plan.transform == "log10"
+    data = mi_amr.save_cells(cells, tmp_path / "radial.amrb")
+    xml = write_scene_xml(plan, data, tmp_path / "radial.xml", res=8, spp=1)
+    loaded = mi.load_file(str(xml))
+    med = next(m for m in mi_amr.scene_media(loaded) if isinstance(m, mi_amr.AMRMedium))
+    np.testing.assert_allclose(med.iso_values, np.log10([0.2, 0.3]), rtol=1e-6)
+    assert med.iso_only

@@ -202,6 +202,11 @@ def build_parser():
                         "as for --field)")
     r.add_argument("--emission-scale", type=_above_zero, default=None,
                    help="data: radiance of emission TF colour 1 (default: the mean glow of the gas is 1)")
+    r.add_argument("--iso", type=_finite, nargs="+", metavar="V",
+                   help="data: isosurfaces at these values of the field (its own units, at most 4), path traced "
+                        "inside the gas (docs/manual/isosurfaces.md)")
+    r.add_argument("--iso-only", action="store_true",
+                   help="data: the isosurfaces alone (the gas off; needs --iso)")
     r.add_argument("--movie", metavar="OUT.mp4",
                    help="data: render every output the pattern names (e.g. 'DD00??/DD00??') with one TF "
                         "range over all of them, and encode the frames as an H.264 movie (without -o, the "

@@ -43,7 +43,7 @@ from ..rendering import RenderJob, default_spp, render_jobs, scene_spp, use_vari
 from ..adaptive import DEFAULT_MAX_SPP, DEFAULT_NOISE, DENOISED_NOISE
 from ..denoising import denoiser_missing
 
-DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear and --emission* are for data files, "
+DATA_FLAGS_MESSAGE = ("mi-amr: --field, --tf, --range, --log, --linear, --emission* and --iso* are for data files, "
                       "not XML scenes (set those in the scene)")
 
 
@@ -213,7 +213,8 @@ def plan_options(args) -> dict:
                 value_range=tuple(args.range) if args.range else None,
                 emission=args.emission, emission_field=args.emission_field,
                 emission_range=tuple(args.emission_range) if args.emission_range else None,
-                emission_scale=args.emission_scale)
+                emission_scale=args.emission_scale, iso=getattr(args, "iso", None),
+                iso_only=getattr(args, "iso_only", False))
 
 
 def plan_data(args):
@@ -263,7 +264,7 @@ def render(args):
     set_variant(args.variant)
     is_xml = Path(args.scene).suffix.lower() == ".xml"
     data_flags = (args.field or args.tf or args.range or args.scale or args.emission or args.emission_field
-                  or args.emission_range or args.emission_scale is not None)
+                  or args.emission_range or args.emission_scale is not None or args.iso or args.iso_only)
     if is_xml and data_flags:
         raise SystemExit(DATA_FLAGS_MESSAGE)
     series_run = not is_xml and (args.movie or glob.has_magic(args.scene))
