@@ -284,7 +284,7 @@ def iso_options(p):
     p.add_argument("--iso-yt-only", action="store_true", help="--iso: yt's surface only (no mi-amr rows)")
     p.add_argument("--iso-picture", default=None, metavar="PNG",
                    help="--iso: the side-by-side figure (default OUT/iso-vs-yt.png; none: no figure)")
-    p.add_argument("--iso-picture-res", type=int, default=384, help="--iso: each panel's size (384)")
+    p.add_argument("--iso-picture-res", type=int, default=256, help="--iso: each panel's size (256)")
     p.add_argument("--iso-picture-spp", type=int, default=64, help="--iso: the pictures' samples per pixel (64)")
     p.add_argument("--iso-cells", type=float, nargs="*", default=[1e7, 1e8], metavar="CELLS",
                    help="--iso: block-structured data sets of the frame rate (files in --data-dir; default "

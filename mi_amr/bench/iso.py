@@ -34,9 +34,10 @@ within ``GRAZING R`` of its rim (a surface shrunk by averaging). yt's mesh also 
 
 Then the pictures of both surfaces (yt's mesh under Mitsuba's ``path``,
 ours under ``amrvolpath``, the same camera, lights and diffuse BSDF) side
-by side with a map of the cracks (``--iso-picture``), and the frame rate of an
-isosurface picture at `--iso-res` (512^2) on the block-structured data of
-``--scale`` (10^7 and 10^8 cells), timed as ``--march`` times its frames.
+by side, whole and zoomed on yt's cracks, with the zoomed crack maps
+(``--iso-picture``), and the frame rate of an isosurface picture at
+``--iso-res`` (512^2) on the block-structured data of ``--scale`` (10^7
+and 10^8 cells), timed as ``--march`` times its frames.
 """
 
 from __future__ import annotations
@@ -81,6 +82,10 @@ AIMED_RAYS = 100_000
 CRACK_RES = 512
 #: The surfaces' BSDF in the pictures (a light grey diffuse, both sides).
 GREY = {"type": "twosided", "surface": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.7}}}
+#: The pictures' exposure (linear scale before sRGB), and the zoomed
+#: panels' width across (unit cube: about two level-0 cells).
+EXPOSURE = 0.6
+ZOOM_WIDTH = 0.12
 #: The pictures' crack colour.
 CRACK_RGB = np.array([1.0, 0.1, 0.05])
 
@@ -112,19 +117,22 @@ def _ray(o, d) -> mi.Ray3f:
 
 
 def boundary_rays(levels: int, n: int, radius: float = RADIUS, centre=CENTRE, seed: int = 0,
-                  depth: float = None):
+                  depth: float = None, box: int | None = None):
     """``(o, d)``: ``n`` rays aimed at random points of the level
     boundaries (faces of the refined boxes inside the domain) just inside
     the sphere: on the circle where a face cuts it, moved towards the
     circle's centre by up to ``depth R`` (uniform), where the surfaces of
     the two levels meet, each from a random direction of the outer
     hemisphere of the sphere's normal there (cosine-distributed), starting
-    2 units out. ``depth``: default `BOUNDARY_DEPTH`."""
+    2 units out. ``depth``: default `BOUNDARY_DEPTH`; ``box``: only the
+    faces of this refined box (0: level 1's), default all."""
     depth = BOUNDARY_DEPTH if depth is None else depth
     rng = np.random.default_rng(seed)
     centre = np.asarray(centre, dtype=np.float64)
     points = []
-    for lo, hi in level_boundaries(levels):
+    for k, (lo, hi) in enumerate(level_boundaries(levels)):
+        if box is not None and k != box:
+            continue
         for a in range(3):
             for plane in (lo[a], hi[a]):
                 rho2 = radius ** 2 - (plane - centre[a]) ** 2
@@ -347,61 +355,85 @@ def _line(name, f) -> str:
 # ---- The pictures --------------------------------------------------------
 
 
-def lit_scene(res: int, integrator: dict, camera=ISO_CAMERA) -> dict:
-    """The benchmark's sun and sky with ``camera`` at ``res``^2, without the volume."""
-    scene = bench_scene(None, res, integrator, camera)
-    del scene["volume"]
+def lit_scene(res: int, integrator: dict, camera=ISO_CAMERA, medium=None) -> dict:
+    """`bench_scene` with ``camera`` at ``res``^2 (without the volume when
+    ``medium`` is None), its sun turned to come from above the camera's
+    left shoulder (the benchmark's sun lights the far side of this view)."""
+    scene = bench_scene(medium, res, integrator, camera)
+    if medium is None:
+        del scene["volume"]
+    view = np.asarray(camera[0], dtype=np.float64) - np.asarray(camera[1], dtype=np.float64)
+    view /= np.linalg.norm(view)
+    left = np.cross([0.0, 1.0, 0.0], view)
+    sun = view + 0.8 * np.array([0.0, 1.0, 0.0]) + 0.4 * left / max(np.linalg.norm(left), 1e-9)
+    scene["sun"]["direction"] = (-sun / np.linalg.norm(sun)).tolist()
     return scene
 
 
-def picture_pair(levels: int, out: Path, res: int = 512, spp: int = 64, radius: float = RADIUS) -> dict:
-    """yt's surface (a mesh under ``path``) and ours (``amrvolpath``,
-    ``multi``, surfaces only) on the same output, camera, lights and BSDF,
-    and the crack map of both (exact sphere grey, cracks red) at
-    ``res``^2: ``{"yt": rgb, "ours": rgb, "cracks": rgb}`` (float arrays)."""
+def render_pair(vertices, faces, cells, res: int, spp: int, camera, radius: float = RADIUS) -> dict:
+    """yt's mesh under ``path`` and our isosurface of ``cells`` under
+    ``amrvolpath`` (``multi``, surfaces only), the same camera, lights and
+    BSDF (`GREY`), and both crack maps (`crack_mask` of the pixel centres:
+    the exact sphere grey, cracks red) at ``res``^2: ``{"yt", "ours",
+    "yt_cracks", "ours_cracks"}`` (linear RGB arrays)."""
+    scene = lit_scene(res, {"type": "path", "max_depth": 8}, camera)
+    scene["surface"] = mesh_of(vertices, faces, GREY)
+    theirs = np.array(mi.render(mi.load_dict(scene), spp=spp, seed=1))[..., :3]
+    check_alone("iso picture")
+    ours_scene = mi.load_dict(lit_scene(res, {"type": "amrvolpath", "mode": "multi", "max_depth": 8}, camera,
+                                        iso_medium(cells, radius, bsdf=GREY)))
+    ours = np.array(mi.render(ours_scene, spp=spp, seed=1))[..., :3]
+    del ours_scene
+    gc.collect()
+    o, d = camera_rays(res, camera)
+    sphere = np.isfinite(ray_sphere(o, d, CENTRE, radius))
+    out = {"yt": theirs, "ours": ours}
+    for name, t in (("yt", mesh_hits(vertices, faces, o, d)), ("ours", medium_hits(cells, radius, o, d))):
+        m = np.where(sphere[:, None], 0.35, 0.01) * np.ones((1, 3))
+        m[crack_mask(t, o, d, radius)] = CRACK_RGB
+        out[f"{name}_cracks"] = m.reshape(res, res, 3)
+    return out
+
+
+def picture_row(levels: int, out: Path, res: int = 256, spp: int = 64, radius: float = RADIUS,
+                zoom_width: float = ZOOM_WIDTH) -> dict:
+    """One row of the figure for ``levels`` levels: `render_pair` in the
+    view `ISO_CAMERA`, and zoomed (``zoom_width`` of the unit cube across)
+    on the finest level's boundary: at the median aim point of the rays
+    aimed there (`boundary_rays`) that pass through yt's surface, from
+    their median direction."""
     import yt
     yt.set_log_level(40)
     ds = yt.load(str(write_enzo_radial(out / f"radial{levels}", levels, ROOT)))
     vertices, faces = yt_surface(ds, radius)
-    scene = lit_scene(res, {"type": "path", "max_depth": 8})
-    scene["surface"] = mesh_of(vertices, faces, GREY)
-    theirs = np.array(mi.render(mi.load_dict(scene), spp=spp, seed=1))
-    check_alone("iso picture")
     cells = radial_cells(levels, ROOT)
-    medium = iso_medium(cells, radius, bsdf=GREY)
-    ours_dict = bench_scene(medium, res, {"type": "amrvolpath", "mode": "multi", "max_depth": 8}, ISO_CAMERA)
-    ours_scene = mi.load_dict(ours_dict)
-    ours = np.array(mi.render(ours_scene, spp=spp, seed=1))
-    del ours_scene
-    gc.collect()
-    o, d = camera_rays(res)
-    cracks = {"yt": crack_mask(mesh_hits(vertices, faces, o, d), o, d, radius),
-              "ours": crack_mask(medium_hits(cells, radius, o, d), o, d, radius)}
-    sphere = np.isfinite(ray_sphere(o, d, CENTRE, radius))
-    maps = []
-    for name in ("yt", "ours"):
-        m = np.where(sphere[:, None], 0.6, 0.08) * np.ones((1, 3))
-        m[cracks[name]] = CRACK_RGB
-        maps.append(m.reshape(res, res, 3))
-    return {"yt": theirs[..., :3], "ours": ours[..., :3], "crack_maps": maps}
+    o, d = boundary_rays(levels, 20_000, radius, box=levels - 2, seed=3)
+    cracks = crack_mask(mesh_hits(vertices, faces, o, d), o, d, radius)
+    seen = cracks if cracks.any() else np.ones(len(o), dtype=bool)
+    aim = o[seen] + 2.0 * d[seen]
+    target = aim[np.argmin(np.linalg.norm(aim - np.median(aim, axis=0), axis=1))]     # a crack's own point
+    direction = -np.median(d[seen], axis=0)
+    direction /= np.linalg.norm(direction)
+    distance = float(np.linalg.norm(np.asarray(ISO_CAMERA[0]) - np.asarray(CENTRE)))
+    zoom = (tuple(target + distance * direction), tuple(target),
+            float(np.degrees(2.0 * np.arctan(0.5 * zoom_width / distance))))
+    return {"levels": levels, "full": render_pair(vertices, faces, cells, res, spp, ISO_CAMERA, radius),
+            "zoom": render_pair(vertices, faces, cells, res, spp, zoom, radius), "zoom_camera": zoom}
 
 
-def write_figure(path: Path, pictures: list) -> None:
-    """One PNG: per level count (rows), yt's picture, ours, yt's crack map
-    and ours, separated by white lines of 4 pixels."""
-    rows = []
-    for p in pictures:
-        panels = [_tonemap(p["yt"]), _tonemap(p["ours"])] + list(p["crack_maps"])
+def write_figure(path: Path, rows: list) -> None:
+    """One PNG: per level count (rows of `picture_row`), yt's picture and
+    ours, the same zoomed, and the zoomed crack maps of yt and ours,
+    separated by white lines of 4 pixels."""
+    lines = []
+    for r in rows:
+        panels = [EXPOSURE * r["full"]["yt"], EXPOSURE * r["full"]["ours"], EXPOSURE * r["zoom"]["yt"],
+                  EXPOSURE * r["zoom"]["ours"], r["zoom"]["yt_cracks"], r["zoom"]["ours_cracks"]]
         gap = np.ones((panels[0].shape[0], 4, 3))
-        rows.append(np.concatenate([x for panel in panels for x in (panel, gap)][:-1], axis=1))
-    gap = np.ones((4, rows[0].shape[1], 3))
+        lines.append(np.concatenate([x for panel in panels for x in (panel, gap)][:-1], axis=1))
+    gap = np.ones((4, lines[0].shape[1], 3))
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_png(path, np.concatenate([x for row in rows for x in (row, gap)][:-1], axis=0))
-
-
-def _tonemap(rgb):
-    """Linear radiance to display values (sRGB gamma, clipped)."""
-    return np.clip(np.asarray(rgb, dtype=np.float64), 0.0, 1.0) ** (1.0 / 2.2)
+    write_png(path, np.concatenate([x for line in lines for x in (line, gap)][:-1], axis=0))
 
 
 # ---- The frame rate --------------------------------------------------------
@@ -485,10 +517,14 @@ def report(result: dict, command: str) -> str:
         f"edges, ds.surface {rec['yt_mesh']['surface_s']:.2f} s" for levels, rec in result["surfaces"].items()) + "."]
     if result.get("frames"):
         lines += ["", f"## The isosurface frame at {result['frames'][0]['res']}^2", "",
-                  "| cells | config | frame ms (range) | frames/s | load average (1 min) |", "|---|---|---|---|---|"]
+                  f"The iso value: the data's median value; {result['cpus']} CPUs; the median of the passes, one scene "
+                  "alive at a time; CPU seconds: the process's own, less sensitive to other load than wall time.", "",
+                  "| cells | config | frame ms (range) | frames/s | CPU s a frame | load average (1 min) |",
+                  "|---|---|---|---|---|---|"]
         for r in result["frames"]:
             lines.append(f"| {r['cells']:,} | {r['config']} | {1e3 * r['frame_s']:.0f} "
                          f"({1e3 * min(r['wall']):.0f}-{1e3 * max(r['wall']):.0f}) | {r['fps']:.2f} | "
+                         f"{statistics.median(r['cpu']):.2f} | "
                          f"{r['load_average'][0][0]:.1f} -> {r['load_average'][1][0]:.1f} |")
     return "\n".join(lines) + "\n"
 
@@ -503,18 +539,20 @@ def main_args(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ours = not args.iso_yt_only
-    result = {"res": args.iso_crack_res, "aimed": AIMED_RAYS, "radius": RADIUS, "root": ROOT, "camera": ISO_CAMERA, "cpus": os.cpu_count(),
+    result = {"load_average_start": os.getloadavg(), "variant": args.variant,
+              "res": args.iso_crack_res, "aimed": AIMED_RAYS, "radius": RADIUS, "root": ROOT, "camera": ISO_CAMERA, "cpus": os.cpu_count(),
               "surfaces": surfaces_compared(out, tuple(args.iso_levels), args.iso_crack_res, RADIUS, ours)}
     picture = out / "iso-vs-yt.png" if args.iso_picture is None else args.iso_picture
     if ours and str(picture) != "none":
-        pictures = [picture_pair(levels, out, args.iso_picture_res, args.iso_picture_spp)
-                    for levels in args.iso_levels]
-        write_figure(Path(picture), pictures)
-        result["picture"] = str(picture)
+        rows = [picture_row(levels, out, args.iso_picture_res, args.iso_picture_spp) for levels in args.iso_levels]
+        write_figure(Path(picture), rows)
+        result["picture"] = {"path": str(picture), "res": args.iso_picture_res, "spp": args.iso_picture_spp,
+                             "zoom_cameras": {r["levels"]: r["zoom_camera"] for r in rows}}
     if ours and args.iso_cells:
         result["frames"] = iso_frame_rows(args.iso_cells, args.iso_res, args.repeats, Path(args.data_dir),
                                           args.frozen)
     result["seconds"] = time.perf_counter() - t0
+    result["load_average_end"] = os.getloadavg()
     command = " ".join(["python -m mi_amr.bench"] + args.argv)
     write_report(out, "iso", result, report(result, command))
     finite = [f["rays_on_sphere"] > 0 for rec in result["surfaces"].values() for rays in RAY_SETS
