@@ -56,3 +56,21 @@ def test03_yt_surface_is_closed_on_one_level_and_open_at_level_boundaries(tmp_pa
         o, d = camera_rays(96)
         f = hit_figures(mesh_hits(vertices, faces, o, d), o, d, levels)
         assert f["crack_share_elsewhere"] == 0.0
+
+
+@pytest.mark.slow
+def test04_bench_iso_runs_and_finds_yt_cracks_and_none_of_ours(tmp_path, variant):
+    """``python -m mi_amr.bench --iso`` end to end on 2 levels (no figure,
+    no frame rate): yt's surface has cracks at the level boundaries, the
+    tent isosurface none, on the same rays."""
+    pytest.importorskip("yt")
+    import json
+    from mi_amr.bench.__main__ import main
+    assert main(["--iso", "--iso-levels", "2", "--iso-crack-res", "96", "--iso-picture", "none", "--iso-cells",
+                 "--out", str(tmp_path)]) == 0
+    rec = json.loads((tmp_path / "iso.json").read_text())["surfaces"]["2"]
+    assert rec["boundary"]["yt"]["cracks"] > 0.05 * rec["boundary"]["yt"]["rays_through"]
+    assert rec["boundary"]["yt"]["crack_share_elsewhere"] == 0.0
+    for rays in ("camera", "boundary"):
+        assert rec[rays]["tent"]["cracks"] == 0 and rec[rays]["tent"]["rays_through"] > 1000
+    assert "| 2 | rays aimed at the level boundaries | mi-amr tent |" in (tmp_path / "iso.md").read_text()

@@ -65,8 +65,9 @@ RADIUS = 0.27
 ROOT = 16
 #: The view ``(origin, target, fov)``: from the side of the coarse cells,
 #: facing the level boundaries x = 0.375 and y = 0.375 (the side from
-#: which the gaps between yt's per-level surfaces show), at the benchmark
-#: camera's distance, the field of view spanning 0.8 of the unit cube.
+#: which the gaps between yt's per-level surfaces show), 2.4 from the
+#: centre (about the benchmark camera's distance), the field of view
+#: spanning 0.8 of the unit cube there.
 ISO_DIRECTION = np.array([-1.0, -0.8, 0.9]) / np.linalg.norm([-1.0, -0.8, 0.9])
 ISO_CAMERA = (tuple(np.asarray(CENTRE) + 2.4 * ISO_DIRECTION), CENTRE, float(np.degrees(2.0 * np.arctan(0.4 / 2.4))))
 #: Rays that pass within ``(1 - GRAZING) R`` of the centre cross any
@@ -540,7 +541,8 @@ def main_args(args) -> int:
     t0 = time.perf_counter()
     ours = not args.iso_yt_only
     result = {"load_average_start": os.getloadavg(), "variant": args.variant,
-              "res": args.iso_crack_res, "aimed": AIMED_RAYS, "radius": RADIUS, "root": ROOT, "camera": ISO_CAMERA, "cpus": os.cpu_count(),
+              "res": args.iso_crack_res, "aimed": AIMED_RAYS, "radius": RADIUS, "root": ROOT, "camera": ISO_CAMERA,
+              "cpus": os.cpu_count(),
               "surfaces": surfaces_compared(out, tuple(args.iso_levels), args.iso_crack_res, RADIUS, ours)}
     picture = out / "iso-vs-yt.png" if args.iso_picture is None else args.iso_picture
     if ours and str(picture) != "none":
