@@ -464,16 +464,20 @@ def print_row(rec, ref_rec):
           f"build {rec['build_s']:6.2f}s", flush=True)
 
 
+#: The leaf counts whose majorant recompute `tf_change_timing` times.
+RECOMPUTE_LEAVES = (10**5, 10**6, 10**7)
+
+
 def tf_change_timing(mi, args, cells):
-    """Majorant recompute time for 10^5, 10^6 and 10^7 leaves (one Dr.Jit
-    kernel over the leaves' value ranges), and the first frame after a TF
-    change against the steady-state frame time."""
+    """Majorant recompute time for `RECOMPUTE_LEAVES` (10^5, 10^6 and 10^7)
+    leaves (one Dr.Jit kernel over the leaves' value ranges), and the first
+    frame after a TF change against the steady-state frame time."""
     rng = np.random.default_rng(0)
     tf = DeviceTransferFunction(mi_amr.TransferFunction.preset("spiky", (0.0, 1.0)))
     scale = mi.Float(50.0)
     dr.make_opaque(scale)
     out = {"recompute": []}
-    for n in (10**5, 10**6, 10**7):
+    for n in RECOMPUTE_LEAVES:
         a = rng.random(n, dtype=np.float32)
         b = a + rng.random(n, dtype=np.float32) * 0.2
         vmin, vmax = mi.Float(a), mi.Float(b)
