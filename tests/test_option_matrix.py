@@ -14,10 +14,14 @@ Monte Carlo error: passes of independent seeds, z-scores of the difference
 of means from their sample variances (`mi_amr.testing.block_z_scores`, one
 8x8 block), below `Z_MAX`.
 
-The default run takes every value of every option once against the defaults
-in each integrator it applies to, and every (traversal, sampling) pair in
-each integrator (those two decide which structures are built, and stock
-volpath's warning once asked for one that was not). The full cross product
+The default run takes every value of every medium option once against the
+defaults in stock volpath and amrvolpath, every value of every integrator
+option in its integrator, and every (traversal, sampling) pair in those two
+integrators (those two decide which structures are built, and stock
+volpath's warning once asked for one that was not). The medium options and
+the pairs in amrprbvolpath (test02b, test03b) are ``slow``: its primal calls
+the same medium methods as amrvolpath, and each case is a kernel of its own
+(about 0.2 s cold, compiling dominates a case). The full cross product
 traversal x sampling x reconstruction x majorant x integrator and mode is
 ``slow``. One data set (two levels, 225 cells), 8x8 pixels: a distinct
 kernel costs a fraction of a second cold, and a pass about 10 ms, at 4 spp
@@ -50,10 +54,14 @@ AXES = ("traversal", "sampling", "reconstruction", "majorant")
 #: Options that change the expected picture (the reference renders them as
 #: the case gives them); every other option must leave the image's
 #: expectation alone. An ``emission*`` option glows: stock volpath has no
-#: medium emission, so those cases are compared in our integrators only.
+#: medium emission, so those cases are compared in our integrators only;
+#: ``iso_only`` (given an iso value, `ISO`) likewise: stock volpath cannot
+#: see isosurfaces (docs/manual/isosurfaces.md).
 PICTURE = {"reconstruction", "value_transform", "mode", "brightness", "hide_emitters", "max_iterations", "density_scale",
            "tf_min", "tf_max", "emission_min", "emission_max", "emission_scale", "emission_transform",
-           "emission_model"}
+           "emission_model", "iso_only"}
+#: The iso value (the data's units) of the ``iso_only`` cases (refused without one).
+ISO = 0.5
 #: Options whose picture also depends on the integrator's own loops (a ray
 #: that meets ``max_iterations`` stops where that integrator's loop is): the
 #: reference renders in the case's integrator.
@@ -147,6 +155,8 @@ class Renderer:
 
     def scene(self, integrator, med, integ):
         medium = dict(BASE, data=self.cells, **glowing(med))
+        if med.get("iso_only"):
+            medium["iso"] = ISO
         scene = volume_scene(medium, res=RES, integrator=integrator, max_depth=8)
         scene["integrator"].update(integ)
         medium_module._WARNED.clear()             # every once-per-process warning runs for every case
@@ -167,8 +177,8 @@ class Renderer:
                                  f"(min {np.nanmin(passes)}, {np.sum(~np.isfinite(passes))} not finite)")
             return
         glows = any(k.startswith("emission") for k in med)
-        if not compare or (glows and integrator == "volpath"):
-            return
+        if not compare or ((glows or med.get("iso_only")) and integrator == "volpath"):
+            return                                # stock volpath sees neither glow nor isosurfaces
         ref_integrator = integrator if OWN_REFERENCE & set(med) else "amrvolpath"
         key = (ref_integrator,) + tuple(sorted((k, v) for k, v in {**med, **integ}.items() if k in PICTURE))
         if key not in self.refs:
@@ -227,19 +237,36 @@ def test01_the_parsers_name_every_axis_and_refuse_in_one_line(matrix, cells):
 # ---- The default run ----------------------------------------------------------
 def test02_every_option_value_renders_against_the_defaults(matrix, renderer):
     """Every value of every medium option (its other options at their
-    defaults) in each integrator, and every value of every integrator
-    option in its integrator: finite, non-negative pixels whose mean agrees
-    with the default configuration's within Monte Carlo error."""
-    cases = [(name, v) for name, values in matrix.medium.items() for v in values]
-    for name, v in cases:
-        for plugin in INTEGRATORS:
-            renderer.check(plugin, {name: v})
+    defaults) in stock volpath and amrvolpath (amrprbvolpath: test02b), and
+    every value of every integrator option in its integrator, amrprbvolpath's
+    included: finite, non-negative pixels whose mean agrees with the default
+    configuration's within Monte Carlo error."""
+    cases = _medium_cases(matrix, renderer, ("volpath", "amrvolpath"))
     for plugin, options in matrix.integrator.items():
         for name, values in options.items():
             for v in values:
                 renderer.check(plugin, integ={name: v})
     renderer.assert_ok()
-    assert renderer.compared >= 3 * len(cases) - 2      # the glowing cases in volpath are not compared
+    assert renderer.compared >= 2 * len(cases) - 2      # the glowing and iso cases in volpath are not compared
+
+
+@pytest.mark.slow
+def test02b_every_medium_option_value_renders_in_amrprbvolpath(matrix, renderer):
+    """test02's medium options in amrprbvolpath (its primal kernels call the
+    same medium methods as amrvolpath's; 41 kernels, 8 s cold: slow to keep
+    the default suite's time; test02 keeps amrprbvolpath's own options)."""
+    cases = _medium_cases(matrix, renderer, ("amrprbvolpath",))
+    renderer.assert_ok()
+    assert renderer.compared == len(cases)
+
+
+def _medium_cases(matrix, renderer, integrators) -> list:
+    """Every value of every medium option in each of ``integrators``; the cases."""
+    cases = [(name, v) for name, values in matrix.medium.items() for v in values]
+    for name, v in cases:
+        for plugin in integrators:
+            renderer.check(plugin, {name: v})
+    return cases
 
 
 def test03_every_traversal_and_sampling_pair_renders_in_every_integrator(matrix, renderer):
