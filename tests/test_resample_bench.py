@@ -50,13 +50,9 @@ def test_resample_grid_box_conserves_mass_and_nearest_is_exact():
 
 
 def test_resample_study_end_to_end(tmp_path):
-    """The study end to end at 16x16 (24x24 cost 3 s more CPU cold, a third
-    of the test): the RMSE of 256 pixels at 1 and at 8 spp is each known
-    to about 5% (1/sqrt(2 x 256)), so their ratio to about 7%, and the 35%
-    band below is five of those."""
     from mi_amr.bench.__main__ import main
     out = tmp_path / "out"
-    main(["--resample", "cosmo:3e4:4", "--out", str(out), "--data-dir", str(tmp_path / "data"), "--res", "16",
+    main(["--resample", "cosmo:3e4:4", "--out", str(out), "--data-dir", str(tmp_path / "data"), "--res", "24",
           "--truth-spp", "128", "--max-spp", "8", "--resolutions", "8", "32", "--resample-methods", "nearest",
           "--renderers", "heterogeneous", "--repeats", "1", "--check-max", "0", "--unfrozen"])
     for name in ("resample.json", "resample.md", "resample.png"):
