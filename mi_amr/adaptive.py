@@ -39,7 +39,7 @@ DEFAULT_NOISE = 0.02
 #: The same, for a picture that is denoised afterwards: the denoiser takes a
 #: picture at this noise to about `DEFAULT_NOISE` from the converged one
 #: (measured in docs/performance/adaptive.md).
-DENOISED_NOISE = 0.05
+DENOISED_NOISE = 0.1
 #: Samples per pixel at most, when no cap is asked for.
 DEFAULT_MAX_SPP = 1024
 #: Samples per pixel of each pass (a pair of them, one per half buffer, is
@@ -100,7 +100,13 @@ def tile_errors(a_sums: np.ndarray, b_sums: np.ndarray, tile: int, scale: float 
     2)^2`` over ``scale`` (default the picture's mean colour). Pixels without
     samples in either half count as no error. Returns (tile rows, tile
     columns); tiles at the right and bottom edge may be smaller."""
-    a, b = _mean(a_sums), _mean(b_sums)
+    return half_errors(_mean(a_sums), _mean(b_sums), tile, scale)
+
+
+def half_errors(a: np.ndarray, b: np.ndarray, tile: int, scale: float | None = None) -> np.ndarray:
+    """`tile_errors` of two half pictures' means ``a`` and ``b`` (H, W, 3+;
+    colour the first three channels), each of as many samples."""
+    a, b = np.asarray(a, np.float64)[..., :3], np.asarray(b, np.float64)[..., :3]
     sq = np.square(0.5 * (a - b)).mean(axis=-1)
     h, w = sq.shape
     th, tw = -(-h // tile), -(-w // tile)

@@ -58,7 +58,7 @@ def case_data(name: str, out: Path) -> tuple[Path, str | None, bool]:
             write_example(folder)
         return folder / "DD0018" / "DD0018", "density", True
     if name == "blocks":
-        return Path("out/data/blocks.cells"), None, False
+        return Path("scenes/data/blocks.cells"), None, False
     if name == "1e7":
         from .scale import data_file
         return data_file("blocks", 10 ** 7, Path("out/data")), None, False
@@ -118,13 +118,14 @@ def in_process(data, field, res: int, ref_spp: int, out: Path, name: str) -> dic
     from ..scene_writer import scene_for
     from .. import adaptive, denoising
     use_variant(say=False)
-    plan = plan_scene(str(data), field)
-    scene = mi.load_dict(scene_for(plan, res=res, spp=16))
+    plan, plan_s = timed(plan_scene, str(data), field)
+    scene, load_s = timed(mi.load_dict, scene_for(plan, res=res, spp=16))
     pixels = np.arange(res * res, dtype=np.uint32)
     _, compile_s = timed(adaptive.render_pixels, scene, pixels, 1, 7)       # the kernel, compiled or from the cache
     ref, ref_mse, ref_s = reference(scene, res, ref_spp, out / f"ref-{name}-{res}-{ref_spp}.npz")
     rec = {"data": name, "path": str(data), "res": res, "ref_spp": 2 * ref_spp, "ref_seconds": ref_s,
            "ref_err": float(np.sqrt(ref_mse)) / float(ref.mean()), "first_launch_seconds": compile_s,
+           "plan_seconds": plan_s, "load_seconds": load_s,
            "fixed": [], "adaptive": []}
     print(f"{name}: reference {2 * ref_spp} spp, its own error {100 * rec['ref_err']:.2f}%", flush=True)
     albedo, guide_s = timed(denoising.albedo_guide, scene, 3)
@@ -185,6 +186,8 @@ def whole_process(data, field, res: int, rounds: int, out: Path, yt_reads: bool,
         ours.append(run)
         printed = run.pop("stdout")
         run["summary"] = next((line.strip() for line in printed.splitlines() if "spp mean" in line), "")
+        took = [line.split(" in ")[-1].split()[0] for line in printed.splitlines() if "frame(s) in" in line]
+        run["render_seconds"] = float(took[0]) if took else None      # rendering and denoising, as printed
         if ref is not None:
             from ..images import read_exr
             err.append({"denoised": rel_err(read_exr(exr.with_name(exr.stem + "-denoised.exr")), ref, ref_mse),

@@ -225,7 +225,7 @@ def build_parser():
     _render_flags(r, None)
     r.add_argument("--noise", type=_above_zero, default=None, metavar="REL",
                    help="adaptive sampling: a 16x16 tile stops once its estimated RMS error is below REL times the "
-                        "picture's mean (default 0.05 when denoised, else 0.02); the samples each pixel took go to "
+                        "picture's mean (default 0.1 when denoised, else 0.02); the samples each pixel took go to "
                         "OUT-spp.exr")
     r.add_argument("--time", type=_above_zero, default=None, metavar="SECONDS",
                    help="adaptive sampling: stop rendering after about this many seconds")
