@@ -178,3 +178,54 @@ def test05_the_benchmark_takes_the_references_own_error_off():
     got = rel_err(picture, ref, ref_mse=0.02 ** 2)
     assert abs(got["err"] - 0.03 / truth.mean()) < 0.01 * 0.03 / truth.mean(), got
     assert got["measured"] > got["err"]
+
+
+def test06_a_clean_view_stops_refining():
+    """The viewer's scheduler (`mi_amr.view.scheduler`) with passes of a
+    known noise (the truth plus Gaussian noise of 6 `DENOISED_NOISE` per
+    pass, 1 spp each):
+    the view asks for full passes until every tile's half-buffer estimate
+    is below `DENOISED_NOISE` (the denoiser on), then for none, its
+    estimate within 20% of the truth's error (256 pixels a tile); with the
+    denoiser off it asks for passes again (the lower noise); a change
+    starts over."""
+    import math
+    import time
+    from mi_amr.view import engine as eng
+    from mi_amr.view.camera import OrbitCamera
+    from mi_amr.view.scene import LoadedScene
+    from mi_amr.view.scheduler import CLEAN_CHECK
+    from mi_amr.view.tf_spec import TFSpec
+    engine = eng.ViewEngine("unused.cells")
+    engine.loaded = LoadedScene("unused.cells", None, "test", [32, 32],
+                                OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0), TFSpec(), ("plasma",),
+                                stored_log=False)
+    engine.max_spp = 4096
+    engine.ready.set()
+    view = engine.open_view(lambda header, jpeg: None)
+    view.denoise = True
+    rng = np.random.default_rng(3)
+    truth = np.full((32, 32, 3), 1.0)
+    sigma = 6 * adaptive.DENOISED_NOISE
+    with engine._wake:
+        view.accum_epoch, view.spp, view.accum = view.epoch, 0, np.zeros((32, 32, 3))
+        passes = []
+        while engine._next_pass(view, time.monotonic())[0] == "full" and view.spp < 4096:
+            image = truth + rng.normal(0.0, sigma, truth.shape)
+            view.accum += image
+            view.spp += 1
+            engine._check_clean(view, image)
+            passes.append(view.spp)
+        true_error = np.sqrt(np.mean((view.accum / view.spp - truth) ** 2))
+        estimate = engine._clean[view.id][1]
+        assert view.spp % CLEAN_CHECK == 0 and estimate < adaptive.DENOISED_NOISE
+        # sigma / sqrt(spp) < DENOISED_NOISE first at 36 spp, checked at 40
+        assert 32 <= view.spp <= 48 and abs(estimate - true_error) < 0.2 * true_error, (view.spp, estimate)
+        assert engine._next_pass(view, time.monotonic()) == (None, math.inf)
+        view.denoise = False                          # 0.02 now: refining goes on
+        assert engine._next_pass(view, time.monotonic())[0] == "full"
+        view.denoise = True
+        view.epoch += 1                               # a change: a new accumulation, not clean
+        view.accum_epoch = view.epoch
+        view.spp = 1
+        assert engine._next_pass(view, time.monotonic())[0] == "full"

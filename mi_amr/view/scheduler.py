@@ -42,6 +42,15 @@ then about each second (`DENOISE_INTERVAL`) and at ``max_spp``; between
 them each pass re-sends the last denoised image with the real spp count.
 Switching the denoiser keeps the accumulation.
 
+A view stops refining once it is clean, as ``mi-amr render`` stops
+(docs/manual/adaptive.md): every `CLEAN_CHECK` passes (from 16 on) its
+odd and even passes are two half pictures, and when every 16 x 16 tile's
+estimated error (`mi_amr.adaptive.half_errors`) is below the noise of
+`mi_amr.adaptive` (`DENOISED_NOISE` while the view is denoised, else
+`DEFAULT_NOISE`) it gets no more passes (its last frame denoised) until it
+changes: the render thread goes idle. Switching the denoiser off asks for
+the lower noise, and refining goes on.
+
 A pass that fails is reported to its view alone (``notify``), which goes
 back to the last state that rendered, or after `MAX_FAILURES` in a row
 stops rendering until it changes (`_failed`). The render thread
@@ -66,6 +75,7 @@ import time
 import drjit as dr
 import numpy as np
 
+from ..adaptive import DEFAULT_NOISE, DENOISED_NOISE, half_errors
 from ..images import srgb8
 from ..params import plugin_error
 from .protocol import Error, Frame
@@ -75,6 +85,10 @@ from .views import View
 DEFAULT_MAX_SPP = 1024
 #: With the denoiser on, a new denoised image of the accumulation at least this often (seconds).
 DENOISE_INTERVAL = 1.0
+#: A view's accumulation is checked for noise every this many passes (an
+#: even count: the halves hold as many), from twice as many on
+#: (`RenderScheduler._check_clean`).
+CLEAN_CHECK = 8
 #: Passes of one state that may fail in a row before its view stops rendering (until it changes).
 MAX_FAILURES = 3
 #: The lighting mode of the passes that answer a camera or TF change (drag
@@ -151,6 +165,8 @@ class RenderScheduler:
         self._fast_levels = {}                   # fast mode -> its passes' size: `_ladder(mode)`[level]
         self._fast_ms = {}                       # (film size, fast mode) -> running mean of its passes (s)
         self._march_level = 0                    # the hybrid's drag frames' step: FAST_STEPS[level]
+        self._odd = {}                           # view id -> (accum epoch, sum of its odd passes)
+        self._clean = {}                         # view id -> (accum epoch, its estimated error): `_check_clean`
 
     @property
     def warming(self) -> bool:
@@ -339,7 +355,7 @@ class RenderScheduler:
             return "redisplay", now
         e = v.epoch
         if v.accum_epoch == e:
-            return ("full", now) if v.spp < self.max_spp else (None, math.inf)
+            return ("full", now) if v.spp < self.max_spp and not self._is_clean(v) else (None, math.inf)
         if v.fast_epoch != e and v.preview_epoch != e:
             return "fast", now
         if now < v.changed_at + SETTLE:
@@ -384,9 +400,38 @@ class RenderScheduler:
 
     def _denoise_due(self, view: View, spp: int) -> bool:
         """Denoise the accumulation now: at 1, 2, 4, 8, 16 spp, then each
-        `DENOISE_INTERVAL`, and at ``max_spp``."""
+        `DENOISE_INTERVAL`, and at ``max_spp`` or once clean."""
         return spp >= self.max_spp or (spp <= 16 and spp & (spp - 1) == 0) \
-            or time.monotonic() - view.denoised_at >= DENOISE_INTERVAL
+            or time.monotonic() - view.denoised_at >= DENOISE_INTERVAL or self._is_clean(view)
+
+    # ---- Stopping when clean -------------------------------------------------------
+    @staticmethod
+    def _noise(view: View) -> float:
+        """The noise at which ``view`` is clean (module docstring)."""
+        return DENOISED_NOISE if view.denoise else DEFAULT_NOISE
+
+    def _is_clean(self, view: View) -> bool:
+        """Whether ``view``'s accumulation was found clean (`_check_clean`)."""
+        found = self._clean.get(view.id)
+        return found is not None and found[0] == view.accum_epoch and found[1] < self._noise(view)
+
+    def _check_clean(self, view: View, image: np.ndarray):
+        """Under ``_wake``, after ``image`` went into ``view``'s accumulation:
+        keep its odd passes' sum, and every `CLEAN_CHECK` passes estimate
+        the accumulation's error from its two halves (odd and even passes)."""
+        for gone in [k for k in self._odd if k not in self._views]:
+            self._odd.pop(gone, None)
+            self._clean.pop(gone, None)
+        epoch, spp = view.accum_epoch, view.spp
+        if spp % 2:
+            held = self._odd.get(view.id)
+            self._odd[view.id] = (epoch, image.astype(np.float64) + (held[1] if held and held[0] == epoch else 0.0))
+        elif spp % CLEAN_CHECK == 0 and spp >= 2 * CLEAN_CHECK:
+            odd = self._odd.get(view.id)
+            if odd is not None and odd[0] == epoch:
+                half = spp // 2
+                errors = half_errors(odd[1] / half, (view.accum - odd[1]) / half, 16)
+                self._clean[view.id] = (epoch, float(errors.max()))
 
     def _denoised(self, image: np.ndarray) -> np.ndarray:
         with self._denoise_lock:
@@ -440,6 +485,7 @@ class RenderScheduler:
                 else:
                     view.accum += image
                     view.spp += 1
+                self._check_clean(view, image)
                 spp = view.spp
                 shown = view.accum / spp
                 denoise = view.denoise and self._denoise is not None
