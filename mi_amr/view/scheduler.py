@@ -47,8 +47,9 @@ A view stops refining once it is clean, as ``mi-amr render`` stops
 odd and even passes are two half pictures, and when every 16 x 16 tile's
 estimated error (`mi_amr.adaptive.half_errors`) is below the noise of
 `mi_amr.adaptive` (`DENOISED_NOISE` while the view is denoised, else
-`DEFAULT_NOISE`) it gets no more passes (its last frame denoised) until it
-changes: the render thread goes idle. Switching the denoiser off asks for
+`DEFAULT_NOISE`) it gets no more passes (its last frame denoised, with
+``max_spp`` its count: the page says it is done) until it changes: the
+render thread goes idle. Switching the denoiser off asks for
 the lower noise, and refining goes on.
 
 A pass that fails is reported to its view alone (``notify``), which goes
@@ -462,6 +463,7 @@ class RenderScheduler:
         if kind == "fast":
             self._fast_timed(size, took, pass_mode)
         preview = kind != "full"
+        stop_at = self.max_spp                       # the frames' max_spp: where this view's refining ends
         with self._wake:
             if view.closed:
                 return
@@ -487,6 +489,8 @@ class RenderScheduler:
                     view.spp += 1
                 self._check_clean(view, image)
                 spp = view.spp
+                if self._is_clean(view):             # refining ends here: the page says done
+                    stop_at = spp
                 shown = view.accum / spp
                 denoise = view.denoise and self._denoise is not None
                 if denoise and not self._denoise_due(view, spp):
@@ -495,7 +499,7 @@ class RenderScheduler:
         extra = {"mode": pass_mode, "rendered": rendered, "fast": kind == "fast"}
         if shown is None:
             if old[1]:
-                send(Frame(version, spp, True, False, size[0], size[1], render_ms, self.max_spp, old[0], **extra),
+                send(Frame(version, spp, True, False, size[0], size[1], render_ms, stop_at, old[0], **extra),
                      old[1])
             return
         if denoise:                                  # outside the lock: the page's changes go on
@@ -506,7 +510,7 @@ class RenderScheduler:
                 if view.accum_epoch == epoch and view.spp == spp:
                     view.denoised, view.denoised_spp, view.denoised_jpeg = shown, spp, jpeg
                     view.denoised_at = time.monotonic()
-        send(Frame(version, spp, bool(denoise), bool(preview), size[0], size[1], render_ms, self.max_spp, **extra),
+        send(Frame(version, spp, bool(denoise), bool(preview), size[0], size[1], render_ms, stop_at, **extra),
              jpeg)
 
     def _put_clip(self, clip):
