@@ -14,6 +14,8 @@ pictures are denoised without it.
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 
 import mitsuba as mi
@@ -29,7 +31,7 @@ GUIDE_SPP = 4
 def denoiser_missing() -> str | None:
     """Why pictures cannot be denoised here (None: they can)."""
     try:
-        import mitsuba_oidn  # noqa: F401  (the mi-amr[view] extra)
+        importlib.import_module("mitsuba_oidn")      # the mi-amr[view] extra
     except ImportError as e:
         return f"denoising needs mitsuba-oidn: pip install 'mi-amr[view]' ({e})"
     return None

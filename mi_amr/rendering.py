@@ -39,7 +39,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import adaptive, distributed
+from tqdm import tqdm
+
+from . import adaptive, denoising, distributed
 from .autoscene import ScenePlan, plan_scene
 from .scene_writer import scene_for
 from .plugins.integrator import MODES
@@ -281,7 +283,6 @@ def render_adaptively(scene: mi.Scene, job: RenderJob, spp: int, progress: bool 
     """``job`` (with ``noise``) rendered adaptively in the loaded ``scene``,
     at most ``spp`` samples per pixel; the progress bar counts the
     picture's mean samples per pixel."""
-    from tqdm import tqdm
     with tqdm(total=spp, unit="spp", desc=desc, disable=not progress,
               bar_format="{l_bar}{bar}| {n:.1f}/{total} spp mean [{elapsed}]") as bar:
         def advance(mean_spp):
@@ -294,7 +295,6 @@ def _denoised(result: RenderResult) -> RenderResult:
     (`mi_amr.denoising.denoise`, without a guide: docs/performance/adaptive.md
     measured the albedo guide worse)."""
     if result.job.denoise:
-        from . import denoising
         result.denoised = denoising.denoise(result.image)
     return result
 

@@ -43,9 +43,11 @@ FLOORS = [
     # scenes planned from data and written for Mitsuba, the native file written with what they and a medium
     # read first, a run's outputs
     ["mi_amr.autoscene", "mi_amr.scene_writer", "mi_amr.native_file", "mi_amr.series"],
-    # services: rendering on a cluster, rendering as a library (and the variant it renders in),
+    # services: rendering on a cluster, adaptive sampling and denoising, rendering as a library (and the
+    # variant it renders in),
     # the Python API from data to picture, the viewer
-    ["mi_amr.distributed", "mi_amr.rendering", "mi_amr.data_scene", "mi_amr.view"],
+    ["mi_amr.distributed", "mi_amr.adaptive", "mi_amr.denoising", "mi_amr.rendering", "mi_amr.data_scene",
+     "mi_amr.view"],
     # the package's front (plugin registration, short-cuts to the floors below)
     ["mi_amr"],
     # the benchmarks (bench: protocol, scale, resample, peers, view, distributed and their

@@ -28,7 +28,16 @@ import sys
 import time
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
+
+from .. import adaptive, denoising
+from ..autoscene import plan_scene
+from ..data.enzo_example import write_example
+from ..images import read_exr
+from ..rendering import use_variant
+from ..scene_writer import scene_for
+from .scale import data_file
 
 #: Data sets: name -> (how to find the data, field).
 CASES = ("enzo", "blocks", "1e7")
@@ -52,7 +61,6 @@ sc.save(sys.argv[4], sigma_clip=4.0)
 def case_data(name: str, out: Path) -> tuple[Path, str | None, bool]:
     """``(data path, field, yt reads it)`` of a data set."""
     if name == "enzo":
-        from ..data.enzo_example import write_example
         folder = out / "enzo"
         if not (folder / "DD0018" / "DD0018").exists():
             write_example(folder)
@@ -60,7 +68,6 @@ def case_data(name: str, out: Path) -> tuple[Path, str | None, bool]:
     if name == "blocks":
         return Path("scenes/data/blocks.cells"), None, False
     if name == "1e7":
-        from .scale import data_file
         return data_file("blocks", 10 ** 7, Path("out/data")), None, False
     raise ValueError(f"--adaptive: unknown data set {name!r} (known: {', '.join(CASES)})")
 
@@ -82,7 +89,6 @@ def pixel_means(sums) -> np.ndarray:
 def reference(scene, res: int, spp: int, cache: Path, chunk: int = 32):
     """Two half buffers of ``spp`` samples each (cached): ``(mean picture,
     its mean squared error estimate, seconds to render)``."""
-    from ..adaptive import render_pixels
     if cache.exists():
         z = np.load(cache)
         a, b, seconds = z["a"], z["b"], float(z["seconds"])
@@ -93,7 +99,7 @@ def reference(scene, res: int, spp: int, cache: Path, chunk: int = 32):
         for h in range(2):
             total = None
             for k in range(-(-spp // chunk)):
-                s = render_pixels(scene, pixels, min(chunk, spp - k * chunk), 50_000 + 1000 * h + k)
+                s = adaptive.render_pixels(scene, pixels, min(chunk, spp - k * chunk), 50_000 + 1000 * h + k)
                 total = s.astype(np.float64) if total is None else total + s
             halves.append(total)
         a, b = halves
@@ -112,11 +118,6 @@ def timed(fn, *a, **kw):
 
 def in_process(data, field, res: int, ref_spp: int, out: Path, name: str) -> dict:
     """The in-process rows of one data set (module docstring)."""
-    import mitsuba as mi
-    from ..rendering import use_variant
-    from ..autoscene import plan_scene
-    from ..scene_writer import scene_for
-    from .. import adaptive, denoising
     use_variant(say=False)
     plan, plan_s = timed(plan_scene, str(data), field)
     scene, load_s = timed(mi.load_dict, scene_for(plan, res=res, spp=16))
@@ -189,7 +190,6 @@ def whole_process(data, field, res: int, rounds: int, out: Path, yt_reads: bool,
         took = [line.split(" in ")[-1].split()[0] for line in printed.splitlines() if "frame(s) in" in line]
         run["render_seconds"] = float(took[0]) if took else None      # rendering and denoising, as printed
         if ref is not None:
-            from ..images import read_exr
             err.append({"denoised": rel_err(read_exr(exr.with_name(exr.stem + "-denoised.exr")), ref, ref_mse),
                         "raw": rel_err(read_exr(exr), ref, ref_mse)})
         if yt_reads:
