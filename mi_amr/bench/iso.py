@@ -52,10 +52,15 @@ from pathlib import Path
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
+from ..data.io import load_volume
 from ..data.radial_example import (boundary_distance, level_boundaries, radial_cells, ray_sphere,
                                    write_enzo_radial)
 from ..images import write_png
+from ..transfer.function import TransferFunction
 from .harness import bench_scene, check_alone, write_report
 
 #: The sphere: centre and radius of the level set ``f = RADIUS`` (unit cube).
@@ -171,9 +176,6 @@ def yt_surface(ds, value: float, field=("gas", "density"), weld: float = 1e-9) -
     corners closer than ``weld`` (code units: yt computes a vertex on an
     edge shared by two cells once per cell, equal up to rounding) become
     one vertex, so that only real gaps stay open."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
     surf = ds.surface(ds.all_data(), field, value)
     corners = np.asarray(surf.triangles.to("code_length").d, dtype=np.float64).reshape(-1, 3)
     pairs = cKDTree(corners).query_pairs(weld, output_type="ndarray")
@@ -447,8 +449,6 @@ def iso_frame_rows(cell_counts, res: int, repeats: int, data_dir: Path, frozen: 
     under ``multi`` at 1 spp (path traced), and the surface inside the
     volume under ``multi``; one scene alive at a time, the median of
     ``repeats`` passes (`mi_amr.bench.modes.time_passes`)."""
-    import mi_amr
-    from ..data.io import load_volume
     from .modes import LARGE_SCALE, time_passes
     from .scale import data_file
     rows = []
@@ -456,7 +456,7 @@ def iso_frame_rows(cell_counts, res: int, repeats: int, data_dir: Path, frozen: 
         path = data_file("blocks", int(n), Path(data_dir))
         volume = load_volume(path)
         value = float(np.median(np.concatenate([v for _, _, v in volume.cell_chunks()])))
-        tf = mi_amr.TransferFunction.preset("spiky", volume.value_range)
+        tf = TransferFunction.preset("spiky", volume.value_range)
         scenes = {}
         for name, only, integrator in (
                 ("ray_march, surface only", True, {"type": "amrvolpath", "mode": "ray_march"}),
