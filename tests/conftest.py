@@ -27,21 +27,6 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.slow)
 
 
-def pytest_configure(config):
-    """Under pytest-xdist (``make test``: one test process per core), each
-    process renders with one Dr.Jit thread per core it has to itself. The
-    suite's renders are small (8x8 to 64x64 pixels, a few ms a launch), and
-    a second thread per process made them no faster while it cost about a
-    sixth more CPU (option matrix and amrvolpath cold in one process: 60 s
-    of CPU in 62 s with two threads, 50 s in 55 s with one), CPU that the
-    other process's compiles wait for on 2 cores."""
-    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT") or 0)
-    if workers > 0:
-        import drjit as dr
-        cores = len(os.sched_getaffinity(0))
-        dr.set_thread_count(max(1, cores // workers))
-
-
 @pytest.fixture
 def stress_size(request):
     return request.config.getoption("--stress-size")

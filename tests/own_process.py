@@ -16,7 +16,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import drjit as dr
 import mitsuba as mi
 
 TESTS = Path(__file__).resolve().parent
@@ -43,9 +42,8 @@ def in_own_process(test):
     @functools.wraps(test)
     def run(*args, **kwargs):
         code = (f"import sys; sys.path.insert(0, {str(TESTS)!r})\n"
-                f"import mi_amr, mitsuba as mi, drjit as dr\n"
+                f"import mi_amr, mitsuba as mi\n"
                 f"mi.set_variant({RGB!r})\n"          # as the suite's process starts its tests
-                f"dr.set_thread_count({dr.thread_count()})\n"      # and its Dr.Jit threads (conftest)
                 f"import {test.__module__} as m\n"
                 f"m.{test.__name__}.__wrapped__(*{args!r}, **{kwargs!r})\n")
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900,
