@@ -82,7 +82,7 @@ SCALE_STADIUM = {"spiky": 600.0, "foggy": 300.0}     # a small object needs more
 # Every traversal with each brick sampling, spread over the data sets and TFs;
 # the default (grid/hash) on every data set and TF. The full matrix is `slow`.
 FAST = [("cloud", "spiky", "grid", "abr"), ("shell", "foggy", "abr", "brick"),
-        ("stadium", "spiky", "brick", "abr"), ("cloud", "foggy", "kdtree", "brick"),
+        ("cloud", "spiky", "brick", "abr"), ("cloud", "foggy", "kdtree", "brick"),
         ("shell", "spiky", "grid", "brick"), ("stadium", "foggy", "abr", "abr")]
 FAST += [(d, t, "grid", "hash") for d in ("cloud", "shell", "stadium") for t in ("spiky", "foggy")]
 FULL = [(d, t, tr, s) for d in ("cloud", "shell", "stadium") for t in ("spiky", "foggy")

@@ -15,6 +15,7 @@ from mi_amr.bench.protocol import all_configs
 from mi_amr.bench.modes import MODES
 
 
+@pytest.mark.slow      # 12 s of CPU cold: the benchmark harness end to end (slow since the session of issues 61/64: the default suite over its 5-minute budget on CI)
 def test01_bench_writes_results_tables_and_curves(llvm, tmp_path, monkeypatch):
     """The protocol end to end at tiny sizes; its majorant recompute timing
     over 10^3 and 10^4 leaves (the timing's sizes, 10^5-10^7, were 4 s of
@@ -293,6 +294,7 @@ def _modes_bench(tmp_path, floor: bool) -> dict:
     return json.loads((out / "modes.json").read_text())
 
 
+@pytest.mark.slow      # 7 s of CPU cold (slow since the session of issues 61/64: the default suite over its 5-minute budget on CI)
 def test10_modes_bench_reports_each_mode_beside_the_empty_frame(llvm, tmp_path):
     """``--modes``: per case the empty frame and every mode, with its share
     of the empty frame and its real collisions. Properties, not timings:

@@ -5,6 +5,7 @@ measured, and its gradients are real."""
 import math
 
 import numpy as np
+import pytest
 
 import mi_amr
 from mi_amr.bench import gradients
@@ -13,6 +14,7 @@ from mi_amr.data.datasets import make_dataset
 from mi_amr.plugins.medium import live_media
 
 
+@pytest.mark.slow      # 8 s of CPU cold; test_gradients checks the gradients themselves (slow since the session of issues 61/64: the default suite over its 5-minute budget on CI)
 def test01_gradient_case_measures_every_row_with_real_gradients(llvm, tmp_path):
     """A 2,000-cell case at 16x16, 1 spp, one round of one step: the rows of
     amrvolpath, prbvolpath (primal, values, tf_rgba) and the dense medium

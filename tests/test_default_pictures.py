@@ -110,7 +110,8 @@ def test04_a_flat_opaque_block_is_replanned(llvm, plans):
     assert kept.visibility.opaque >= MAX_OPAQUE * kept.visibility.shown
 
 
-@pytest.mark.parametrize("mode", MODES)
+# single: slow (multi and emission_absorption show the same plans; test_modes checks its estimator)
+@pytest.mark.parametrize("mode", [pytest.param(m, marks=pytest.mark.slow) if m == "single" else m for m in MODES])
 def test05_every_default_picture_shows_its_data(llvm, plans, mode):
     """Every gallery plan rendered in ``mode`` (32 x 32, 16 spp, two seeds)
     differs from the same scene with an empty medium in at least

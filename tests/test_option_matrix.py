@@ -235,6 +235,7 @@ def test01_the_parsers_name_every_axis_and_refuse_in_one_line(matrix, cells):
 
 
 # ---- The default run ----------------------------------------------------------
+@pytest.mark.slow      # 25 s of CPU cold; test03 (every traversal and sampling) stays default (slow since the session of issues 61/64: the default suite over its 5-minute budget on CI)
 def test02_every_option_value_renders_against_the_defaults(matrix, renderer):
     """Every value of every medium option (its other options at their
     defaults) in stock volpath and amrvolpath (amrprbvolpath: test02b), and

@@ -49,6 +49,7 @@ def test_resample_grid_box_conserves_mass_and_nearest_is_exact():
         resample_grid(c, n // 2 * 3, "box")
 
 
+@pytest.mark.slow      # 10 s of CPU cold: the study end to end (slow since the session of issues 61/64: the default suite over its 5-minute budget on CI)
 def test_resample_study_end_to_end(tmp_path):
     from mi_amr.bench.__main__ import main
     out = tmp_path / "out"

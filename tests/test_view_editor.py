@@ -245,6 +245,7 @@ def enzo(tmp_path_factory):
     engine.stop()
 
 
+@pytest.mark.slow      # 6 s of CPU cold; the editor's own tests stay default (slow since the session of issues 61/64: the default suite over its 5-minute budget on CI)
 def test04_the_tf_editor_on_yt_data(enzo, browser):
     """The log10 box plans range and density again (the page shows the
     server's); a point's colour picked, the range typed: the saved file is the TF
