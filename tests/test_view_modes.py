@@ -237,6 +237,7 @@ def _drag(page, testid, x0, y0, dx, dy, steps=20):
     return pictures
 
 
+@pytest.mark.slow      # 8 s of CPU, 10 s of wall cold; test02 (the engine) and test_view_hybrid test08 (the page) stay default
 def test04_the_page_drags_fast_refines_in_its_mode_and_snapshots_it(served, browser, tmp_path):
     """The selector offers the three modes, multi first chosen. Orbiting and
     dragging a TF point, the page shows changing fast frames; after the
