@@ -286,6 +286,9 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         lighting = LIGHTING_MODES[self.mode]
         amr_media, has_other = self._media(scene)
         amr_ptrs = [mi.MediumPtr(m) for m in amr_media]
+        # whether any amr medium has isosurfaces (a Python constant of the kernel:
+        # scenes without them trace no surface search, docs/design.md section 15)
+        any_iso = any(m.has_iso for m in amr_media)
 
         ray = mi.Ray3f(ray)
         L = mi.Spectrum(0.0) if adjoint is None else mi.Spectrum(adjoint.L)
@@ -319,7 +322,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
         # and its unchanged stream increment makes Dr.Jit record the loop twice
         while dr.hint(active, label="amrvolpath",
                       exclude=[self, scene, sampler, amr_media, amr_ptrs, has_other, channel, mis_weight,
-                               index_spectrum, adjoint, lighting]):
+                               index_spectrum, adjoint, lighting, any_iso]):
             # ---- Russian roulette (as in volpath) ----
             q = dr.minimum(dr.max(throughput) * dr.square(eta), 0.95)
             perform_rr = depth > self.rr_depth
@@ -341,7 +344,7 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             # first one ahead is the surface that ends the medium segment ----
             iso_at = mi.Bool(False)
             iso_bsdf = dr.zeros(mi.BSDFPtr)
-            for k in range(len(amr_media)):
+            for k in range(len(amr_media) if any_iso else 0):
                 if dr.hint(amr_media[k].has_iso, mode="scalar"):
                     is_k = active_medium & (medium == amr_ptrs[k])
                     hit = amr_media[k].iso_hit(ray, si.t, is_k)
@@ -449,9 +452,10 @@ class AMRVolpathIntegrator(metaclass=VariantPlugin, base="SamplingIntegrator"):
             ctx = mi.BSDFContext()
             bsdf = si.bsdf(ray)
             iso_surface = active_surface & iso_at
-            bsdf[iso_surface] = iso_bsdf
+            if dr.hint(any_iso, mode="scalar"):
+                bsdf[iso_surface] = iso_bsdf
             nee_s = active_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth + 1 < self.max_depth)
-            if dr.hint(lighting.marches or lighting.shades_iso_locally, mode="scalar"):
+            if dr.hint(lighting.marches or (lighting.shades_iso_locally and any_iso), mode="scalar"):
                 # the ray marcher shades a surface of smooth lobes locally, as
                 # its samples (no light sample, no bounce): a deterministic
                 # picture; null, delta and emitting surfaces are as ever.
