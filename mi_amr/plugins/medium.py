@@ -770,13 +770,19 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         """The result of the estimator ``tracking`` walked along ``ray`` in
         the unit cube up to ``t_max`` (`walk_segments`), on the clip plane's
         kept side; ``levels``: its segments carry their finest level."""
+        local, active = self._walked_ray(ray, t_max, active)
+        active &= self.structures.global_majorant * self.iso.volume_on > 0.0
+        return walk_segments(self.structures.segments(levels), local, active, tracking, self._max_iterations)
+
+    def _walked_ray(self, ray, t_max, active):
+        """``(local, active)``: ``ray`` up to world ``t_max`` as the `LocalRay`
+        a walk takes (the unit cube's span on the clip plane's kept side),
+        and the lanes where that span is not empty."""
         o, d, s = self.local_ray(ray)
         hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
         t_lo, t_hi = self._clipped(o, d, dr.maximum(t0, 0.0), dr.minimum(t1, t_max * s))
         local = LocalRay(o=o, d=d, t_lo=t_lo, t_hi=t_hi, scale=s)
-        active = (mi.Bool(active) & hit & (s > 0.0) & (local.t_lo < local.t_hi)
-                  & (self.structures.global_majorant * self.iso.volume_on > 0.0))
-        return walk_segments(self.structures.segments(levels), local, active, tracking, self._max_iterations)
+        return local, mi.Bool(active) & hit & (s > 0.0) & (local.t_lo < local.t_hi)
 
     # ---- Isosurfaces (docs/design.md section 15) -----------------------------------
     @property
@@ -814,11 +820,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         `IsoHit` in world space, its normal the normalised gradient of the
         reconstruction (central differences over half a finest cell),
         turned towards lower values (``-ray.d`` where it vanishes)."""
-        o, d, s = self.local_ray(ray)
-        hit, t0, t1 = intersect_unit_cube(o, safe_rcp(d))
-        t_lo, t_hi = self._clipped(o, d, dr.maximum(t0, 0.0), dr.minimum(t1, t_max * s))
-        local = LocalRay(o=o, d=d, t_lo=t_lo, t_hi=t_hi, scale=s)
-        active = mi.Bool(active) & hit & (s > 0.0) & (local.t_lo < local.t_hi)
+        local, active = self._walked_ray(ray, t_max, active)
         points = self.structures.sampler()
 
         def value_at(u, active):
@@ -827,7 +829,7 @@ class AMRMedium(metaclass=VariantPlugin, base="Medium"):
         search = IsoSearch(value_at, self.iso.slots, self.iso.tolerance, self.structures.extent, count,
                            exact=self.reconstruction == "nearest", offset=self.structures.offset)
         found = walk_segments(self.structures.segments(True, True), local, active, search, self._max_iterations)
-        u = o + d * dr.select(found.found, found.t, 0.0)
+        u = local.o + local.d * dr.select(found.found, found.t, 0.0)
         g = central_gradient(value_at, u, 0.5 * dr.rcp(dr.max(self.structures.extent)), found.found)
         n = dr.normalize(self._to_world @ mi.Normal3f(-g))
         usable = found.found & dr.all(dr.isfinite(n)) & (dr.squared_norm(g) > 0.0)
