@@ -154,6 +154,24 @@ def random_amr(seed=0, n=16, levels=3, quantize=4):
     return mi_amr.dense_to_amr(v.astype(np.float32), 0.0, levels - 1)
 
 
+def dataless_view(size: int, max_spp: int):
+    """``(engine, view)``: a `ViewEngine` whose loaded scene has no data (a
+    ``size`` x ``size`` view, ``max_spp`` the most passes), ready, with one
+    view open whose frames go nowhere: for the scheduler's and the page's
+    logic without rendering."""
+    from mi_amr.view import engine as eng
+    from mi_amr.view.camera import OrbitCamera
+    from mi_amr.view.scene import LoadedScene
+    from mi_amr.view.tf_spec import TFSpec
+    engine = eng.ViewEngine("unused.cells")
+    engine.loaded = LoadedScene("unused.cells", None, "test", [size, size],
+                                OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0), TFSpec(), ("plasma",),
+                                stored_log=False)
+    engine.max_spp = max_spp
+    engine.ready.set()
+    return engine, engine.open_view(lambda header, jpeg: None)
+
+
 def volume_scene(medium, res=32, integrator="volpath", max_depth=32, emitters="env+sun",
                  to_world=None, target=(0.5, 0.5, 0.5), fov=40):
     """A small scene: the medium inside a cube covering its unit cube

@@ -19,7 +19,7 @@ from mi_amr import AMRCells, TransferFunction, adaptive, distributed
 from mi_amr.images import read_exr
 from mi_amr.tools.cli import main
 
-from conftest import FORCED_VARIANT
+from conftest import FORCED_VARIANT, dataless_view
 from test_emission import ortho_scene
 
 RES, TILE = 32, 8
@@ -191,18 +191,8 @@ def test06_a_clean_view_stops_refining():
     starts over."""
     import math
     import time
-    from mi_amr.view import engine as eng
-    from mi_amr.view.camera import OrbitCamera
-    from mi_amr.view.scene import LoadedScene
     from mi_amr.view.scheduler import CLEAN_CHECK
-    from mi_amr.view.tf_spec import TFSpec
-    engine = eng.ViewEngine("unused.cells")
-    engine.loaded = LoadedScene("unused.cells", None, "test", [32, 32],
-                                OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0), TFSpec(), ("plasma",),
-                                stored_log=False)
-    engine.max_spp = 4096
-    engine.ready.set()
-    view = engine.open_view(lambda header, jpeg: None)
+    engine, view = dataless_view(32, 4096)
     view.denoise = True
     rng = np.random.default_rng(3)
     truth = np.full((32, 32, 3), 1.0)

@@ -21,7 +21,7 @@ from mi_amr.view.camera import OrbitCamera
 from mi_amr.view.protocol import safe_name
 from mi_amr.view.tf_spec import TABLE_SIZE, TFSpec, spiky_points
 
-from conftest import HANG_S, wait_until
+from conftest import HANG_S, dataless_view, wait_until
 
 pytest.importorskip("starlette")
 #: Playwright's deadlines, in milliseconds: only a hang reaches them.
@@ -424,14 +424,7 @@ def test12_a_missing_denoiser_is_said_not_hidden(monkeypatch, tmp_path, capsys):
     import mi_amr.view.engine as eng
     from mi_amr.tools.cli import main
     monkeypatch.setattr(eng, "denoiser", lambda: (None, "denoising needs mitsuba-oidn: pip install 'mi-amr[view]'"))
-    from mi_amr.view.scene import LoadedScene
-    engine = eng.ViewEngine("unused.cells")
-    engine.loaded = LoadedScene("unused.cells", None, "test", [64, 64],
-                                OrbitCamera.looking((2, 0, 0), (0, 0, 0), (0, 0, 1), 35.0), TFSpec(), ("plasma",),
-                                stored_log=False)
-    engine.max_spp = 8
-    engine.ready.set()
-    view = engine.open_view(lambda header, jpeg: None)
+    engine, view = dataless_view(64, 8)
     hello = engine.describe(view)
     assert hello["denoiser"] is False and "mi-amr[view]" in hello["denoiser_missing"] and hello["denoise"] is False
     with pytest.raises(ValueError, match="mitsuba-oidn"):
